@@ -1,0 +1,181 @@
+"""The Renderer: rasterize -> interpolate -> texture -> shade -> antialias, for a camera batch."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from recon.camera.cameras import Cameras
+from recon.errors import ReconError
+from recon.mesh.mesh import Mesh, validate_mesh_tensors, vertex_normals
+from recon.render.antialias import EdgeTopology, antialias, build_topology
+from recon.render.interpolate import interpolate_packed
+from recon.render.rasterize import Fragments, rasterize, scatter_to_image
+from recon.render.shading import Lighting, lambertian
+from recon.render.texture import texture as sample_texture
+
+
+@dataclass
+class RenderOutput:
+    """Everything one render returns; all [B, H, W, ...] float32.
+
+    color: [B, H, W, C] linear radiance composited over the background, antialiased.
+    alpha: [B, H, W, 1] antialiased coverage (differentiable at silhouettes).
+    normals: [B, H, W, 3] world-space shading normals (0 on background), not antialiased.
+    depth: [B, H, W, 1] camera-space depth z (0 on background), differentiable, not antialiased.
+    mask: [B, H, W, 1] hard coverage of pixel centres.
+    albedo: [B, H, W, C] albedo (0 on background), not antialiased.
+    fragments: the rasterizer output, for further passes.
+    """
+
+    color: torch.Tensor
+    alpha: torch.Tensor
+    normals: torch.Tensor
+    depth: torch.Tensor
+    mask: torch.Tensor
+    albedo: torch.Tensor
+    fragments: Fragments
+
+
+class Renderer:
+    """Composes the four primitives with Lambertian SH shading.
+
+    texture_filter: 'linear', 'linear-mipmap-linear' or 'nearest' for textured meshes.
+    cull_backfaces: skip faces pointing away (only for closed meshes).
+    """
+
+    def __init__(
+        self,
+        texture_filter: str = "linear-mipmap-linear",
+        texture_boundary: str = "wrap",
+        cull_backfaces: bool = False,
+    ) -> None:
+        self.texture_filter = texture_filter
+        self.texture_boundary = texture_boundary
+        self.cull_backfaces = cull_backfaces
+
+    def render(
+        self,
+        mesh: Mesh,
+        cameras: Cameras,
+        lighting: Lighting,
+        background: torch.Tensor | float = 0.0,
+        topology: EdgeTopology | None = None,
+        vertex_normals_world: torch.Tensor | None = None,
+        mip_pyramid: list[torch.Tensor] | None = None,
+    ) -> RenderOutput:
+        """Render mesh from every camera.
+
+        mesh: albedo from mesh.texture (+ uvs) when present, else mesh.vertex_colors, else 0.5.
+        background: scalar or [C] linear colour behind the object.
+        topology: build_topology(mesh.faces), pass it to avoid rebuilding each call.
+        vertex_normals_world: [V, 3] to override the area-weighted normals.
+        """
+        validate_mesh_tensors(mesh.verts, mesh.faces)
+        if mesh.verts.device != cameras.device:
+            raise ReconError(
+                f"mesh is on {mesh.verts.device} but cameras are on {cameras.device}"
+            )
+        faces = mesh.faces
+        height, width = cameras.image_size
+        batch = len(cameras)
+        clip_pos = cameras.project_to_clip(mesh.verts)
+        textured = mesh.texture is not None and mesh.uvs is not None
+        needs_derivatives = textured and self.texture_filter == "linear-mipmap-linear"
+        fragments = rasterize(
+            clip_pos,
+            faces,
+            (height, width),
+            with_derivatives=needs_derivatives,
+            cull_backfaces=self.cull_backfaces,
+        )
+        if topology is None:
+            topology = build_topology(faces, mesh.verts.shape[0])
+
+        normals_world = (
+            vertex_normals(mesh.verts, faces) if vertex_normals_world is None else vertex_normals_world
+        )
+        normals = torch.nn.functional.normalize(
+            interpolate_packed(normals_world, fragments, faces), dim=-1, eps=1e-12
+        )
+        if textured:
+            if needs_derivatives:
+                uv, uv_derivatives = interpolate_packed(
+                    mesh.uvs, fragments, mesh.uv_faces, with_derivatives=True
+                )
+                uv_derivatives = uv_derivatives.detach()
+            else:
+                uv = interpolate_packed(mesh.uvs, fragments, mesh.uv_faces)
+                uv_derivatives = None
+            albedo = _texture_packed(
+                mesh.texture,
+                uv,
+                uv_derivatives,
+                self.texture_filter,
+                self.texture_boundary,
+                mip_pyramid,
+            )
+        elif mesh.vertex_colors is not None:
+            albedo = interpolate_packed(mesh.vertex_colors, fragments, faces)
+        else:
+            albedo = torch.full(
+                (fragments.covered_index.shape[0], 3), 0.5, device=mesh.verts.device
+            )
+        radiance = lambertian(albedo, normals, lighting)
+        channels = radiance.shape[-1]
+
+        # Camera-space depth as a differentiable attribute (interpolated w is camera z).
+        depth = (
+            interpolate_packed(clip_pos[..., 3:4], fragments, faces)
+            if batch > 0
+            else radiance.new_zeros(0, 1)
+        )
+        covered = fragments.covered_index
+        radiance_image = scatter_to_image(radiance, covered, batch, height, width)
+        mask = fragments.mask
+        background_color = torch.as_tensor(
+            background, dtype=radiance.dtype, device=radiance.device
+        ).expand(channels)
+        composited = radiance_image + (1 - mask) * background_color
+        antialiased = antialias(
+            torch.cat([composited, mask], dim=-1), fragments, clip_pos, faces, topology
+        )
+        return RenderOutput(
+            color=antialiased[..., :channels],
+            alpha=antialiased[..., channels:],
+            normals=scatter_to_image(normals, covered, batch, height, width),
+            depth=scatter_to_image(depth, covered, batch, height, width),
+            mask=mask,
+            albedo=scatter_to_image(albedo, covered, batch, height, width),
+            fragments=fragments,
+        )
+
+
+def _texture_packed(
+    texture_image: torch.Tensor,
+    uv: torch.Tensor,
+    uv_derivatives: torch.Tensor | None,
+    filter_mode: str,
+    boundary: str,
+    mip_pyramid: list[torch.Tensor] | None,
+) -> torch.Tensor:
+    """Sample a texture at packed uv [N, 2] (texture() works on image-shaped inputs)."""
+    count = uv.shape[0]
+    uv_image = uv.view(1, 1, count, 2)
+    derivative_image = None
+    if uv_derivatives is not None:
+        # interpolate gives (du/dx, dv/dx, du/dy, dv/dy): the layout texture() expects.
+        derivative_image = uv_derivatives.view(1, 1, count, 4)
+    kwargs = {}
+    if mip_pyramid is not None:
+        kwargs["mip_pyramid"] = mip_pyramid
+    sampled = sample_texture(
+        texture_image,
+        uv_image,
+        uv_derivatives=derivative_image,
+        filter=filter_mode,
+        boundary=boundary,
+        **kwargs,
+    )
+    return sampled.view(count, -1)

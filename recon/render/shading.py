@@ -1,0 +1,97 @@
+"""Lambertian shading under spherical-harmonic environment light plus directional lights.
+
+Light is described by the SH coefficients of the incident radiance L(w) = sum_lm c_lm Y_lm(w)
+(real SH, bands 0..2, 9 coefficients per channel). A Lambertian surface with albedo rho reflects
+rho / pi * E(n), where the irradiance E(n) = sum_lm A_l c_lm Y_lm(n) with the clamped-cosine
+convolution weights A_0 = pi, A_1 = 2 pi / 3, A_2 = pi / 4 (Ramamoorthi and Hanrahan 2001).
+A constant environment of radiance 1 therefore has c_00 = sqrt(4 pi) and shades albedo as is.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+
+import torch
+
+from recon.errors import ReconError
+
+SH_COEFFICIENT_COUNT = 9
+# Clamped-cosine convolution weight per coefficient (band 0, three of band 1, five of band 2).
+_BAND_WEIGHTS = (math.pi,) + (2 * math.pi / 3,) * 3 + (math.pi / 4,) * 5
+
+
+def sh_basis(directions: torch.Tensor) -> torch.Tensor:
+    """Real SH basis Y_lm up to band 2: [..., 3] unit directions -> [..., 9].
+
+    Order: Y00, Y1-1 (y), Y10 (z), Y11 (x), Y2-2 (xy), Y2-1 (yz), Y20, Y21 (xz), Y22 (x^2-y^2).
+    """
+    x, y, z = directions.unbind(-1)
+    return torch.stack(
+        [
+            torch.full_like(x, 0.28209479177387814),
+            0.4886025119029199 * y,
+            0.4886025119029199 * z,
+            0.4886025119029199 * x,
+            1.0925484305920792 * x * y,
+            1.0925484305920792 * y * z,
+            0.31539156525252005 * (3 * z * z - 1),
+            1.0925484305920792 * x * z,
+            0.5462742152960396 * (x * x - y * y),
+        ],
+        dim=-1,
+    )
+
+
+def sh_irradiance(normals: torch.Tensor, sh_coefficients: torch.Tensor) -> torch.Tensor:
+    """Irradiance E(n) [..., C] for unit normals [..., 3] and radiance SH coefficients [9, C]."""
+    if sh_coefficients.ndim != 2 or sh_coefficients.shape[0] != SH_COEFFICIENT_COUNT:
+        raise ReconError(
+            f"sh_coefficients: expected shape [9, C], got {tuple(sh_coefficients.shape)}"
+        )
+    weights = torch.tensor(_BAND_WEIGHTS, dtype=normals.dtype, device=normals.device)
+    return sh_basis(normals) @ (sh_coefficients * weights[:, None])
+
+
+@dataclass
+class DirectionalLight:
+    """A distant light: direction_to_light [3] (world, toward the light), irradiance [C]."""
+
+    direction_to_light: torch.Tensor
+    irradiance: torch.Tensor
+
+
+@dataclass
+class Lighting:
+    """SH environment [9, C] plus optional directional lights (all in world space)."""
+
+    sh_coefficients: torch.Tensor
+    directional: list[DirectionalLight] = field(default_factory=list)
+
+    @staticmethod
+    def constant(radiance: float | list[float] = 1.0, channels: int = 3, device="cpu") -> Lighting:
+        """A uniform environment of the given radiance (per channel)."""
+        values = torch.as_tensor(radiance, dtype=torch.float32, device=device).expand(channels)
+        sh = torch.zeros(SH_COEFFICIENT_COUNT, channels, device=device)
+        sh[0] = values * math.sqrt(4 * math.pi)
+        return Lighting(sh_coefficients=sh)
+
+    def to(self, device: torch.device | str) -> Lighting:
+        return replace(
+            self,
+            sh_coefficients=self.sh_coefficients.to(device),
+            directional=[
+                DirectionalLight(d.direction_to_light.to(device), d.irradiance.to(device))
+                for d in self.directional
+            ],
+        )
+
+
+def lambertian(albedo: torch.Tensor, normals: torch.Tensor, lighting: Lighting) -> torch.Tensor:
+    """Outgoing linear radiance rho / pi * E(n): albedo [..., C], unit normals [..., 3]."""
+    irradiance = sh_irradiance(normals, lighting.sh_coefficients)
+    for light in lighting.directional:
+        direction = torch.nn.functional.normalize(light.direction_to_light, dim=-1)
+        cosine = (normals * direction).sum(-1, keepdim=True).clamp_min(0)
+        irradiance = irradiance + cosine * light.irradiance
+    return albedo * irradiance / math.pi
