@@ -89,7 +89,9 @@ class Cameras:
             device=self.intrinsics.device,
             dtype=self.intrinsics.dtype,
         )
-        return replace(self, intrinsics=self.intrinsics * scale[None, :, None], image_size=image_size)
+        return replace(
+            self, intrinsics=self.intrinsics * scale[None, :, None], image_size=image_size
+        )
 
     def centers(self) -> torch.Tensor:
         """Camera centres in world space [B, 3]."""
@@ -143,7 +145,9 @@ class Cameras:
 
 
 def look_at(
-    eyes: torch.Tensor, targets: torch.Tensor | None = None, up: tuple[float, float, float] = (0, 1, 0)
+    eyes: torch.Tensor,
+    targets: torch.Tensor | None = None,
+    up: tuple[float, float, float] = (0, 1, 0),
 ) -> torch.Tensor:
     """World-to-camera matrices [B, 4, 4] for cameras at eyes [B, 3] looking at targets [B, 3].
 
@@ -161,7 +165,9 @@ def look_at(
     degenerate = right.norm(dim=-1) < 1e-6
     if bool(degenerate.any()):
         other = torch.tensor([0.0, 0.0, 1.0], dtype=eyes.dtype, device=eyes.device)
-        right[degenerate] = torch.linalg.cross(forward[degenerate], other.expand_as(forward[degenerate]), dim=-1)
+        right[degenerate] = torch.linalg.cross(
+            forward[degenerate], other.expand_as(forward[degenerate]), dim=-1
+        )
     right = torch.nn.functional.normalize(right, dim=-1)
     down = torch.linalg.cross(forward, right, dim=-1)
     rotation = torch.stack([right, down, forward], dim=1)  # rows = camera axes in world
@@ -184,7 +190,8 @@ def intrinsics_from_fov(
     focal_x = 0.5 * width / math.tan(math.radians(fov_x_deg) / 2)
     focal_y = focal_x if fov_y_deg is None else 0.5 * height / math.tan(math.radians(fov_y_deg) / 2)
     return torch.tensor(
-        [[focal_x, 0.0, width / 2], [0.0, focal_y, height / 2], [0.0, 0.0, 1.0]], dtype=torch.float32
+        [[focal_x, 0.0, width / 2], [0.0, focal_y, height / 2], [0.0, 0.0, 1.0]],
+        dtype=torch.float32,
     )
 
 
@@ -226,8 +233,14 @@ def check_rigid(transform: torch.Tensor, name: str, tolerance: float = 1e-3) -> 
     identity = torch.eye(3, dtype=rotation.dtype, device=rotation.device)
     orthogonality = (rotation.transpose(-1, -2) @ rotation - identity).abs().amax(dim=(-1, -2))
     determinant = torch.linalg.det(rotation)
-    bottom = transform[..., 3, :].double() - torch.tensor([0, 0, 0, 1.0], dtype=torch.float64, device=transform.device)
-    bad = (orthogonality > tolerance) | ((determinant - 1).abs() > tolerance) | (bottom.abs().amax(-1) > tolerance)
+    bottom = transform[..., 3, :].double() - torch.tensor(
+        [0, 0, 0, 1.0], dtype=torch.float64, device=transform.device
+    )
+    bad = (
+        (orthogonality > tolerance)
+        | ((determinant - 1).abs() > tolerance)
+        | (bottom.abs().amax(-1) > tolerance)
+    )
     if bool(bad.any()):
         index = int(torch.nonzero(bad.reshape(-1))[0])
         raise ReconError(

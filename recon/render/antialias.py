@@ -25,6 +25,8 @@ from recon.render.rasterize import Fragments
 _CROSSING_MARGIN = 0.02
 # Keeps the crossing division finite for edges nearly parallel to the pixel pair.
 _EXTENT_EPSILON = 1e-7
+# Triangles crossed between the owner and a silhouette edge before giving up.
+_MAX_WALK_STEPS = 4
 
 
 @dataclass
@@ -34,9 +36,11 @@ class EdgeTopology:
     Edge k of face f runs from faces[f, k] to faces[f, (k + 1) % 3]; its own opposite vertex is
     faces[f, (k + 2) % 3].
     neighbor_opposite: [F, 3] int64, -1 for boundary and non-manifold edges (always silhouettes).
+    neighbor_face: [F, 3] int64, the face across each edge, -1 where neighbor_opposite is -1.
     """
 
     neighbor_opposite: torch.Tensor
+    neighbor_face: torch.Tensor
     face_count: int
     vertex_count: int
 
@@ -62,6 +66,7 @@ def build_topology(faces: torch.Tensor, vertex_count: int | None = None) -> Edge
     order = torch.argsort(key)
     sorted_key = key[order]
     neighbor = torch.full((face_count * 3,), -1, dtype=torch.int64, device=faces.device)
+    neighbor_face = torch.full_like(neighbor, -1)
     if face_count:
         same_as_next = sorted_key[1:] == sorted_key[:-1]
         # An edge shared by exactly two faces: equal to its successor, and neither the one
@@ -75,12 +80,14 @@ def build_topology(faces: torch.Tensor, vertex_count: int | None = None) -> Edge
         second = order[pair_start + 1]
         neighbor[first] = opposite[second]
         neighbor[second] = opposite[first]
-    return EdgeTopology(neighbor.view(face_count, 3), face_count, vertex_count)
+        neighbor_face[first] = torch.div(second, 3, rounding_mode="floor")
+        neighbor_face[second] = torch.div(first, 3, rounding_mode="floor")
+    return EdgeTopology(
+        neighbor.view(face_count, 3), neighbor_face.view(face_count, 3), face_count, vertex_count
+    )
 
 
-def _signed_area_2d(
-    a: torch.Tensor, b: torch.Tensor, c: torch.Tensor
-) -> torch.Tensor:
+def _signed_area_2d(a: torch.Tensor, b: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
     """Orientation of screen triangles from clip positions [..., 4], valid for any w signs.
 
     det[x y w] of the three vertices equals w_a w_b w_c times the NDC signed area, so dividing
@@ -210,42 +217,66 @@ def _silhouette_crossings(
         across = (own_row if horizontal else own_column).to(clip_pos.dtype) + 0.5
         batch_of_item = torch.div(own_pixel, height * width, rounding_mode="floor")
 
-        corner = faces[owner]  # [M, 3]
-        triangle = clip_pos.detach()[batch_of_item[:, None], corner]  # [M, 3, 4]
-        start = triangle
-        end = triangle[:, [1, 2, 0]]
-        opposite = triangle[:, [2, 0, 1]]
-        neighbor_vertex = topology.neighbor_opposite[owner]  # [M, 3]
-        has_neighbor = neighbor_vertex >= 0
-        neighbor_position = clip_pos.detach()[
-            batch_of_item[:, None], neighbor_vertex.clamp_min(0)
-        ]  # [M, 3, 4]
-        own_side = _signed_area_2d(start, end, opposite)
-        neighbor_side = _signed_area_2d(start, end, neighbor_position)
-        silhouette = ~has_neighbor | (own_side * neighbor_side > 0)
-
-        crossing, edge_valid = _edge_crossings(
-            start, end, along, across, direction, horizontal, height, width
-        )
-        # The exit edge is the crossing farthest toward the other pixel.
-        crossing_for_max = torch.where(edge_valid, crossing, torch.full_like(crossing, -1e30))
-        best_value, best_edge = crossing_for_max.max(dim=1)
-        exists = best_value > -1e29
-        chosen_silhouette = silhouette.gather(1, best_edge[:, None]).squeeze(1)
-        accept = (
-            exists
-            & chosen_silhouette
-            & (best_value >= -_CROSSING_MARGIN)
-            & (best_value <= 1 + _CROSSING_MARGIN)
-        )
-        keep = torch.nonzero(accept).squeeze(1)
+        # Walk from the owner across interior edges along the segment between the two pixel
+        # centres until a silhouette edge is crossed. Near a silhouette the surface is strongly
+        # foreshortened, so the triangle owning the silhouette edge is often a thin sliver that
+        # covers no pixel centre; stopping at the owner's own edges would miss most of them.
+        item = torch.arange(owner.shape[0], device=owner.device)
+        current = owner
+        found_item, found_start, found_end = [], [], []
+        for _ in range(_MAX_WALK_STEPS):
+            corner = faces[current]  # [M, 3]
+            triangle = clip_pos.detach()[batch_of_item[item, None], corner]  # [M, 3, 4]
+            start = triangle
+            end = triangle[:, [1, 2, 0]]
+            crossing, edge_valid, edge_steep = _edge_crossings(
+                start,
+                end,
+                along[item],
+                across[item],
+                direction[item],
+                horizontal,
+                height,
+                width,
+            )
+            # The exit edge is the crossing farthest toward the other pixel.
+            crossing = torch.where(edge_valid, crossing, torch.full_like(crossing, -1e30))
+            best_value, best_edge = crossing.max(dim=1)
+            steep = edge_steep.gather(1, best_edge[:, None]).squeeze(1)
+            in_range = (best_value >= -_CROSSING_MARGIN) & (best_value <= 1 + _CROSSING_MARGIN)
+            neighbor_vertex = topology.neighbor_opposite[current].gather(1, best_edge[:, None])
+            neighbor_vertex = neighbor_vertex.squeeze(1)
+            edge_index = best_edge[:, None, None].expand(-1, 1, 4)
+            edge_start = start.gather(1, edge_index).squeeze(1)
+            edge_end = end.gather(1, edge_index).squeeze(1)
+            own_opposite = triangle[:, [2, 0, 1]].gather(1, edge_index).squeeze(1)
+            neighbor_position = clip_pos.detach()[batch_of_item[item], neighbor_vertex.clamp_min(0)]
+            # Same side = the neighbour folds back behind this triangle: a silhouette edge.
+            silhouette = (neighbor_vertex < 0) | (
+                _signed_area_2d(edge_start, edge_end, own_opposite)
+                * _signed_area_2d(edge_start, edge_end, neighbor_position)
+                > 0
+            )
+            # Edges running more along the pair than across it are left to the items of the
+            # other direction, which measure them better.
+            accept = in_range & silhouette & steep
+            found_item.append(item[accept])
+            found_start.append(corner.gather(1, best_edge[:, None]).squeeze(1)[accept])
+            found_end.append(corner.gather(1, ((best_edge + 1) % 3)[:, None]).squeeze(1)[accept])
+            # Continue through interior edges that are crossed before the other pixel centre.
+            walk_on = in_range & ~silhouette & (best_value < 1)
+            item = item[walk_on]
+            current = topology.neighbor_face[current[walk_on], best_edge[walk_on]]
+            if item.numel() == 0:
+                break
+        keep = torch.cat(found_item)
         if keep.numel() == 0:
             return None
+        edge_start_vertex = torch.cat(found_start)
+        edge_end_vertex = torch.cat(found_end)
         own_pixel, other_pixel = own_pixel[keep], other_pixel[keep]
         batch_of_item = batch_of_item[keep]
         along, across, direction = along[keep], across[keep], direction[keep]
-        edge_start_vertex = corner[keep].gather(1, best_edge[keep, None]).squeeze(1)
-        edge_end_vertex = corner[keep].gather(1, ((best_edge[keep] + 1) % 3)[:, None]).squeeze(1)
 
     # Differentiable recomputation of the chosen edge's crossing from clip positions.
     start_clip = clip_pos[batch_of_item, edge_start_vertex]  # [K, 4]
@@ -256,9 +287,7 @@ def _silhouette_crossings(
     return own_pixel, other_pixel, crossing.clamp(-_CROSSING_MARGIN, 1 + _CROSSING_MARGIN)
 
 
-def _to_pixels(
-    clip: torch.Tensor, height: int, width: int
-) -> tuple[torch.Tensor, torch.Tensor]:
+def _to_pixels(clip: torch.Tensor, height: int, width: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Pixel coordinates (column, row) of clip positions [..., 4] (w must be positive)."""
     w = clip[..., 3]
     column = (clip[..., 0] / w + 1) * (0.5 * width)
@@ -275,18 +304,26 @@ def _edge_crossings(
     horizontal: bool,
     height: int,
     width: int,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Crossing position of each of the three edges [M, 3] and whether it is usable.
-
-    Usable: both ends in front of the camera, the edge spans the pair's line, and the edge runs
-    more across the pair direction than along it (flat edges belong to the other direction).
-    """
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Crossing position of each of the three edges [M, 3], whether the edge crosses the pair's
+    line at all (both ends in front of the camera), and whether it runs more across the pair
+    direction than along it."""
     start_column, start_row = _to_pixels(start, height, width)
     end_column, end_row = _to_pixels(end, height, width)
     if horizontal:
-        start_along, start_across, end_along, end_across = start_column, start_row, end_column, end_row
+        start_along, start_across, end_along, end_across = (
+            start_column,
+            start_row,
+            end_column,
+            end_row,
+        )
     else:
-        start_along, start_across, end_along, end_across = start_row, start_column, end_row, end_column
+        start_along, start_across, end_along, end_across = (
+            start_row,
+            start_column,
+            end_row,
+            end_column,
+        )
     extent_across = end_across - start_across
     extent_along = end_along - start_along
     in_front = (start[..., 3] > 0) & (end[..., 3] > 0)
@@ -296,7 +333,8 @@ def _edge_crossings(
     spans = (t >= 0) & (t <= 1)
     position = start_along + t * extent_along
     crossing = (position - along[:, None]) * direction[:, None]
-    return crossing, in_front & steep & spans & (extent_across.abs() >= _EXTENT_EPSILON)
+    crosses = in_front & spans & (extent_across.abs() >= _EXTENT_EPSILON)
+    return crossing, crosses, steep
 
 
 def _crossing_along_pair(
@@ -313,9 +351,19 @@ def _crossing_along_pair(
     start_column, start_row = _to_pixels(start_clip, height, width)
     end_column, end_row = _to_pixels(end_clip, height, width)
     if horizontal:
-        start_along, start_across, end_along, end_across = start_column, start_row, end_column, end_row
+        start_along, start_across, end_along, end_across = (
+            start_column,
+            start_row,
+            end_column,
+            end_row,
+        )
     else:
-        start_along, start_across, end_along, end_across = start_row, start_column, end_row, end_column
+        start_along, start_across, end_along, end_across = (
+            start_row,
+            start_column,
+            end_row,
+            end_column,
+        )
     extent_across = end_across - start_across
     extent_across = torch.where(
         extent_across.abs() < _EXTENT_EPSILON,

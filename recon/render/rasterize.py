@@ -240,7 +240,9 @@ def _visibility(
         first_item = int(torch.searchsorted(cumulative, start_candidate, right=True))
         last_item = int(torch.searchsorted(cumulative, stop_candidate - 1, right=True))
         items = work[first_item : last_item + 1]
-        item_start = cumulative[first_item : last_item + 1] - work_counts[first_item : last_item + 1]
+        item_start = (
+            cumulative[first_item : last_item + 1] - work_counts[first_item : last_item + 1]
+        )
         candidate = torch.arange(start_candidate, stop_candidate, device=device)
         owner = torch.searchsorted(cumulative[first_item : last_item + 1], candidate, right=True)
         local = candidate - item_start[owner]
@@ -317,8 +319,10 @@ def _fragments_from_tri_id(
     vertex_index = faces[covered_faces]  # [N, 3]
     triangles = clip_pos[covered_batch[:, None], vertex_index]  # [N, 3, 4], differentiable
     coefficients = edge_function_coefficients(triangles)  # [N, 3, 3]
-    edge_values = coefficients[..., 0] + coefficients[..., 1] * ndc_x[:, None] + (
-        coefficients[..., 2] * ndc_y[:, None]
+    edge_values = (
+        coefficients[..., 0]
+        + coefficients[..., 1] * ndc_x[:, None]
+        + (coefficients[..., 2] * ndc_y[:, None])
     )  # [N, 3]
     total_area = edge_values.sum(-1, keepdim=True)
     covered_barycentrics = edge_values[:, :2] / total_area
@@ -338,7 +342,12 @@ def _fragments_from_tri_id(
             :, :2
         ].unbind(-1)
         covered_derivatives = torch.stack(
-            [du_dx * (2.0 / width), dv_dx * (2.0 / width), du_dy * (2.0 / height), dv_dy * (2.0 / height)],
+            [
+                du_dx * (2.0 / width),
+                dv_dx * (2.0 / width),
+                du_dy * (2.0 / height),
+                dv_dy * (2.0 / height),
+            ],
             dim=-1,
         )
 

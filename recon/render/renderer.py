@@ -74,9 +74,7 @@ class Renderer:
         """
         validate_mesh_tensors(mesh.verts, mesh.faces)
         if mesh.verts.device != cameras.device:
-            raise ReconError(
-                f"mesh is on {mesh.verts.device} but cameras are on {cameras.device}"
-            )
+            raise ReconError(f"mesh is on {mesh.verts.device} but cameras are on {cameras.device}")
         faces = mesh.faces
         height, width = cameras.image_size
         batch = len(cameras)
@@ -94,7 +92,9 @@ class Renderer:
             topology = build_topology(faces, mesh.verts.shape[0])
 
         normals_world = (
-            vertex_normals(mesh.verts, faces) if vertex_normals_world is None else vertex_normals_world
+            vertex_normals(mesh.verts, faces)
+            if vertex_normals_world is None
+            else vertex_normals_world
         )
         normals = torch.nn.functional.normalize(
             interpolate_packed(normals_world, fragments, faces), dim=-1, eps=1e-12
