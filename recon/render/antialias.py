@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import torch
 
 from recon.errors import ReconError
-from recon.render.rasterize import Fragments
+from recon.render.rasterize import Fragments, gather_rows
 
 # Crossings are accepted slightly outside [0, 1] so edges passing exactly through a pixel centre
 # still contribute; beyond that the pair belongs to another configuration.
@@ -137,18 +137,21 @@ def antialias(
             f"topology: built for {topology.face_count} faces, but faces has {faces.shape[0]}"
         )
 
+    with torch.no_grad():
+        # Facing of every face in every view: the sign of det[x y w] (see rasterize).
+        facing = torch.linalg.det(clip_pos.detach()[:, faces][..., [0, 1, 3]]) > 0  # [B, F]
     flat_color = color.reshape(-1, channels)
     delta_index = []
     delta_value = []
     for horizontal in (True, False):
         found = _silhouette_crossings(
-            fragments, clip_pos, faces, topology, horizontal, height, width
+            fragments, clip_pos, faces, topology, facing, horizontal, height, width
         )
         if found is None:
             continue
         own_pixel, other_pixel, crossing = found
-        own_color = flat_color[own_pixel]
-        other_color = flat_color[other_pixel]
+        own_color = gather_rows(flat_color, own_pixel)
+        other_color = gather_rows(flat_color, other_pixel)
         # The crossing lies in the owner's half (c < 0.5): the owner pixel misses 0.5 - c of
         # its coverage and takes that much of the other colour. Otherwise the triangle spills
         # c - 0.5 into the other pixel.
@@ -173,6 +176,7 @@ def _silhouette_crossings(
     clip_pos: torch.Tensor,
     faces: torch.Tensor,
     topology: EdgeTopology,
+    facing: torch.Tensor,
     horizontal: bool,
     height: int,
     width: int,
@@ -200,6 +204,19 @@ def _silhouette_crossings(
         flat_tri = tri_id.reshape(-1)
         flat_depth = depth.reshape(-1)
         first_tri, second_tri = flat_tri[first], flat_tri[second]
+        # Most differing pairs straddle an interior edge between two triangles facing the same
+        # way: such an edge cannot be a silhouette, so those pairs are dropped up front.
+        both = (first_tri >= 0) & (second_tri >= 0)
+        neighbors = topology.neighbor_face[first_tri.clamp_min(0)]  # [M, 3]
+        adjacent = (neighbors == second_tri[:, None]).any(-1)
+        face_count = topology.face_count
+        first_facing = facing.reshape(-1)[batch_index * face_count + first_tri.clamp_min(0)]
+        second_facing = facing.reshape(-1)[batch_index * face_count + second_tri.clamp_min(0)]
+        keep = torch.nonzero(~(both & adjacent & (first_facing == second_facing))).squeeze(1)
+        if keep.numel() == 0:
+            return None
+        first, second = first[keep], second[keep]
+        first_tri, second_tri = first_tri[keep], second_tri[keep]
         # Owner: the only covered pixel, or the nearer one when both are covered.
         owner_is_first = (second_tri < 0) | (
             (first_tri >= 0) & (flat_depth[first] <= flat_depth[second])
@@ -279,8 +296,10 @@ def _silhouette_crossings(
         along, across, direction = along[keep], across[keep], direction[keep]
 
     # Differentiable recomputation of the chosen edge's crossing from clip positions.
-    start_clip = clip_pos[batch_of_item, edge_start_vertex]  # [K, 4]
-    end_clip = clip_pos[batch_of_item, edge_end_vertex]
+    flat_clip = clip_pos.reshape(-1, 4)
+    vertex_count = clip_pos.shape[1]
+    start_clip = gather_rows(flat_clip, batch_of_item * vertex_count + edge_start_vertex)  # [K, 4]
+    end_clip = gather_rows(flat_clip, batch_of_item * vertex_count + edge_end_vertex)
     crossing = _crossing_along_pair(
         start_clip, end_clip, along, across, direction, horizontal, height, width
     )

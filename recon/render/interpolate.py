@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from recon.errors import ReconError
-from recon.render.rasterize import Fragments, scatter_to_image
+from recon.render.rasterize import Fragments, gather_rows, scatter_to_image
 
 
 def interpolate(
@@ -70,9 +70,10 @@ def interpolate_packed(
         )
     corner_index = faces.to(torch.int64)[fragments.covered_faces]  # [N, 3]
     if attributes.ndim == 3 and attributes.shape[0] > 1:
-        corners = attributes[fragments.covered_batch[:, None], corner_index]  # [N, 3, C]
+        flat_index = fragments.covered_batch[:, None] * vertex_count + corner_index
+        corners = gather_rows(attributes.reshape(-1, attributes.shape[-1]), flat_index)
     else:
-        corners = attributes.reshape(vertex_count, -1)[corner_index]
+        corners = gather_rows(attributes.reshape(vertex_count, -1), corner_index)  # [N, 3, C]
     u, v = fragments.covered_barycentrics.unbind(-1)
     # value = u a0 + v a1 + (1 - u - v) a2 = a2 + u (a0 - a2) + v (a1 - a2)
     edge0 = corners[:, 0] - corners[:, 2]

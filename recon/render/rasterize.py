@@ -220,60 +220,119 @@ def _visibility(
     bounds = _screen_bounds(triangles, height, width)  # [B, F, 4]
     box_width = (bounds[..., 1] - bounds[..., 0] + 1).clamp_min(0)
     box_height = (bounds[..., 3] - bounds[..., 2] + 1).clamp_min(0)
-    counts = box_width * box_height * usable
-    work = torch.nonzero(counts.reshape(-1) > 0).squeeze(1)  # flat (b, f) items with pixels
-    if work.numel() == 0:
+    usable &= (box_width > 0) & (box_height > 0)
+    # Triangles wholly in front of the camera: flip the edge functions by the orientation so
+    # "inside" is simply all three >= 0. Triangles crossing the camera plane keep the general
+    # test (all three of the sign of their sum, and the hit in front of the camera).
+    in_front = (triangles[..., 3] > 0).all(-1)
+    orientation = torch.where(determinant < 0, -1.0, 1.0)
+    flip = torch.where(in_front, orientation, torch.ones_like(orientation))
+    # Flipping all 15 keeps depth = z/w unchanged and w * (sum of edges) sign-correct.
+    all_coefficients = all_coefficients * flip[..., None]
+
+    # Bucket triangles by their bounding box rounded up to powers of two, so each bucket is a
+    # dense [triangles, box pixels] grid evaluated by broadcasting: no per-candidate gathers.
+    flat_usable = torch.nonzero(usable.reshape(-1)).squeeze(1)
+    if flat_usable.numel() == 0:
         return keys.view(batch, height, width).fill_(-1)
-    work_counts = counts.reshape(-1)[work]
+    grid_width_log = torch.ceil(torch.log2(box_width.reshape(-1)[flat_usable].float())).long()
+    grid_height_log = torch.ceil(torch.log2(box_height.reshape(-1)[flat_usable].float())).long()
+    bucket = grid_width_log * 64 + grid_height_log
+    order = torch.argsort(bucket)
+    bucket_sorted = bucket[order]
+    unique_buckets, bucket_counts = torch.unique_consecutive(bucket_sorted, return_counts=True)
     flat_coefficients = all_coefficients.reshape(-1, 15)
     flat_bounds = bounds.reshape(-1, 4)
-    flat_box_width = box_width.reshape(-1)
+    flat_in_front = in_front.reshape(-1)
     face_count = faces.shape[0]
-
-    # Split the work list into chunks of at most chunk_candidates candidate pixels; a single
-    # huge triangle is split across chunks through its own pixel range.
-    cumulative = torch.cumsum(work_counts, 0)
-    total = int(cumulative[-1])
-    start_candidate = 0
-    while start_candidate < total:
-        stop_candidate = min(total, start_candidate + chunk_candidates)
-        first_item = int(torch.searchsorted(cumulative, start_candidate, right=True))
-        last_item = int(torch.searchsorted(cumulative, stop_candidate - 1, right=True))
-        items = work[first_item : last_item + 1]
-        item_start = (
-            cumulative[first_item : last_item + 1] - work_counts[first_item : last_item + 1]
-        )
-        candidate = torch.arange(start_candidate, stop_candidate, device=device)
-        owner = torch.searchsorted(cumulative[first_item : last_item + 1], candidate, right=True)
-        local = candidate - item_start[owner]
-        flat_item = items[owner]
-        row_width = flat_box_width[flat_item]
-        item_bounds = flat_bounds[flat_item]
-        pixel_x = item_bounds[:, 0] + local % row_width
-        pixel_y = item_bounds[:, 2] + torch.div(local, row_width, rounding_mode="floor")
-        ndc_x = _pixel_to_ndc(pixel_x, width)
-        ndc_y = _pixel_to_ndc(pixel_y, height)
-        c = flat_coefficients[flat_item]  # [N, 15]
-        c = c.view(-1, 5, 3)
-        values = c[:, :, 0] + c[:, :, 1] * ndc_x[:, None] + c[:, :, 2] * ndc_y[:, None]  # [N, 5]
-        edge_values = values[:, :3]
-        total_area = edge_values.sum(-1, keepdim=True)
-        barycentric_sign_ok = (edge_values * total_area >= 0).all(-1)
-        w_interp = values[:, 4] / total_area[:, 0]
-        depth = values[:, 3] / values[:, 4]
-        inside = barycentric_sign_ok & (w_interp > 0) & (depth >= -1) & (depth <= 1)
-        batch_index = torch.div(flat_item, face_count, rounding_mode="floor")
-        face_index = flat_item - batch_index * face_count
-        pixel_index = (batch_index * height + pixel_y) * width + pixel_x
-        # Map depth from [-1, 1] to [0, 1]: non-negative float32 bits order like the floats.
-        depth01 = ((depth[inside] + 1) * 0.5).clamp(0, 1)
-        depth_bits = depth01.contiguous().view(torch.int32).to(torch.int64)
-        packed = (depth_bits << 32) | face_index[inside]
-        keys.scatter_reduce_(0, pixel_index[inside], packed, reduce="amin")
-        start_candidate = stop_candidate
+    start = 0
+    for bucket_value, count in zip(unique_buckets.tolist(), bucket_counts.tolist()):
+        grid_width = 1 << (bucket_value // 64)
+        grid_height = 1 << (bucket_value % 64)
+        members = flat_usable[order[start : start + count]]
+        start += count
+        per_chunk = max(1, chunk_candidates // (grid_width * grid_height))
+        for chunk_start in range(0, members.numel(), per_chunk):
+            _rasterize_bucket(
+                members[chunk_start : chunk_start + per_chunk],
+                grid_width,
+                grid_height,
+                flat_coefficients,
+                flat_bounds,
+                flat_in_front,
+                face_count,
+                keys,
+                height,
+                width,
+            )
 
     tri_id = torch.where(keys == empty_key, -1, keys & 0xFFFFFFFF)
     return tri_id.view(batch, height, width)
+
+
+def _rasterize_bucket(
+    members: torch.Tensor,
+    grid_width: int,
+    grid_height: int,
+    flat_coefficients: torch.Tensor,
+    flat_bounds: torch.Tensor,
+    flat_in_front: torch.Tensor,
+    face_count: int,
+    keys: torch.Tensor,
+    height: int,
+    width: int,
+) -> None:
+    """Test every pixel of a [grid_height, grid_width] box for each member (flat b * F + f) and
+    scatter-min the packed depth keys of covered pixels into keys."""
+    device = members.device
+    coefficients = flat_coefficients[members]  # [M, 15]
+    box = flat_bounds[members]  # [M, 4]
+    offset_x = torch.arange(grid_width, device=device).repeat(grid_height)
+    offset_y = torch.arange(grid_height, device=device).repeat_interleave(grid_width)
+    pixel_x = box[:, 0:1] + offset_x  # [M, G]
+    pixel_y = box[:, 2:3] + offset_y
+    in_box = (pixel_x <= box[:, 1:2]) & (pixel_y <= box[:, 3:4])
+    ndc_x = _pixel_to_ndc(pixel_x, width)
+    ndc_y = _pixel_to_ndc(pixel_y, height)
+    edge = [
+        coefficients[:, 3 * k : 3 * k + 1]
+        + coefficients[:, 3 * k + 1 : 3 * k + 2] * ndc_x
+        + coefficients[:, 3 * k + 2 : 3 * k + 3] * ndc_y
+        for k in range(3)
+    ]
+    front = flat_in_front[members][:, None]
+    inside = (edge[0] >= 0) & (edge[1] >= 0) & (edge[2] >= 0)
+    if not bool(front.all()):
+        total = edge[0] + edge[1] + edge[2]
+        general = (edge[0] * total >= 0) & (edge[1] * total >= 0) & (edge[2] * total >= 0)
+        inside = torch.where(front, inside, general)
+    inside &= in_box
+    member_index, grid_index = torch.nonzero(inside, as_tuple=True)
+    if member_index.numel() == 0:
+        return
+    c = coefficients[member_index]
+    x = ndc_x[member_index, grid_index]
+    y = ndc_y[member_index, grid_index]
+    z_numerator = c[:, 9] + c[:, 10] * x + c[:, 11] * y
+    w_numerator = c[:, 12] + c[:, 13] * x + c[:, 14] * y
+    edge_sum = (
+        edge[0][member_index, grid_index]
+        + edge[1][member_index, grid_index]
+        + edge[2][member_index, grid_index]
+    )
+    depth = z_numerator / w_numerator
+    # Interpolated w = w_numerator / edge_sum must be positive: the hit is in front.
+    visible = (w_numerator * edge_sum > 0) & (depth >= -1) & (depth <= 1)
+    flat_item = members[member_index[visible]]
+    batch_index = torch.div(flat_item, face_count, rounding_mode="floor")
+    face_index = flat_item - batch_index * face_count
+    pixel_index = (batch_index * height + pixel_y[member_index, grid_index][visible]) * width + (
+        pixel_x[member_index, grid_index][visible]
+    )
+    # Map depth from [-1, 1] to [0, 1]: non-negative float32 bits order like the floats.
+    depth01 = ((depth[visible] + 1) * 0.5).clamp(0, 1)
+    depth_bits = depth01.contiguous().view(torch.int32).to(torch.int64)
+    keys.scatter_reduce_(0, pixel_index, (depth_bits << 32) | face_index, reduce="amin")
 
 
 def rasterize(
@@ -317,7 +376,10 @@ def _fragments_from_tri_id(
     ndc_y = _pixel_to_ndc(pixel_y, height)
 
     vertex_index = faces[covered_faces]  # [N, 3]
-    triangles = clip_pos[covered_batch[:, None], vertex_index]  # [N, 3, 4], differentiable
+    vertex_count = clip_pos.shape[1]
+    triangles = gather_rows(
+        clip_pos.reshape(-1, 4), covered_batch[:, None] * vertex_count + vertex_index
+    )  # [N, 3, 4], differentiable
     coefficients = edge_function_coefficients(triangles)  # [N, 3, 3]
     edge_values = (
         coefficients[..., 0]
@@ -376,6 +438,15 @@ def _fragments_from_tri_id(
         covered_barycentrics=covered_barycentrics,
         covered_derivatives=covered_derivatives,
     )
+
+
+def gather_rows(table: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """table[index] for a 2D table [R, C] and any index shape -> [*index.shape, C].
+
+    index_select's backward is an index_add, several times faster on CPU than the accumulating
+    index_put that advanced indexing uses.
+    """
+    return table.index_select(0, index.reshape(-1)).view(*index.shape, table.shape[-1])
 
 
 def scatter_to_image(
