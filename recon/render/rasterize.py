@@ -246,7 +246,7 @@ def _visibility(
     flat_in_front = in_front.reshape(-1)
     face_count = faces.shape[0]
     start = 0
-    for bucket_value, count in zip(unique_buckets.tolist(), bucket_counts.tolist()):
+    for bucket_value, count in zip(unique_buckets.tolist(), bucket_counts.tolist(), strict=True):
         grid_width = 1 << (bucket_value // 64)
         grid_height = 1 << (bucket_value % 64)
         members = flat_usable[order[start : start + count]]
