@@ -69,7 +69,9 @@ def test_render_rejects_bad_meshes():
     broken = Mesh(mesh.verts, mesh.faces)
     broken.faces = mesh.faces.clone()
     broken.faces[0, 0] = mesh.verts.shape[0] + 5
-    with pytest.raises(ReconError, match=r"mesh.faces: indices must lie in \[0, 641\], got range \[0, 647\]"):
+    with pytest.raises(
+        ReconError, match=r"mesh.faces: indices must lie in \[0, 641\], got range \[0, 647\]"
+    ):
         Renderer().render(broken, cameras, Lighting.constant())
     with pytest.raises(ReconError, match="mesh.verts: contains NaN or inf"):
         Mesh(torch.full((3, 3), float("nan")), torch.tensor([[0, 1, 2]]))

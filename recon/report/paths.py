@@ -1,0 +1,57 @@
+"""The run folder layout, defined once. Stages talk to each other only through these files."""
+
+from __future__ import annotations
+
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+from recon.errors import ReconError
+
+
+@dataclass(frozen=True)
+class RunPaths:
+    """Paths inside one run folder."""
+
+    root: Path
+
+    @property
+    def resolved_config(self) -> Path:
+        return self.root / "config.resolved.yaml"
+
+    @property
+    def environment(self) -> Path:
+        return self.root / "env.json"
+
+    @property
+    def dataset(self) -> Path:
+        """The captures, NeRF-synthetic layout (what a fit reads)."""
+        return self.root / "dataset"
+
+    @property
+    def ground_truth(self) -> Path:
+        """Beside the dataset, never inside it: reference mesh, light, injected effects."""
+        return self.root / "ground_truth"
+
+    @property
+    def contact_sheet(self) -> Path:
+        return self.root / "captures_contact_sheet.png"
+
+
+def prepare_run_folder(root: str | Path, force: bool = False) -> RunPaths:
+    """Create the run folder; refuse to reuse a non-empty one unless force (then it is emptied).
+
+    Raises ReconError naming the folder, so a previous run is never overwritten by accident.
+    """
+    root = Path(root)
+    if root.exists() and not root.is_dir():
+        raise ReconError(f"run folder {root}: exists and is not a folder")
+    if root.exists() and any(root.iterdir()):
+        if not force:
+            raise ReconError(
+                f"run folder {root}: already exists and is not empty; pass --force to replace "
+                "it or --out to choose another folder"
+            )
+        shutil.rmtree(root)
+    root.mkdir(parents=True, exist_ok=True)
+    return RunPaths(root)
