@@ -122,7 +122,8 @@ class Renderer:
             albedo = torch.full(
                 (fragments.covered_index.shape[0], 3), 0.5, device=mesh.verts.device
             )
-        radiance = lambertian(albedo, normals, lighting)
+        positions = interpolate_packed(mesh.verts, fragments, faces) if lighting.points else None
+        radiance = lambertian(albedo, normals, lighting, positions)
         channels = radiance.shape[-1]
 
         # Camera-space depth as a differentiable attribute (interpolated w is camera z).

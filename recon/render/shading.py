@@ -62,11 +62,25 @@ class DirectionalLight:
 
 
 @dataclass
+class PointLight:
+    """A small emitter at position [3] (world) with intensity [C] (W/sr-like units).
+
+    emitter_normal [3] or None: a one-sided area light approximated at its centre; it emits
+    intensity * max(0, cos) toward the half-space its normal faces (None = isotropic bulb).
+    """
+
+    position: torch.Tensor
+    intensity: torch.Tensor
+    emitter_normal: torch.Tensor | None = None
+
+
+@dataclass
 class Lighting:
-    """SH environment [9, C] plus optional directional lights (all in world space)."""
+    """SH environment [9, C] plus optional directional and point lights (world space)."""
 
     sh_coefficients: torch.Tensor
     directional: list[DirectionalLight] = field(default_factory=list)
+    points: list[PointLight] = field(default_factory=list)
 
     @staticmethod
     def constant(radiance: float | list[float] = 1.0, channels: int = 3, device="cpu") -> Lighting:
@@ -84,14 +98,43 @@ class Lighting:
                 DirectionalLight(d.direction_to_light.to(device), d.irradiance.to(device))
                 for d in self.directional
             ],
+            points=[
+                PointLight(
+                    p.position.to(device),
+                    p.intensity.to(device),
+                    None if p.emitter_normal is None else p.emitter_normal.to(device),
+                )
+                for p in self.points
+            ],
         )
 
 
-def lambertian(albedo: torch.Tensor, normals: torch.Tensor, lighting: Lighting) -> torch.Tensor:
-    """Outgoing linear radiance rho / pi * E(n): albedo [..., C], unit normals [..., 3]."""
+def lambertian(
+    albedo: torch.Tensor,
+    normals: torch.Tensor,
+    lighting: Lighting,
+    positions: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Outgoing linear radiance rho / pi * E(n) (no shadows).
+
+    albedo [..., C], unit normals [..., 3], positions [..., 3] world points (needed only for
+    point lights: irradiance I cos / d^2).
+    """
     irradiance = sh_irradiance(normals, lighting.sh_coefficients)
     for light in lighting.directional:
         direction = torch.nn.functional.normalize(light.direction_to_light, dim=-1)
         cosine = (normals * direction).sum(-1, keepdim=True).clamp_min(0)
         irradiance = irradiance + cosine * light.irradiance
+    if lighting.points and positions is None:
+        raise ReconError("lambertian: point lights need the shaded positions")
+    for light in lighting.points:
+        to_light = light.position - positions
+        distance_squared = (to_light * to_light).sum(-1, keepdim=True).clamp_min(1e-12)
+        direction = to_light / distance_squared.sqrt()
+        cosine = (normals * direction).sum(-1, keepdim=True).clamp_min(0)
+        emitted = light.intensity
+        if light.emitter_normal is not None:
+            facing = -(direction * light.emitter_normal).sum(-1, keepdim=True)
+            emitted = emitted * facing.clamp_min(0)
+        irradiance = irradiance + cosine * emitted / distance_squared
     return albedo * irradiance / math.pi

@@ -70,3 +70,22 @@ def test_directional_light_follows_cosine_law():
 def test_bad_sh_shape_is_rejected():
     with pytest.raises(ReconError, match=r"sh_coefficients: expected shape \[9, C\], got \(4, 3\)"):
         sh_irradiance(torch.zeros(2, 3), torch.zeros(4, 3))
+
+
+def test_point_light_follows_inverse_square_and_emitter_cosine():
+    from recon.render.shading import PointLight
+
+    lighting = Lighting(
+        sh_coefficients=torch.zeros(9, 1),
+        points=[PointLight(torch.tensor([0.0, 0.0, 2.0]), torch.tensor([math.pi]))],
+    )
+    positions = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 0.0], [1.0, 0.0, 1.0]])
+    normals = torch.tensor([[0.0, 0.0, 1.0]] * 3)
+    radiance = lambertian(torch.ones(3, 1), normals, lighting, positions)[:, 0]
+    expected = torch.tensor([1.0, 0.25, (1 / math.sqrt(2)) / 2.0])
+    torch.testing.assert_close(radiance, expected, atol=1e-5, rtol=1e-5)
+    # A one-sided emitter facing away lights nothing.
+    lighting.points[0].emitter_normal = torch.tensor([0.0, 0.0, 1.0])
+    assert float(lambertian(torch.ones(3, 1), normals, lighting, positions).abs().max()) == 0.0
+    with pytest.raises(ReconError, match="point lights need the shaded positions"):
+        lambertian(torch.ones(3, 1), normals, lighting)
