@@ -23,6 +23,18 @@ def _add_run_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--force", action="store_true", help="replace an existing run folder")
     parser.add_argument("--device", choices=["auto", "cpu", "cuda"], help="overrides 'device'")
+    parser.add_argument(
+        "--withhold",
+        type=int,
+        default=0,
+        metavar="N",
+        help="inject N random effects with random plausible strengths (blind check)",
+    )
+    parser.add_argument(
+        "--truth-out",
+        metavar="PATH",
+        help="with --withhold: where the withheld effects are written (never in the run folder)",
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -44,12 +56,20 @@ def main(argv: list[str] | None = None) -> int:
     try:
         config = load_config(arguments.config, RunConfig, overrides=arguments.overrides)
         stages = ["synth"] if arguments.command == "synth" else None
+        if arguments.withhold < 0:
+            raise ReconError(f"--withhold: expected N >= 0, got {arguments.withhold}")
+        if arguments.withhold and not arguments.truth_out:
+            raise ReconError("--withhold needs --truth-out PATH, outside the run folder")
+        synth_options = {}
+        if arguments.withhold:
+            synth_options = {"withhold": arguments.withhold, "truth_out": arguments.truth_out}
         paths = pipeline.run(
             config,
             out=arguments.out,
             force=arguments.force,
             device=arguments.device,
             stages=stages,
+            stage_options={"synth": synth_options},
         )
     except ReconError as error:
         print(f"recon: error: {error}", file=sys.stderr)

@@ -84,8 +84,14 @@ def run(
     force: bool = False,
     device: str | None = None,
     stages: list[str] | None = None,
+    stage_options: dict[str, dict] | None = None,
 ) -> RunPaths:
-    """Run the config's stages into a run folder; returns its paths."""
+    """Run the config's stages into a run folder; returns its paths.
+
+    stage_options: keyword arguments per stage name (e.g. {"synth": {"withhold": 2,
+    "truth_out": path}}).
+    """
+    stage_options = stage_options or {}
     resolved_device = resolve_device(device or config.device)
     paths = prepare_run_folder(out or default_run_folder(config), force=force)
     dump_resolved(config, paths.resolved_config)
@@ -96,7 +102,7 @@ def run(
     timings = {}
     for name in stages or config.stages:
         started = time.perf_counter()
-        find_stage(name)(config, paths, resolved_device)
+        find_stage(name)(config, paths, resolved_device, **stage_options.get(name, {}))
         timings[name] = round(time.perf_counter() - started, 3)
     environment["stage_seconds"] = timings
     atomic_write_json(paths.environment, environment)

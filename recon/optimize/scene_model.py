@@ -1,0 +1,110 @@
+"""What a fit optimises: geometry, albedo (per vertex or UV texture) and lighting, plus the
+training data pyramid and the losses. Shared by the geometry and texture stages."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from recon.camera import Cameras
+from recon.io.datasets import CaptureSet
+from recon.io.images import linear_to_srgb
+from recon.render.shading import SH_COEFFICIENT_COUNT, DirectionalLight, Lighting
+
+
+class LightModel(torch.nn.Module):
+    """SH environment [9, 3] plus an optional sun (direction, log irradiance)."""
+
+    def __init__(self, ambient: float = 1.0, with_sun: bool = True) -> None:
+        super().__init__()
+        sh = torch.zeros(SH_COEFFICIENT_COUNT, 3)
+        sh[0] = ambient * math.sqrt(4 * math.pi)
+        self.sh = torch.nn.Parameter(sh)
+        self.with_sun = with_sun
+        self.sun_direction = torch.nn.Parameter(torch.tensor([0.3, 0.8, 0.4]))
+        self.sun_log_irradiance = torch.nn.Parameter(torch.full((3,), math.log(0.3)))
+
+    def lighting(self) -> Lighting:
+        directional = []
+        if self.with_sun:
+            directional.append(
+                DirectionalLight(
+                    torch.nn.functional.normalize(self.sun_direction, dim=0),
+                    self.sun_log_irradiance.exp(),
+                )
+            )
+        return Lighting(sh_coefficients=self.sh, directional=directional)
+
+    def to_json(self) -> dict:
+        lighting = self.lighting()
+        return {
+            "sh_coefficients": lighting.sh_coefficients.detach().cpu().tolist(),
+            "directional": [
+                {
+                    "direction_to_light": light.direction_to_light.detach().cpu().tolist(),
+                    "irradiance": light.irradiance.detach().cpu().tolist(),
+                }
+                for light in lighting.directional
+            ],
+        }
+
+
+@dataclass
+class TrainingPyramid:
+    """The training captures at each resolution of a coarse-to-fine schedule.
+
+    levels[i] = (cameras at that size, images [B, h, w, 3] premultiplied linear, masks).
+    """
+
+    levels: list[tuple[Cameras, torch.Tensor, torch.Tensor]]
+    resolutions: list[int]
+
+    @staticmethod
+    def build(
+        captures: CaptureSet, resolutions: list[int], device: torch.device
+    ) -> TrainingPyramid:
+        height, width = captures.cameras.image_size
+        levels = []
+        used = []
+        for resolution in resolutions:
+            scale = min(1.0, resolution / max(height, width))
+            size = (max(1, round(height * scale)), max(1, round(width * scale)))
+            if used and size == levels[-1][0].image_size:
+                continue
+            images = captures.images.permute(0, 3, 1, 2)
+            masks = captures.masks.permute(0, 3, 1, 2)
+            if size != (height, width):
+                # Area averaging keeps the images what a coarser camera would integrate.
+                images = torch.nn.functional.interpolate(images, size=size, mode="area")
+                masks = torch.nn.functional.interpolate(masks, size=size, mode="area")
+            levels.append(
+                (
+                    captures.cameras.with_image_size(size).to(device),
+                    images.permute(0, 2, 3, 1).contiguous().to(device),
+                    masks.permute(0, 2, 3, 1).contiguous().to(device),
+                )
+            )
+            used.append(resolution)
+        return TrainingPyramid(levels, used)
+
+    def level_for(self, progress: float) -> int:
+        """Equal shares of the steps per level."""
+        return min(len(self.levels) - 1, int(progress * len(self.levels)))
+
+
+def image_loss(prediction: torch.Tensor, target: torch.Tensor, kind: str = "l1") -> torch.Tensor:
+    """L1 in linear radiance, or in log-sRGB (more weight on dark regions)."""
+    if kind == "log_srgb_l1":
+        prediction = torch.log1p(linear_to_srgb(prediction.clamp_min(0)))
+        target = torch.log1p(linear_to_srgb(target.clamp_min(0)))
+    return (prediction - target).abs().mean()
+
+
+def psnr_from_mse(mse: float) -> float:
+    return 10 * math.log10(1.0 / max(mse, 1e-12))
+
+
+def sample_views(count: int, per_step: int, generator: torch.Generator) -> torch.Tensor:
+    return torch.randperm(count, generator=generator)[: min(per_step, count)]
