@@ -1,86 +1,295 @@
 """The synth stage: render the reference scene from the capture rig into a dataset folder.
 
 Writes, in the run folder: dataset/ (NeRF-synthetic layout: transforms_{split}.json, RGBA PNG and
-linear EXR per view), ground_truth/ beside it (reference mesh, lighting, injected effects) and a
-contact sheet of the training views.
+linear EXR per view, optional depth/normal EXR), ground_truth/ beside it (reference mesh,
+lighting, injected effects) and a contact sheet of the training views.
+
+The physical order of the capture chain: light transport while rendering (recon's renderer, or
+Mitsuba when a light-transport effect is on), then the camera/optics/sensor/response effects on
+linear radiance, then 8-bit quantisation when the PNG is written.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+from pathlib import Path
+
 import torch
 from tqdm import tqdm
 
+from data_synth.effects.base import LIGHT_TRANSPORT, AppliedEffect, Capture
 from data_synth.rigs import make_cameras
-from data_synth.scene import build_lighting, build_mesh, lighting_to_json
+from data_synth.scene import WorldLighting, build_lighting, build_mesh, lighting_to_json
 from recon.camera import Cameras
-from recon.config.run_config import RunConfig
+from recon.config.run_config import EffectConfig, RunConfig
+from recon.errors import ReconError
 from recon.io.atomic import atomic_write_json
 from recon.io.datasets import write_nerf_synthetic
-from recon.io.images import save_contact_sheet
+from recon.io.images import save_contact_sheet, write_exr
 from recon.io.meshes import save_mesh
 from recon.mesh.mesh import Mesh
 from recon.render.antialias import build_topology
 from recon.render.renderer import Renderer
-from recon.render.shading import Lighting
 
 # Views rendered per batch: bounds memory at large resolutions.
 VIEWS_PER_BATCH = 8
 SPLIT_ORDER = ("train", "val", "test")
 
 
-def render_views(
-    mesh: Mesh, cameras: Cameras, lighting: Lighting, description: str
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Premultiplied linear colour [B, H, W, 3] and coverage [B, H, W, 1], with a progress bar."""
+@dataclass
+class SynthOptions:
+    """How the stage was asked to run beyond the config (CLI flags).
+
+    withhold: pick this many effects at random (seeded) with random plausible strengths, in
+        addition to the config's; their names and parameters go only to truth_out.
+    truth_out: where the withheld truth is written (outside the dataset and the run folder's
+        ground_truth/, which then says only that effects were withheld).
+    """
+
+    withhold: int = 0
+    truth_out: Path | None = None
+    extra_effects: list[EffectConfig] = field(default_factory=list)
+
+
+@dataclass
+class RenderedViews:
+    """Premultiplied linear colour [B, H, W, 3], coverage [B, H, W, 1], camera depth and world
+    normals [B, H, W, 1 / 3] (0 on background)."""
+
+    colors: torch.Tensor
+    alphas: torch.Tensor
+    depth: torch.Tensor
+    normals: torch.Tensor
+
+
+def render_views_own(
+    mesh: Mesh, cameras: Cameras, world: WorldLighting, description: str
+) -> RenderedViews:
+    """recon's own renderer, in batches, with a progress bar."""
     renderer = Renderer()
     topology = build_topology(mesh.faces, mesh.verts.shape[0])
-    colors, alphas = [], []
+    parts: list[RenderedViews] = []
     with torch.no_grad():
         for start in tqdm(
-            range(0, len(cameras), VIEWS_PER_BATCH),
-            desc=description,
-            unit="batch",
-            leave=False,
+            range(0, len(cameras), VIEWS_PER_BATCH), desc=description, unit="batch", leave=False
         ):
             output = renderer.render(
-                mesh, cameras[start : start + VIEWS_PER_BATCH], lighting, topology=topology
+                mesh, cameras[start : start + VIEWS_PER_BATCH], world.lighting, topology=topology
             )
-            colors.append(output.color.clamp_min(0).cpu())
-            alphas.append(output.alpha.clamp(0, 1).cpu())
-    return torch.cat(colors), torch.cat(alphas)
+            parts.append(
+                RenderedViews(
+                    output.color.clamp_min(0).cpu(),
+                    output.alpha.clamp(0, 1).cpu(),
+                    output.depth.cpu(),
+                    output.normals.cpu(),
+                )
+            )
+    return RenderedViews(
+        *(torch.cat([getattr(p, f) for p in parts]) for f in RenderedViews.__dataclass_fields__)
+    )
 
 
-def synth_stage(config: RunConfig, paths, device: torch.device) -> dict:
-    """Entry point 'synth' of the recon.stages group."""
+def _light_transport_names(effects: list[EffectConfig]) -> list[EffectConfig]:
+    return [effect for effect in effects if effect.name in LIGHT_TRANSPORT]
+
+
+def render_split(
+    mesh: Mesh,
+    cameras: Cameras,
+    world: WorldLighting,
+    config: RunConfig,
+    effects: list[EffectConfig],
+    description: str,
+    device: torch.device,
+) -> RenderedViews:
+    """Render one split with the configured backend (Mitsuba for light-transport effects)."""
+    backend = config.capture.backend
+    light_transport = _light_transport_names(effects)
+    if backend == "own" and light_transport:
+        raise ReconError(
+            "capture.backend: 'own' cannot render light-transport effects "
+            f"{[effect.name for effect in light_transport]}; use 'auto' or 'mitsuba'"
+        )
+    if backend == "mitsuba" or light_transport:
+        from data_synth.effects.light_transport import mitsuba_options_for
+        from data_synth.mitsuba_backend import MitsubaOptions, render_mitsuba
+
+        options = mitsuba_options_for(
+            light_transport,
+            MitsubaOptions(spp=config.capture.mitsuba_spp, seed=config.seed),
+            material=config.scene.material,
+        )
+        colors, alphas = render_mitsuba(mesh.to("cpu"), cameras, world, options)
+        # The path tracer gives no depth/normal buffers: take them from recon's rasterizer.
+        geometry = render_views_own(mesh, cameras.to(device), world, description)
+        return RenderedViews(colors, alphas, geometry.depth, geometry.normals)
+    return render_views_own(mesh, cameras.to(device), world, description)
+
+
+def synth_stage(
+    config: RunConfig,
+    paths,
+    device: torch.device,
+    withhold: int = 0,
+    truth_out: str | Path | None = None,
+) -> dict:
+    """Entry point 'synth' of the recon.stages group (see SynthOptions for the keywords)."""
+    options = SynthOptions(withhold, None if truth_out is None else Path(truth_out))
     generator = torch.Generator().manual_seed(config.seed)
     mesh = build_mesh(config.scene).to(device)
-    lighting = build_lighting(config.scene.lighting).to(device)
-    capture = config.capture
-    counts = {"train": capture.train_views, "val": capture.val_views, "test": capture.test_views}
-    summary = {}
-    sheet_images = []
-    for offset, split in enumerate(SPLIT_ORDER):
-        if counts[split] == 0:
-            continue
-        cameras = make_cameras(capture.cameras, counts[split], generator, offset=offset)
-        colors, alphas = render_views(mesh, cameras.to(device), lighting, f"synth {split}")
-        background = torch.tensor(capture.background)
-        composited = colors + (1 - alphas) * background
+    world = build_lighting(config.scene.lighting)
+    world.lighting = world.lighting.to(device)
+    capture_config = config.capture
+    withheld: list[EffectConfig] = []
+    if options.withhold:
+        from data_synth.withhold import choose_withheld_effects
+
+        withheld = choose_withheld_effects(
+            options.withhold, config.seed, exclude=[e.name for e in capture_config.effects]
+        )
+    if withheld and options.truth_out is None:
+        raise ReconError("--withhold needs --truth-out PATH (the truth never goes in the dataset)")
+    if withheld and options.truth_out.resolve().is_relative_to(paths.root.resolve()):
+        raise ReconError(
+            f"--truth-out {options.truth_out}: must lie outside the run folder {paths.root}, "
+            "or the diagnosis could read it"
+        )
+    effects = list(capture_config.effects) + list(options.extra_effects) + withheld
+    image_effects = _image_effects(effects)
+    counts = {
+        "train": capture_config.train_views,
+        "val": capture_config.val_views,
+        "test": capture_config.test_views,
+    }
+    summary: dict = {"splits": {}}
+    realised: dict[str, list[dict]] = {}
+    sheet_images: list[torch.Tensor] = []
+    test_cameras = None
+    background = torch.tensor(capture_config.background)
+    splits = [(split, counts[split]) for split in SPLIT_ORDER if counts[split] > 0]
+    if capture_config.relight.views > 0:
+        splits.append(("relight", capture_config.relight.views))
+    for offset, (split, count) in enumerate(splits):
+        if split == "relight":
+            # The test cameras (or as many as asked, from the same rig) under another light.
+            cameras = (
+                test_cameras[:count]
+                if test_cameras is not None and len(test_cameras) >= count
+                else make_cameras(capture_config.cameras, count, generator, offset=offset)
+            )
+            split_world = build_lighting(capture_config.relight.lighting)
+            split_world.lighting = split_world.lighting.to(device)
+        else:
+            cameras = make_cameras(capture_config.cameras, count, generator, offset=offset)
+            split_world = world
+        if split == "test":
+            test_cameras = cameras
+        rendered = render_split(
+            mesh, cameras, split_world, config, effects, f"synth {split}", device
+        )
+        capture = Capture(rendered.colors, rendered.alphas, cameras)
+        applied: list[AppliedEffect] = []
+        if image_effects:
+            from data_synth.effects.registry import apply_effects
+
+            applied = apply_effects(capture, image_effects, generator)
+        realised[split] = [{"name": item.name, "parameters": item.parameters} for item in applied]
         write_nerf_synthetic(
             paths.dataset,
             split,
-            cameras,
-            colors,
-            alphas,
-            write_exr=capture.write_exr,
+            capture.cameras,
+            capture.images,
+            capture.alpha,
+            write_exr=capture_config.write_exr,
         )
-        summary[split] = len(cameras)
+        if capture_config.write_depth_normals:
+            for index in range(len(cameras)):
+                write_exr(
+                    paths.dataset / split / f"r_{index}_depth.exr", rendered.depth[index], ["Z"]
+                )
+                write_exr(
+                    paths.dataset / split / f"r_{index}_normal.exr",
+                    rendered.normals[index],
+                    ["X", "Y", "Z"],
+                )
+        summary["splits"][split] = len(cameras)
         if split == "train":
-            sheet_images = list(composited[:16])
-    if capture.contact_sheet and sheet_images:
+            sheet_images = list((capture.images + (1 - capture.alpha) * background)[:16])
+    if capture_config.contact_sheet and sheet_images:
         save_contact_sheet(sheet_images, paths.contact_sheet, columns=4)
-    paths.ground_truth.mkdir(parents=True, exist_ok=True)
-    save_mesh(paths.ground_truth / "reference.obj", mesh.to("cpu"))
-    atomic_write_json(paths.ground_truth / "lighting.json", lighting_to_json(lighting))
-    atomic_write_json(paths.ground_truth / "effects.json", {"effects": []})
+    _write_ground_truth(paths.ground_truth, mesh, world, effects, realised, withheld, options)
+    summary["effects"] = [effect.name for effect in effects if effect not in withheld]
     return summary
+
+
+def _image_effects(effects: list[EffectConfig]) -> list:
+    """World effect objects for the camera/optics/sensor/response effects (not light transport,
+    which configures the renderer instead)."""
+    chosen = [effect for effect in effects if effect.name not in LIGHT_TRANSPORT]
+    if not chosen:
+        return []
+    from data_synth.effects.registry import make_world_effect
+
+    return [make_world_effect(effect.name, dict(effect.parameters)) for effect in chosen]
+
+
+def _write_ground_truth(
+    folder: Path,
+    mesh: Mesh,
+    world: WorldLighting,
+    effects: list[EffectConfig],
+    realised: dict[str, list[dict]],
+    withheld: list[EffectConfig],
+    options: SynthOptions,
+) -> None:
+    """Reference mesh, lighting and effects beside the dataset; withheld effects only in
+    options.truth_out, so a diagnoser that reads the run folder learns nothing about them."""
+    folder.mkdir(parents=True, exist_ok=True)
+    save_mesh(folder / "reference.obj", mesh.to("cpu"))
+    atomic_write_json(folder / "lighting.json", lighting_to_json(world))
+    if world.environment_map is not None:
+        write_exr(folder / "environment.exr", world.environment_map)
+    withheld_names = {effect.name for effect in withheld}
+
+    def records(keep) -> dict:
+        return {
+            split: [item for item in items if keep(item["name"])]
+            for split, items in realised.items()
+        }
+
+    light_transport = {
+        effect.name: dict(effect.parameters) for effect in effects if effect.name in LIGHT_TRANSPORT
+    }
+    if withheld:
+        atomic_write_json(
+            folder / "effects.json",
+            {
+                "effects": [e.name for e in effects if e.name not in withheld_names],
+                "withheld": True,
+                "realised": records(lambda name: name not in withheld_names),
+            },
+        )
+        options.truth_out.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_json(
+            options.truth_out,
+            {
+                "withheld": [
+                    {"name": effect.name, "parameters": dict(effect.parameters)}
+                    for effect in withheld
+                ],
+                "realised": records(lambda name: name in withheld_names),
+                "light_transport": {
+                    name: value for name, value in light_transport.items() if name in withheld_names
+                },
+            },
+        )
+    else:
+        atomic_write_json(
+            folder / "effects.json",
+            {
+                "effects": [effect.name for effect in effects],
+                "withheld": False,
+                "realised": records(lambda name: True),
+                "light_transport": light_transport,
+            },
+        )

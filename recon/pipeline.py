@@ -24,7 +24,7 @@ from recon.config import config_hash, dump_resolved
 from recon.config.run_config import RunConfig
 from recon.errors import ReconError
 from recon.io.atomic import atomic_write_json
-from recon.report.paths import RunPaths, prepare_run_folder
+from recon.io.run_folder import RunPaths, prepare_run_folder
 
 Stage = Callable[[RunConfig, RunPaths, torch.device], dict]
 

@@ -30,11 +30,12 @@ def log(message: str) -> None:
     print(f"[{time.strftime('%H:%M:%S')}] {message}", file=sys.stderr, flush=True)
 
 
-def configure_threads() -> int:
-    """Use every CPU for torch's intra-op pool, explicitly; returns the thread count."""
+def configure_threads(threads: int | None = None) -> int:
+    """Set torch's intra-op pool explicitly: every CPU (os.cpu_count()) unless threads is given;
+    returns the thread count."""
     import torch
 
-    threads = os.cpu_count() or 1
+    threads = threads or os.cpu_count() or 1
     torch.set_num_threads(threads)
     return threads
 
@@ -58,7 +59,31 @@ def synchronize(device: str) -> None:
 
 
 def median(values: list[float]) -> float | None:
-    return float(statistics.median(values)) if values else None
+    return round(float(statistics.median(values)), 3) if values else None
+
+
+def cpu_seconds() -> float:
+    """User + system CPU time of this process (all its threads) so far."""
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
+
+
+class CpuMeter:
+    """Cores this process kept busy between start() and cores_used(): CPU seconds / wall seconds.
+
+    Close to the thread count when the benchmark had the machine to itself; well below it when
+    other processes competed for the cores (timings are then inflated)."""
+
+    def start(self) -> None:
+        self.wall, self.cpu = time.perf_counter(), cpu_seconds()
+
+    def cores_used(self) -> float:
+        wall = time.perf_counter() - self.wall
+        return round((cpu_seconds() - self.cpu) / wall, 2) if wall > 0 else 0.0
+
+
+def load_average() -> list[float] | None:
+    return [round(value, 2) for value in os.getloadavg()] if hasattr(os, "getloadavg") else None
 
 
 def peak_rss_mb() -> float:
@@ -107,7 +132,12 @@ def is_out_of_memory(error: BaseException) -> bool:
     text = str(error).lower()
     return isinstance(error, MemoryError) or any(
         marker in text
-        for marker in ("out of memory", "can't allocate memory", "cannot allocate memory", "bad_alloc")
+        for marker in (
+            "out of memory",
+            "can't allocate memory",
+            "cannot allocate memory",
+            "bad_alloc",
+        )
     )
 
 
@@ -124,7 +154,7 @@ def environment(device: str) -> dict:
         "cpu_model": _cpu_model(),
         "python": platform.python_version(),
         "platform": platform.platform(),
-        "load_average_at_start": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
+        "load_average_at_start": load_average(),
         "memory_available_mb_at_start": available_memory_mb(),
     }
     if device.startswith("cuda"):
@@ -179,8 +209,10 @@ def run_worker(script: Path, job: dict, timeout_s: float) -> dict:
         return {"skipped": f"exceeded --timeout-per-config {timeout_s:g} s (killed)"}
     elapsed = time.perf_counter() - started
     for line in reversed(stdout.splitlines()):
-        if line.startswith(RESULT_MARKER):
-            result = json.loads(line[len(RESULT_MARKER) :])
+        # Libraries may leave a partial line on stdout (Mitsuba's warnings do): find the marker.
+        position = line.find(RESULT_MARKER)
+        if position >= 0:
+            result = json.loads(line[position + len(RESULT_MARKER) :])
             result.setdefault("worker_wall_s", round(elapsed, 3))
             return result
     code = process.returncode
@@ -195,7 +227,7 @@ def run_worker(script: Path, job: dict, timeout_s: float) -> dict:
 
 def emit_worker_result(result: dict) -> None:
     """Print a worker's result on stdout for run_worker to pick up."""
-    print(RESULT_MARKER + json.dumps(result), flush=True)
+    print("\n" + RESULT_MARKER + json.dumps(result), flush=True)
 
 
 def write_json_atomic(path: str | os.PathLike, payload: dict) -> None:

@@ -15,19 +15,7 @@ import scipy.sparse.linalg
 import torch
 
 from recon.errors import ReconError
-
-
-def uniform_laplacian_matrix(faces: np.ndarray, vertex_count: int) -> scipy.sparse.csr_matrix:
-    """L = D - A over the mesh's unique edges, [V, V] CSR."""
-    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    edges = np.unique(np.sort(edges, axis=1), axis=0)
-    rows = np.concatenate([edges[:, 0], edges[:, 1]])
-    columns = np.concatenate([edges[:, 1], edges[:, 0]])
-    adjacency = scipy.sparse.csr_matrix(
-        (np.ones(rows.shape[0]), (rows, columns)), shape=(vertex_count, vertex_count)
-    )
-    degree = scipy.sparse.diags(np.asarray(adjacency.sum(axis=1)).ravel())
-    return (degree - adjacency).tocsr()
+from recon.mesh.laplacian import uniform_laplacian
 
 
 class LaplacianPreconditioner:
@@ -39,7 +27,7 @@ class LaplacianPreconditioner:
     def __init__(self, faces: torch.Tensor, vertex_count: int, smoothing: float) -> None:
         if smoothing < 0:
             raise ReconError(f"large steps lambda: expected >= 0, got {smoothing}")
-        laplacian = uniform_laplacian_matrix(faces.cpu().numpy(), vertex_count)
+        laplacian = uniform_laplacian(faces, vertex_count)
         identity = scipy.sparse.identity(vertex_count, format="csr")
         self.matrix = (identity + smoothing * laplacian).tocsc()
         self._solve = scipy.sparse.linalg.factorized(self.matrix)

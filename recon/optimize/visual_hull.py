@@ -18,12 +18,15 @@ def carve(
     radius: float | None = None,
     threshold: float = 0.5,
     chunk: int = 1 << 16,
+    min_view_share: float = 0.5,
 ) -> tuple[torch.Tensor, float]:
     """Occupancy [R, R, R] float (1 = inside every silhouette that sees it) over the cube
     [-radius, radius]^3, and the radius used.
 
     masks: [B, H, W, 1] coverage. A voxel is removed when any view sees its centre outside the
-    mask; views whose image does not contain the centre say nothing about it.
+    mask; views whose image does not contain the centre say nothing about it, but a voxel seen
+    by fewer than min_view_share of the views is removed too: otherwise the grid's corners,
+    outside most frusta, survive as blobs larger than the object.
     radius: half size of the grid; default 0.6 x the nearest camera's distance from the origin
         (cameras look at the object, so it lies well inside that ball).
     """
@@ -48,7 +51,8 @@ def carve(
         visible = (depth > 0) & (column >= 0) & (column < width) & (row >= 0) & (row < height)
         view = torch.arange(len(cameras), device=masks.device)[:, None].expand_as(column)
         inside = mask_image[view, row.clamp(0, height - 1), column.clamp(0, width - 1)]
-        occupied[start : start + chunk] &= ~(visible & ~inside).any(0)
+        seen_enough = visible.sum(0) >= max(1, min_view_share * len(cameras))
+        occupied[start : start + chunk] &= ~(visible & ~inside).any(0) & seen_enough
     return occupied.view(resolution, resolution, resolution).float(), radius
 
 

@@ -16,6 +16,7 @@ REPO_ROOT = Path(__file__).resolve().parents[2]
 
 def _tiny_config(tmp_path: Path, **capture) -> Path:
     config = yaml.safe_load((REPO_ROOT / "configs" / "quickstart.yaml").read_text())
+    config["stages"] = ["synth"]
     config["capture"]["cameras"]["resolution"] = [32, 32]
     config["capture"].update({"train_views": 3, "val_views": 1, "test_views": 1, **capture})
     config["scene"]["shape"]["resolution"] = 24

@@ -37,6 +37,58 @@ class RunPaths:
     def contact_sheet(self) -> Path:
         return self.root / "captures_contact_sheet.png"
 
+    @property
+    def history(self) -> Path:
+        """One JSON record per logged optimisation step."""
+        return self.root / "history.jsonl"
+
+    @property
+    def checkpoints(self) -> Path:
+        return self.root / "checkpoints"
+
+    @property
+    def mesh_folder(self) -> Path:
+        """The fitted mesh: model.obj (+ .mtl, texture PNG) and model.glb."""
+        return self.root / "mesh"
+
+    @property
+    def fitted_mesh(self) -> Path:
+        return self.mesh_folder / "model.obj"
+
+    @property
+    def light_folder(self) -> Path:
+        """light.json (SH coefficients, directional lights) and environment.exr."""
+        return self.root / "light"
+
+    @property
+    def fitted_light(self) -> Path:
+        return self.light_folder / "light.json"
+
+    @property
+    def renders(self) -> Path:
+        """Held-out views: target, render, error."""
+        return self.root / "renders"
+
+    @property
+    def metrics(self) -> Path:
+        return self.root / "metrics.json"
+
+    @property
+    def figures(self) -> Path:
+        return self.root / "figures"
+
+    @property
+    def report_html(self) -> Path:
+        return self.root / "report.html"
+
+    @property
+    def report_markdown(self) -> Path:
+        return self.root / "report.md"
+
+    @property
+    def reference_mesh(self) -> Path:
+        return self.ground_truth / "reference.obj"
+
 
 def prepare_run_folder(root: str | Path, force: bool = False) -> RunPaths:
     """Create the run folder; refuse to reuse a non-empty one unless force (then it is emptied).

@@ -1,0 +1,96 @@
+"""The fit stage: dataset -> geometry stage (remeshing) -> simplify -> unwrap + bake ->
+texture stage -> mesh/ (OBJ + MTL + PNG, GLB) and light/ (JSON + EXR environment map)."""
+
+from __future__ import annotations
+
+import json
+
+import torch
+
+from recon.config.run_config import RunConfig
+from recon.errors import ReconError
+from recon.io.atomic import atomic_write_json
+from recon.io.datasets import read_nerf_synthetic
+from recon.io.images import write_exr
+from recon.io.meshes import save_mesh
+from recon.optimize.checkpoint import History, load_checkpoint
+from recon.optimize.geometry_stage import run_geometry_stage
+from recon.optimize.scene_model import LightModel
+from recon.optimize.texture_stage import run_texture_stage
+from recon.render.shading import sh_basis
+from recon.io.run_folder import RunPaths
+
+ENVIRONMENT_SIZE = (64, 128)
+
+
+def environment_map_from_light(light: LightModel, size=ENVIRONMENT_SIZE) -> torch.Tensor:
+    """The fitted SH radiance on an equirectangular grid [h, w, 3] (row 0 looks up; azimuth from
+    +x toward +z), for viewing the light in any HDR viewer."""
+    height, width = size
+    theta = (torch.arange(height) + 0.5) * torch.pi / height
+    phi = (torch.arange(width) + 0.5) * 2 * torch.pi / width
+    theta, phi = torch.meshgrid(theta, phi, indexing="ij")
+    directions = torch.stack(
+        [torch.sin(theta) * torch.cos(phi), torch.cos(theta), torch.sin(theta) * torch.sin(phi)], -1
+    )
+    return (sh_basis(directions) @ light.sh.detach().cpu()).clamp_min(0)
+
+
+def fit_stage(
+    config: RunConfig, paths: RunPaths, device: torch.device, resume: bool = False
+) -> dict:
+    """Entry point 'fit' of the recon.stages group: reads paths.dataset, writes the fitted
+    scene, history and checkpoints into the run folder."""
+    if not (paths.dataset / "transforms_train.json").exists():
+        raise ReconError(
+            f"fit: no training split in {paths.dataset} (run the synth stage first, or point "
+            "the run at a dataset)"
+        )
+    captures = read_nerf_synthetic(paths.dataset, "train", background=None, prefer_exr=True)
+    geometry_checkpoint = paths.checkpoints / "geometry.pt"
+    texture_checkpoint = paths.checkpoints / "texture.pt"
+    truncate = None
+    if resume:
+        state = load_checkpoint(texture_checkpoint) or load_checkpoint(geometry_checkpoint)
+        if state is not None:
+            stage = "texture" if state["stage"].startswith("texture") else "geometry"
+            truncate = (stage, state["step"] - 1)
+    history = History(paths.history, truncate_after=truncate)
+    geometry = run_geometry_stage(
+        captures, config.fit, device, config.seed, geometry_checkpoint, history, resume=resume
+    )
+    result = run_texture_stage(
+        captures,
+        geometry,
+        config.fit,
+        device,
+        config.seed,
+        texture_checkpoint,
+        history,
+        resume=resume and texture_checkpoint.exists(),
+    )
+    paths.mesh_folder.mkdir(parents=True, exist_ok=True)
+    mesh = result.mesh.to("cpu")
+    save_mesh(paths.fitted_mesh, mesh)
+    save_mesh(paths.mesh_folder / "model.glb", mesh)
+    paths.light_folder.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(paths.fitted_light, result.light.to_json())
+    write_exr(paths.light_folder / "environment.exr", environment_map_from_light(result.light))
+    return {"faces": int(mesh.faces.shape[0]), "vertices": int(mesh.verts.shape[0])}
+
+
+def load_fitted_light(paths: RunPaths, device: torch.device):
+    """The fitted light as recon Lighting."""
+    from recon.render.shading import DirectionalLight, Lighting
+
+    data = json.loads(paths.fitted_light.read_text())
+    return Lighting(
+        sh_coefficients=torch.tensor(data["sh_coefficients"], device=device),
+        directional=[
+            DirectionalLight(
+                torch.tensor(light["direction_to_light"], device=device),
+                torch.tensor(light["irradiance"], device=device),
+            )
+            for light in data["directional"]
+        ],
+    )

@@ -1,0 +1,147 @@
+"""The report stage: figures (matplotlib) and report.html / report.md from the run folder."""
+
+from __future__ import annotations
+
+import html
+import json
+from pathlib import Path
+
+import matplotlib
+import matplotlib.pyplot as plt
+import torch
+
+from recon.camera import orbit_cameras
+from recon.config.run_config import RunConfig
+from recon.io.atomic import atomic_path, atomic_write_text
+from recon.io.images import save_contact_sheet
+from recon.io.meshes import load_mesh
+from recon.mesh.mesh import Mesh
+from recon.optimize.checkpoint import History
+from recon.optimize.fit import load_fitted_light
+from recon.render.renderer import Renderer
+from recon.render.shading import Lighting
+from recon.io.run_folder import RunPaths
+
+matplotlib.use("Agg")
+
+
+def _save_figure(figure, path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as temporary:
+        figure.savefig(temporary, dpi=110, bbox_inches="tight", format="png")
+    plt.close(figure)
+
+
+def loss_figure(records: list[dict], path: Path) -> None:
+    """Loss and training PSNR per step, both stages, one curve each."""
+    figure, (loss_axis, psnr_axis) = plt.subplots(1, 2, figsize=(10, 3.5))
+    offset = 0
+    for stage in ("geometry", "texture"):
+        stage_records = [record for record in records if record["stage"] == stage]
+        if not stage_records:
+            continue
+        steps = [offset + record["step"] for record in stage_records]
+        loss_axis.plot(steps, [record["loss"] for record in stage_records], label=stage)
+        psnr_axis.plot(steps, [record["psnr_linear"] for record in stage_records], label=stage)
+        offset = steps[-1] + 1
+    loss_axis.set_yscale("log")
+    loss_axis.set_xlabel("step")
+    loss_axis.set_ylabel("loss")
+    loss_axis.legend()
+    psnr_axis.set_xlabel("step")
+    psnr_axis.set_ylabel("training PSNR, linear (dB)")
+    psnr_axis.legend()
+    _save_figure(figure, path)
+
+
+def turntable(mesh: Mesh, lighting: Lighting, path: Path, device: torch.device) -> None:
+    """Eight views around the fitted mesh in one sheet."""
+    cameras = orbit_cameras(8, (160, 160), distance=3.0, fov_x_deg=40.0, device=device)
+    with torch.no_grad():
+        output = Renderer().render(mesh.to(device), cameras, lighting, background=1.0)
+    save_contact_sheet(list(output.color.cpu()), path, columns=4)
+
+
+def geometry_error_figure(mesh: Mesh, reference: Mesh, path: Path, device: torch.device) -> None:
+    """The fitted mesh coloured by its distance to the reference (viridis, 0 .. 1 % diagonal)."""
+    from recon.metrics.geometry import per_vertex_error
+
+    error = per_vertex_error(mesh, reference).cpu()
+    scale = 0.01
+    colors = matplotlib.colormaps["viridis"]((error / scale).clamp(0, 1).numpy())[:, :3]
+    colored = Mesh(mesh.verts, mesh.faces, vertex_colors=torch.tensor(colors, dtype=torch.float32))
+    cameras = orbit_cameras(4, (200, 200), distance=3.0, device=device)
+    with torch.no_grad():
+        output = Renderer().render(
+            colored.to(device), cameras, Lighting.constant(device=device), background=1.0
+        )
+    save_contact_sheet(list(output.color.cpu()), path, columns=4)
+
+
+def _metric_rows(metrics: dict) -> list[tuple[str, str]]:
+    rows = []
+    for group in ("image", "geometry", "mesh"):
+        for key, value in metrics.get(group, {}).items():
+            if isinstance(value, float):
+                text = f"{value:.4g}"
+            else:
+                text = str(value)
+            rows.append((f"{group}.{key}", text))
+    for stage, seconds in metrics.get("stage_seconds", {}).items():
+        rows.append((f"seconds.{stage}", f"{seconds:.1f}"))
+    return rows
+
+
+def report_stage(config: RunConfig, paths: RunPaths, device: torch.device) -> dict:
+    """Entry point 'report' of the recon.stages group: whatever the run folder holds."""
+    figures: list[tuple[str, Path]] = []
+    records = History(paths.history).records()
+    if records:
+        loss_figure(records, paths.figures / "loss.png")
+        figures.append(("Loss and training PSNR", paths.figures / "loss.png"))
+    if paths.contact_sheet.exists():
+        figures.append(("Training captures", paths.contact_sheet))
+    if paths.fitted_mesh.exists():
+        mesh = load_mesh(paths.fitted_mesh)
+        lighting = load_fitted_light(paths, device)
+        turntable(mesh, lighting, paths.figures / "turntable.png", device)
+        figures.append(("Fitted mesh, turntable", paths.figures / "turntable.png"))
+        if paths.reference_mesh.exists():
+            geometry_error_figure(
+                mesh, load_mesh(paths.reference_mesh), paths.figures / "geometry_error.png", device
+            )
+            figures.append(
+                (
+                    "Distance to the reference (viridis: 0 to 1 % of the diagonal)",
+                    paths.figures / "geometry_error.png",
+                )
+            )
+    if paths.renders.exists():
+        for render in sorted(paths.renders.glob("*.png"))[:8]:
+            figures.append((f"Held-out view {render.stem}: target | render | error", render))
+    metrics = json.loads(paths.metrics.read_text()) if paths.metrics.exists() else {}
+    rows = _metric_rows(metrics)
+    relative = [(title, figure.relative_to(paths.root).as_posix()) for title, figure in figures]
+    markdown = [f"# recon report: {config.name}", "", "| metric | value |", "|---|---|"]
+    markdown += [f"| {name} | {value} |" for name, value in rows]
+    for title, link in relative:
+        markdown += ["", f"## {title}", "", f"![{title}]({link})"]
+    atomic_write_text(paths.report_markdown, "\n".join(markdown) + "\n")
+    table = "".join(
+        f"<tr><td>{html.escape(name)}</td><td>{html.escape(value)}</td></tr>"
+        for name, value in rows
+    )
+    body = "".join(
+        f"<h2>{html.escape(title)}</h2><img src='{html.escape(link)}' style='max-width:100%'>"
+        for title, link in relative
+    )
+    page = (
+        "<!doctype html><html><head><meta charset='utf-8'>"
+        f"<title>recon report: {html.escape(config.name)}</title>"
+        "<style>body{font-family:sans-serif;max-width:1100px;margin:auto}"
+        "td{padding:2px 12px;border-bottom:1px solid #ddd}</style></head><body>"
+        f"<h1>recon report: {html.escape(config.name)}</h1><table>{table}</table>{body}"
+        "</body></html>"
+    )
+    atomic_write_text(paths.report_html, page)
+    return {"figures": len(figures)}
