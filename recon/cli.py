@@ -3,16 +3,16 @@
 from __future__ import annotations
 
 import argparse
+import json
 import sys
+from pathlib import Path
 
 from recon.config import load_config
 from recon.config.run_config import RunConfig
 from recon.errors import ReconError
 
 
-def _add_run_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("config", help="YAML run config (see configs/)")
-    parser.add_argument("--out", help="run folder (default: runs/<name>/<UTC stamp>)")
+def _add_common(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--set",
         dest="overrides",
@@ -21,32 +21,99 @@ def _add_run_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="KEY=VALUE",
         help="override a config value, e.g. --set capture.train_views=8 (repeatable)",
     )
-    parser.add_argument("--force", action="store_true", help="replace an existing run folder")
     parser.add_argument("--device", choices=["auto", "cpu", "cuda"], help="overrides 'device'")
-    parser.add_argument(
-        "--withhold",
-        type=int,
-        default=0,
-        metavar="N",
-        help="inject N random effects with random plausible strengths (blind check)",
-    )
-    parser.add_argument(
-        "--truth-out",
-        metavar="PATH",
-        help="with --withhold: where the withheld effects are written (never in the run folder)",
-    )
+
+
+def _add_new_run(parser: argparse.ArgumentParser, withhold: bool) -> None:
+    parser.add_argument("config", nargs="?", help="YAML run config (see configs/)")
+    parser.add_argument("--out", help="run folder (default: runs/<name>/<UTC stamp>)")
+    parser.add_argument("--force", action="store_true", help="replace an existing run folder")
+    parser.add_argument("--data", help="fit this dataset folder instead of synthesising one")
+    _add_common(parser)
+    if withhold:
+        parser.add_argument(
+            "--withhold",
+            type=int,
+            default=0,
+            metavar="N",
+            help="inject N random effects with random plausible strengths (blind check)",
+        )
+        parser.add_argument(
+            "--truth-out",
+            metavar="PATH",
+            help="with --withhold: where the withheld effects go (never in the run folder)",
+        )
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="recon", description=__doc__)
     commands = parser.add_subparsers(dest="command", required=True)
     run_parser = commands.add_parser("run", help="run every stage the config lists")
-    _add_run_arguments(run_parser)
-    synth_parser = commands.add_parser(
-        "synth", help="synthesise captures of the config's reference scene (data_synth)"
+    _add_new_run(run_parser, withhold=True)
+    run_parser.add_argument("--resume", metavar="RUN", help="continue RUN from its checkpoints")
+    synth_parser = commands.add_parser("synth", help="synthesise captures only (data_synth)")
+    _add_new_run(synth_parser, withhold=True)
+    fit_parser = commands.add_parser(
+        "fit", help="fit a dataset: CONFIG (new run) or an existing RUN folder"
     )
-    _add_run_arguments(synth_parser)
+    _add_new_run(fit_parser, withhold=False)
+    fit_parser.add_argument("--resume", metavar="RUN", help="continue RUN's fit")
+    for name, text in (("evaluate", "metrics of a fitted run"), ("report", "figures + report")):
+        stage_parser = commands.add_parser(name, help=text)
+        stage_parser.add_argument("run", help="run folder")
+        _add_common(stage_parser)
+    compare_parser = commands.add_parser(
+        "compare", help="compare a run's metrics with a baseline; exit 1 on a regression"
+    )
+    compare_parser.add_argument("run", help="run folder (or a metrics.json)")
+    compare_parser.add_argument("--baseline", required=True, help="YAML/JSON bounds per metric")
+    compare_parser.add_argument(
+        "--write", action="store_true", help="write the baseline from this run instead"
+    )
     return parser
+
+
+def _new_run(arguments, stages: list[str] | None):
+    from recon import pipeline
+
+    if not arguments.config:
+        raise ReconError(f"recon {arguments.command}: give a CONFIG (or --resume RUN)")
+    overrides = list(arguments.overrides)
+    if getattr(arguments, "data", None):
+        overrides.append(f"data={arguments.data}")
+    config = load_config(arguments.config, RunConfig, overrides=overrides)
+    withhold = getattr(arguments, "withhold", 0)
+    truth_out = getattr(arguments, "truth_out", None)
+    if withhold < 0:
+        raise ReconError(f"--withhold: expected N >= 0, got {withhold}")
+    if withhold and not truth_out:
+        raise ReconError("--withhold needs --truth-out PATH, outside the run folder")
+    synth_options = {"withhold": withhold, "truth_out": truth_out} if withhold else {}
+    return pipeline.run(
+        config,
+        out=arguments.out,
+        force=arguments.force,
+        device=arguments.device,
+        stages=stages,
+        stage_options={"synth": synth_options},
+    )
+
+
+def _compare(arguments) -> int:
+    from recon.report.compare import compare, format_table, load_baseline, write_baseline
+
+    source = Path(arguments.run)
+    metrics_path = source / "metrics.json" if source.is_dir() else source
+    if not metrics_path.exists():
+        raise ReconError(f"compare: {metrics_path} not found (run 'recon evaluate' first)")
+    metrics = json.loads(metrics_path.read_text())
+    if arguments.write:
+        write_baseline(metrics, arguments.baseline)
+        print(f"baseline written: {arguments.baseline}")
+        return 0
+    results = compare(metrics, load_baseline(arguments.baseline))
+    print(format_table(results))
+    return 0 if all(item.passed for item in results) else 1
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -54,26 +121,32 @@ def main(argv: list[str] | None = None) -> int:
 
     arguments = build_parser().parse_args(argv)
     try:
-        config = load_config(arguments.config, RunConfig, overrides=arguments.overrides)
-        stages = ["synth"] if arguments.command == "synth" else None
-        if arguments.withhold < 0:
-            raise ReconError(f"--withhold: expected N >= 0, got {arguments.withhold}")
-        if arguments.withhold and not arguments.truth_out:
-            raise ReconError("--withhold needs --truth-out PATH, outside the run folder")
-        synth_options = {}
-        if arguments.withhold:
-            synth_options = {"withhold": arguments.withhold, "truth_out": arguments.truth_out}
-        paths = pipeline.run(
-            config,
-            out=arguments.out,
-            force=arguments.force,
-            device=arguments.device,
-            stages=stages,
-            stage_options={"synth": synth_options},
-        )
+        command = arguments.command
+        if command == "compare":
+            return _compare(arguments)
+        if command in ("evaluate", "report"):
+            paths = pipeline.run_stage_on(
+                arguments.run, command, arguments.device, arguments.overrides
+            )
+        elif getattr(arguments, "resume", None):
+            stages = ["fit", "evaluate", "report"] if command == "fit" else None
+            paths = pipeline.resume(arguments.resume, arguments.device, stages=stages)
+        elif command == "synth":
+            paths = _new_run(arguments, ["synth"])
+        elif command == "fit":
+            paths = _new_run(arguments, ["fit", "evaluate", "report"])
+        else:
+            paths = _new_run(arguments, None)
     except ReconError as error:
         print(f"recon: error: {error}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print(
+            "recon: interrupted; the last checkpoint is kept: continue with "
+            "'recon run --resume RUN'",
+            file=sys.stderr,
+        )
+        return 130
     print(pipeline.describe(paths))
     return 0
 

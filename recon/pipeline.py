@@ -1,8 +1,8 @@
 """The stage sequence of a run: resolve the config, prepare the run folder, run the stages.
 
-Stages are looked up by name. recon's own stages live in recon; the synth stage belongs to
-data_synth (the "world"), which recon must not import, so it is found through the
-``recon.stages`` entry-point group that data_synth's package metadata declares.
+Stages are looked up by name in the ``recon.stages`` entry-point group (pyproject.toml). recon's
+own stages live in recon; the synth stage belongs to data_synth (the "world"), which recon must
+not import, so every stage is found the same way, by name.
 """
 
 from __future__ import annotations
@@ -20,13 +20,15 @@ import numpy as np
 import torch
 
 from recon import __version__
-from recon.config import config_hash, dump_resolved
+from recon.config import config_hash, dump_resolved, load_config
 from recon.config.run_config import RunConfig
 from recon.errors import ReconError
 from recon.io.atomic import atomic_write_json
-from recon.io.run_folder import RunPaths, prepare_run_folder
+from recon.io.run_folder import RunPaths, open_run_folder, prepare_run_folder
 
-Stage = Callable[[RunConfig, RunPaths, torch.device], dict]
+Stage = Callable[..., dict]
+# Stages that can pick up from their checkpoints when a run is resumed.
+RESUMABLE = {"fit"}
 
 
 def resolve_device(requested: str) -> torch.device:
@@ -78,6 +80,14 @@ def environment_record(device: torch.device) -> dict:
     return record
 
 
+def _stages_to_run(config: RunConfig, stages: list[str] | None) -> list[str]:
+    chosen = list(stages or config.stages)
+    if config.data is not None and "synth" in chosen:
+        # A given dataset replaces the synthetic captures.
+        chosen.remove("synth")
+    return chosen
+
+
 def run(
     config: RunConfig,
     out: str | Path | None = None,
@@ -86,26 +96,72 @@ def run(
     stages: list[str] | None = None,
     stage_options: dict[str, dict] | None = None,
 ) -> RunPaths:
-    """Run the config's stages into a run folder; returns its paths.
+    """Run the config's stages into a new run folder; returns its paths.
 
     stage_options: keyword arguments per stage name (e.g. {"synth": {"withhold": 2,
     "truth_out": path}}).
     """
-    stage_options = stage_options or {}
     resolved_device = resolve_device(device or config.device)
     paths = prepare_run_folder(out or default_run_folder(config), force=force)
+    if config.data is not None:
+        paths = RunPaths(paths.root, Path(config.data))
     dump_resolved(config, paths.resolved_config)
-    environment = environment_record(resolved_device)
+    return _run_stages(
+        config, paths, resolved_device, _stages_to_run(config, stages), stage_options
+    )
+
+
+def resume(
+    run_folder: str | Path,
+    device: str | None = None,
+    stages: list[str] | None = None,
+    stage_options: dict[str, dict] | None = None,
+) -> RunPaths:
+    """Continue a run from its checkpoints: finished stages whose outputs exist are skipped
+    (synth), the fit resumes from its last checkpoint, evaluate and report run again."""
+    config = load_config(Path(run_folder) / "config.resolved.yaml", RunConfig)
+    paths = open_run_folder(run_folder, config.data)
+    resolved_device = resolve_device(device or config.device)
+    chosen = _stages_to_run(config, stages)
+    if "synth" in chosen and (paths.dataset / "transforms_train.json").exists():
+        chosen.remove("synth")
+    return _run_stages(config, paths, resolved_device, chosen, stage_options, resume=True)
+
+
+def run_stage_on(
+    run_folder: str | Path, stage: str, device: str | None = None, overrides: list[str] = ()
+) -> RunPaths:
+    """One stage on an existing run folder (recon fit/evaluate/report RUN)."""
+    config = load_config(Path(run_folder) / "config.resolved.yaml", RunConfig, overrides=overrides)
+    paths = open_run_folder(run_folder, config.data)
+    if overrides:
+        dump_resolved(config, paths.resolved_config)
+    return _run_stages(config, paths, resolve_device(device or config.device), [stage], None)
+
+
+def _run_stages(
+    config: RunConfig,
+    paths: RunPaths,
+    device: torch.device,
+    stages: list[str],
+    stage_options: dict[str, dict] | None,
+    resume: bool = False,
+) -> RunPaths:
+    stage_options = stage_options or {}
+    environment = json.loads(paths.environment.read_text()) if paths.environment.exists() else {}
+    environment.update(environment_record(device))
     environment["config_hash"] = config_hash(config)
+    environment.setdefault("stage_seconds", {})
     atomic_write_json(paths.environment, environment)
     seed_everything(config.seed)
-    timings = {}
-    for name in stages or config.stages:
+    for name in stages:
         started = time.perf_counter()
-        find_stage(name)(config, paths, resolved_device, **stage_options.get(name, {}))
-        timings[name] = round(time.perf_counter() - started, 3)
-    environment["stage_seconds"] = timings
-    atomic_write_json(paths.environment, environment)
+        options = dict(stage_options.get(name, {}))
+        if resume and name in RESUMABLE:
+            options["resume"] = True
+        find_stage(name)(config, paths, device, **options)
+        environment["stage_seconds"][name] = round(time.perf_counter() - started, 3)
+        atomic_write_json(paths.environment, environment)
     return paths
 
 

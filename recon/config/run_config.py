@@ -327,6 +327,8 @@ class RunConfig:
 
     name: str = "run"
     seed: int = 0
+    # An existing dataset folder (NeRF-synthetic or LLFF) to fit instead of synthesising one.
+    data: str | None = None
     device: Literal["auto", "cpu", "cuda"] = "auto"
     stages: list[Literal["synth", "fit", "evaluate", "report"]] = field(
         default_factory=lambda: ["synth", "fit", "evaluate", "report"]

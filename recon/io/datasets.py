@@ -727,3 +727,35 @@ def read_llff(
     )
     names = [path.stem for path in image_paths]
     return CaptureSet(cameras=cameras, images=images, masks=mask_tensor, names=names, split="all")
+
+
+# LLFF captures have no splits: every 8th image is held out for testing (the LLFF/NeRF habit).
+LLFF_HOLDOUT_EVERY = 8
+
+
+def read_captures(folder: str | os.PathLike, split: str) -> CaptureSet:
+    """One split of a dataset in either layout, as a fit needs it: linear colour premultiplied
+    by coverage (background removed), masks from alpha or mask images.
+
+    NeRF-synthetic: transforms_{split}.json (EXR preferred when present). LLFF/NeRD:
+    poses_bounds.npy, with 'test' = every LLFF_HOLDOUT_EVERY-th image and 'train' the rest
+    ('val' is empty). Images without masks are treated as fully covered.
+    """
+    folder = Path(folder)
+    if (folder / "poses_bounds.npy").exists():
+        captures = read_llff(folder)
+        index = torch.arange(len(captures.cameras))
+        held_out = index % LLFF_HOLDOUT_EVERY == 0
+        chosen = held_out if split == "test" else ~held_out
+        if split not in ("train", "test"):
+            raise DatasetError(f"{folder}: LLFF datasets have only 'train' and 'test' splits")
+        selected = torch.nonzero(chosen).squeeze(1)
+        images = captures.images[selected] * captures.masks[selected]
+        return CaptureSet(
+            captures.cameras[selected],
+            images,
+            captures.masks[selected],
+            [captures.names[i] for i in selected.tolist()],
+            split,
+        )
+    return read_nerf_synthetic(folder, split, background=None, prefer_exr=True)

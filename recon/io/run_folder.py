@@ -14,6 +14,8 @@ class RunPaths:
     """Paths inside one run folder."""
 
     root: Path
+    # A dataset outside the run folder (config key 'data'); None = the run's own dataset/.
+    external_dataset: Path | None = None
 
     @property
     def resolved_config(self) -> Path:
@@ -25,8 +27,8 @@ class RunPaths:
 
     @property
     def dataset(self) -> Path:
-        """The captures, NeRF-synthetic layout (what a fit reads)."""
-        return self.root / "dataset"
+        """The captures (NeRF-synthetic or LLFF layout) that a fit reads."""
+        return self.external_dataset if self.external_dataset is not None else self.root / "dataset"
 
     @property
     def ground_truth(self) -> Path:
@@ -88,6 +90,16 @@ class RunPaths:
     @property
     def reference_mesh(self) -> Path:
         return self.ground_truth / "reference.obj"
+
+
+def open_run_folder(root: str | Path, external_dataset: str | Path | None = None) -> RunPaths:
+    """An existing run folder (for --resume and the single-stage commands)."""
+    root = Path(root)
+    if not (root / "config.resolved.yaml").exists():
+        raise ReconError(
+            f"run folder {root}: no config.resolved.yaml here; is this a recon run folder?"
+        )
+    return RunPaths(root, None if external_dataset is None else Path(external_dataset))
 
 
 def prepare_run_folder(root: str | Path, force: bool = False) -> RunPaths:

@@ -10,15 +10,15 @@ import torch
 from recon.config.run_config import RunConfig
 from recon.errors import ReconError
 from recon.io.atomic import atomic_write_json
-from recon.io.datasets import read_nerf_synthetic
+from recon.io.datasets import read_captures
 from recon.io.images import write_exr
 from recon.io.meshes import save_mesh
+from recon.io.run_folder import RunPaths
 from recon.optimize.checkpoint import History, load_checkpoint
 from recon.optimize.geometry_stage import run_geometry_stage
 from recon.optimize.scene_model import LightModel
 from recon.optimize.texture_stage import run_texture_stage
 from recon.render.shading import sh_basis
-from recon.io.run_folder import RunPaths
 
 ENVIRONMENT_SIZE = (64, 128)
 
@@ -41,12 +41,15 @@ def fit_stage(
 ) -> dict:
     """Entry point 'fit' of the recon.stages group: reads paths.dataset, writes the fitted
     scene, history and checkpoints into the run folder."""
-    if not (paths.dataset / "transforms_train.json").exists():
+    if (
+        not (paths.dataset / "transforms_train.json").exists()
+        and not (paths.dataset / "poses_bounds.npy").exists()
+    ):
         raise ReconError(
             f"fit: no training split in {paths.dataset} (run the synth stage first, or point "
             "the run at a dataset)"
         )
-    captures = read_nerf_synthetic(paths.dataset, "train", background=None, prefer_exr=True)
+    captures = read_captures(paths.dataset, "train")
     geometry_checkpoint = paths.checkpoints / "geometry.pt"
     texture_checkpoint = paths.checkpoints / "texture.pt"
     truncate = None

@@ -156,6 +156,8 @@ def run_geometry_stage(
     albedo_optimizer = torch.optim.Adam([albedo], lr=geometry.albedo_learning_rate)
     light_optimizer = torch.optim.Adam(light.parameters(), lr=geometry.light_learning_rate)
     if checkpoint is not None:
+        # The latent itself, not M v recomputed from the saved vertices: resuming is exact.
+        positions.latent.data.copy_(checkpoint["latent"].to(device))
         light.load_state_dict(checkpoint["light"])
         positions.optimizer.load_state_dict(checkpoint["position_optimizer"])
         albedo_optimizer.load_state_dict(checkpoint["albedo_optimizer"])
@@ -169,6 +171,7 @@ def run_geometry_stage(
                 "stage": stage,
                 "step": step,
                 "verts": positions.verts().detach().cpu(),
+                "latent": positions.latent.detach().cpu(),
                 "faces": positions.faces.cpu(),
                 "albedo": albedo.detach().cpu(),
                 "diagonal": diagonal,

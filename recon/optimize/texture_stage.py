@@ -119,6 +119,7 @@ def run_texture_stage(
     texture_optimizer = torch.optim.Adam([texture], lr=settings.texture_learning_rate)
     light_optimizer = torch.optim.Adam(light.parameters(), lr=settings.light_learning_rate)
     if checkpoint is not None:
+        latent.data.copy_(checkpoint["latent"].to(device))
         light.load_state_dict(checkpoint["light"])
         position_optimizer.load_state_dict(checkpoint["position_optimizer"])
         texture_optimizer.load_state_dict(checkpoint["texture_optimizer"])
@@ -132,6 +133,7 @@ def run_texture_stage(
                 "stage": stage,
                 "step": step,
                 "verts": preconditioner.from_latent(latent).detach().cpu(),
+                "latent": latent.detach().cpu(),
                 "faces": mesh.faces.cpu(),
                 "uvs": mesh.uvs.cpu(),
                 "uv_faces": mesh.uv_faces.cpu(),

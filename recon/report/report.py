@@ -15,12 +15,12 @@ from recon.config.run_config import RunConfig
 from recon.io.atomic import atomic_path, atomic_write_text
 from recon.io.images import save_contact_sheet
 from recon.io.meshes import load_mesh
+from recon.io.run_folder import RunPaths
 from recon.mesh.mesh import Mesh
 from recon.optimize.checkpoint import History
 from recon.optimize.fit import load_fitted_light
 from recon.render.renderer import Renderer
 from recon.render.shading import Lighting
-from recon.io.run_folder import RunPaths
 
 matplotlib.use("Agg")
 
