@@ -20,21 +20,11 @@ from typing import Literal, Protocol
 import torch
 
 from recon.camera import Cameras
+from recon.config.run_config import EFFECT_NAMES
 
-CATALOGUE = (
-    "exposure",
-    "white_balance",
-    "vignetting",
-    "response_curve",
-    "lens_distortion",
-    "defocus_blur",
-    "motion_blur",
-    "pose_error",
-    "noise",
-    "specular",
-    "shadows",
-    "interreflection",
-)
+# The names are part of the interface (config, output and truth files): defined once, in the
+# config schema.
+CATALOGUE = EFFECT_NAMES
 # Effects a forward model can add (noise is a floor the diagnosis estimates, never "added").
 ADDABLE = tuple(name for name in CATALOGUE if name != "noise")
 LIGHT_TRANSPORT = ("specular", "shadows", "interreflection")

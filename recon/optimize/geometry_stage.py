@@ -31,8 +31,8 @@ from recon.optimize.scene_model import (
     LightModel,
     TrainingPyramid,
     image_loss,
-    psnr_from_mse,
     sample_views,
+    step_record,
 )
 from recon.optimize.visual_hull import visual_hull
 from recon.render.antialias import build_topology
@@ -213,18 +213,16 @@ def run_geometry_stage(
         light_optimizer.step()
 
         if step % LOG_EVERY == 0 or step == geometry.steps - 1:
-            mse = float(((output.color.detach() - images[views]) ** 2).mean())
-            record = {
-                "stage": "geometry",
-                "step": step,
-                "loss": float(loss.detach()),
-                "color_loss": float(color_loss.detach()),
-                "mask_loss": float(mask_loss.detach()),
-                "psnr_linear": psnr_from_mse(mse),
-                "resolution": list(cameras.image_size),
-                "faces": int(positions.faces.shape[0]),
-                "seconds": round(time.perf_counter() - started, 3),
-            }
+            record = step_record(
+                "geometry",
+                step,
+                {"loss": loss, "color_loss": color_loss, "mask_loss": mask_loss},
+                output.color,
+                images[views],
+                cameras.image_size,
+                int(positions.faces.shape[0]),
+                time.perf_counter() - started,
+            )
             history.log(record)
             bar.set_postfix(loss=f"{record['loss']:.4f}", faces=record["faces"])
 

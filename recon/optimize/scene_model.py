@@ -102,6 +102,31 @@ def image_loss(prediction: torch.Tensor, target: torch.Tensor, kind: str = "l1")
     return (prediction - target).abs().mean()
 
 
+def step_record(
+    stage: str,
+    step: int,
+    losses: dict[str, torch.Tensor],
+    prediction: torch.Tensor,
+    target: torch.Tensor,
+    resolution: tuple[int, int],
+    faces: int,
+    seconds: float,
+) -> dict:
+    """One history.jsonl record: the losses, training PSNR (linear), resolution, face count."""
+    mse = float(((prediction.detach() - target) ** 2).mean())
+    record = {"stage": stage, "step": step}
+    record.update({name: float(value.detach()) for name, value in losses.items()})
+    record.update(
+        {
+            "psnr_linear": psnr_from_mse(mse),
+            "resolution": list(resolution),
+            "faces": faces,
+            "seconds": round(seconds, 3),
+        }
+    )
+    return record
+
+
 def psnr_from_mse(mse: float) -> float:
     return 10 * math.log10(1.0 / max(mse, 1e-12))
 

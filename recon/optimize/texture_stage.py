@@ -28,8 +28,8 @@ from recon.optimize.scene_model import (
     LightModel,
     TrainingPyramid,
     image_loss,
-    psnr_from_mse,
     sample_views,
+    step_record,
 )
 from recon.render.antialias import build_topology
 from recon.render.renderer import Renderer
@@ -185,18 +185,16 @@ def run_texture_stage(
         with torch.no_grad():
             texture.clamp_(0, 1)
         if step % LOG_EVERY == 0 or step == settings.steps - 1:
-            mse = float(((output.color.detach() - images[views]) ** 2).mean())
-            record = {
-                "stage": "texture",
-                "step": step,
-                "loss": float(loss.detach()),
-                "color_loss": float(color_loss.detach()),
-                "mask_loss": float(mask_loss.detach()),
-                "psnr_linear": psnr_from_mse(mse),
-                "resolution": list(cameras.image_size),
-                "faces": int(mesh.faces.shape[0]),
-                "seconds": round(time.perf_counter() - started, 3),
-            }
+            record = step_record(
+                "texture",
+                step,
+                {"loss": loss, "color_loss": color_loss, "mask_loss": mask_loss},
+                output.color,
+                images[views],
+                cameras.image_size,
+                int(mesh.faces.shape[0]),
+                time.perf_counter() - started,
+            )
             history.log(record)
             bar.set_postfix(loss=f"{record['loss']:.4f}")
         if (step + 1) % config.checkpoint_every == 0:

@@ -314,6 +314,49 @@ def _to_pixels(clip: torch.Tensor, height: int, width: int) -> tuple[torch.Tenso
     return column, row
 
 
+def _along_across(
+    start: torch.Tensor, end: torch.Tensor, horizontal: bool, height: int, width: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Edge end points in pair coordinates: (start along, start across, end along, end across),
+    where 'along' is the pixel-pair direction (x for horizontal pairs, y for vertical ones)."""
+    start_column, start_row = _to_pixels(start, height, width)
+    end_column, end_row = _to_pixels(end, height, width)
+    if horizontal:
+        return start_column, start_row, end_column, end_row
+    return start_row, start_column, end_row, end_column
+
+
+def _crossing(
+    start: torch.Tensor,
+    end: torch.Tensor,
+    along: torch.Tensor,
+    across: torch.Tensor,
+    direction: torch.Tensor,
+    horizontal: bool,
+    height: int,
+    width: int,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Where each edge (start, end clip positions [..., 4]) crosses the line through the pair's
+    centres, as a position from the owner's centre toward the other pixel; also the edge's
+    extents across and along the pair direction and its parameter t along the edge.
+
+    along, across, direction broadcast against the edges' leading shape."""
+    start_along, start_across, end_along, end_across = _along_across(
+        start, end, horizontal, height, width
+    )
+    extent_across = end_across - start_across
+    extent_along = end_along - start_along
+    # A tiny epsilon keeps the division finite for edges nearly parallel to the pair.
+    safe_extent = torch.where(
+        extent_across.abs() < _EXTENT_EPSILON,
+        torch.full_like(extent_across, _EXTENT_EPSILON),
+        extent_across,
+    )
+    t = (across - start_across) / safe_extent
+    crossing = (start_along + t * extent_along - along) * direction
+    return crossing, extent_across, extent_along, t
+
+
 def _edge_crossings(
     start: torch.Tensor,
     end: torch.Tensor,
@@ -327,31 +370,12 @@ def _edge_crossings(
     """Crossing position of each of the three edges [M, 3], whether the edge crosses the pair's
     line at all (both ends in front of the camera), and whether it runs more across the pair
     direction than along it."""
-    start_column, start_row = _to_pixels(start, height, width)
-    end_column, end_row = _to_pixels(end, height, width)
-    if horizontal:
-        start_along, start_across, end_along, end_across = (
-            start_column,
-            start_row,
-            end_column,
-            end_row,
-        )
-    else:
-        start_along, start_across, end_along, end_across = (
-            start_row,
-            start_column,
-            end_row,
-            end_column,
-        )
-    extent_across = end_across - start_across
-    extent_along = end_along - start_along
+    crossing, extent_across, extent_along, t = _crossing(
+        start, end, along[:, None], across[:, None], direction[:, None], horizontal, height, width
+    )
     in_front = (start[..., 3] > 0) & (end[..., 3] > 0)
     steep = extent_across.abs() >= extent_along.abs()
-    safe_extent = torch.where(extent_across.abs() < _EXTENT_EPSILON, _EXTENT_EPSILON, extent_across)
-    t = (across[:, None] - start_across) / safe_extent
     spans = (t >= 0) & (t <= 1)
-    position = start_along + t * extent_along
-    crossing = (position - along[:, None]) * direction[:, None]
     crosses = in_front & spans & (extent_across.abs() >= _EXTENT_EPSILON)
     return crossing, crosses, steep
 
@@ -367,28 +391,4 @@ def _crossing_along_pair(
     width: int,
 ) -> torch.Tensor:
     """Differentiable crossing [K] of one edge per item (see _edge_crossings)."""
-    start_column, start_row = _to_pixels(start_clip, height, width)
-    end_column, end_row = _to_pixels(end_clip, height, width)
-    if horizontal:
-        start_along, start_across, end_along, end_across = (
-            start_column,
-            start_row,
-            end_column,
-            end_row,
-        )
-    else:
-        start_along, start_across, end_along, end_across = (
-            start_row,
-            start_column,
-            end_row,
-            end_column,
-        )
-    extent_across = end_across - start_across
-    extent_across = torch.where(
-        extent_across.abs() < _EXTENT_EPSILON,
-        torch.full_like(extent_across, _EXTENT_EPSILON),
-        extent_across,
-    )
-    t = (across - start_across) / extent_across
-    position = start_along + t * (end_along - start_along)
-    return (position - along) * direction
+    return _crossing(start_clip, end_clip, along, across, direction, horizontal, height, width)[0]
