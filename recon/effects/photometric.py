@@ -9,7 +9,8 @@ Parameterisations (all zero = identity), each simpler than its world counterpart
 - white_balance: per-view log gains for red and blue, green fixed (the channel the exposure
   already scales), colour *= exp([r_v, 0, b_v]); view 0 pinned (white balance x light colour).
 - vignetting: an even radial polynomial 1 + a r^2 + b r^4 about the principal point, r the
-  distance in pixels over the half image diagonal (r = 1 at the corners of a centred camera).
+  distance in pixels over the half image diagonal (r = 1 at the corners of a centred camera),
+  optimised in an orthogonal basis of the disc.
 - response_curve: observed = y + D(y) with y = x^gamma, gamma = exp(log_gamma), and D a
   piecewise-linear deviation on 16 uniform knots of [0, 1] whose values come from positive
   increments exp(lut): a monotone curve with f(0) = 0 and f(1) = 1 (the scale stays with
@@ -127,7 +128,9 @@ class Vignetting(ModelEffect):
     """Radial falloff shared by all views: colour *= 1 + a r^2 + b r^4.
 
     r: pixel distance from the principal point over the half image diagonal. Needs cameras
-    (principal point, image size).
+    (principal point, image size). The parameters are (alpha, beta) with
+    a = alpha - 0.75 beta, b = beta: r^2 and r^4 - 0.75 r^2 are orthogonal over the unit disc,
+    which decorrelates the two for the optimiser (r^2 and r^4 alone are nearly collinear).
     """
 
     name = "vignetting"
@@ -138,14 +141,23 @@ class Vignetting(ModelEffect):
 
     def __init__(self, view_count: int | None = None, **options) -> None:
         super().__init__(view_count, **options)
-        # (a, b): the r^2 and r^4 coefficients.
-        self.coefficients = torch.nn.Parameter(torch.zeros(2))
+        self.coefficients = torch.nn.Parameter(torch.zeros(2))  # (alpha, beta)
+
+    def set_polynomial(self, a: float, b: float = 0.0) -> None:
+        """Set the parameters so that the gain is 1 + a r^2 + b r^4."""
+        with torch.no_grad():
+            self.coefficients.copy_(torch.tensor([a + 0.75 * b, b]))
+
+    def polynomial(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(a, b) of 1 + a r^2 + b r^4."""
+        alpha, beta = self.coefficients.unbind()
+        return alpha - 0.75 * beta, beta
 
     def falloff(self, radius: torch.Tensor) -> torch.Tensor:
         """The gain 1 + a r^2 + b r^4 at normalised radii [...]."""
         squared = radius * radius
-        a, b = self.coefficients.to(radius).unbind()
-        return 1 + squared * (a + b * squared)
+        alpha, beta = self.coefficients.to(radius).unbind()
+        return 1 + squared * (alpha + beta * (squared - 0.75))
 
     def forward(
         self,
@@ -163,7 +175,7 @@ class Vignetting(ModelEffect):
         return color * gain[..., None], alpha
 
     def parameters_summary(self) -> dict:
-        a, b = self.coefficients.detach()
+        a, b = (float(value.detach()) for value in self.polynomial())
         return {
             "corner_falloff": to_float(1 + a + b),
             "half_radius_falloff": to_float(1 + a / 4 + b / 16),
@@ -189,13 +201,15 @@ class ResponseCurve(ModelEffect):
     name = "response_curve"
     stage = "image"
     per_view = False
-    default_learning_rate = 0.02
+    default_learning_rate = 0.03
     default_lock_fraction = 0.2
     # The LUT moves slower so the single exponent takes the bulk of a power-law response first.
-    learning_rate_scales = {"lut": 0.25}
+    learning_rate_scales = {"lut": 0.1}
 
     def __init__(self, view_count: int | None = None, knots: int = _LUT_KNOTS, **options) -> None:
         super().__init__(view_count, **options)
+        if int(knots) < 2:
+            raise ReconError(f"effect {self.name}: knots must be >= 2, got {knots}")
         self.log_gamma = torch.nn.Parameter(torch.zeros(()))
         self.lut = torch.nn.Parameter(torch.zeros(int(knots)))
 

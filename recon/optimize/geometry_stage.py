@@ -28,6 +28,7 @@ from recon.optimize.checkpoint import (
 )
 from recon.optimize.large_steps import LaplacianPreconditioner, UniformAdam
 from recon.optimize.scene_model import (
+    FitEffects,
     LightModel,
     TrainingPyramid,
     image_loss,
@@ -43,12 +44,13 @@ LOG_EVERY = 10
 
 @dataclass
 class GeometryResult:
-    """verts [V, 3], faces [F, 3], albedo [V, 3] (linear), the fitted light."""
+    """verts [V, 3], faces [F, 3], albedo [V, 3] (linear), the fitted light and effects."""
 
     verts: torch.Tensor
     faces: torch.Tensor
     albedo: torch.Tensor
     light: LightModel
+    effects: FitEffects | None = None
 
 
 def initial_mesh(captures: CaptureSet, config: FitConfig, device: torch.device) -> Mesh:
@@ -155,7 +157,9 @@ def run_geometry_stage(
     positions = _PositionOptimizer(verts, faces, config)
     albedo_optimizer = torch.optim.Adam([albedo], lr=geometry.albedo_learning_rate)
     light_optimizer = torch.optim.Adam(light.parameters(), lr=geometry.light_learning_rate)
+    effects = FitEffects(config.effects, len(captures.cameras), device)
     if checkpoint is not None:
+        effects.load_state_dict(checkpoint["effects"])
         # The latent itself, not M v recomputed from the saved vertices: resuming is exact.
         positions.latent.data.copy_(checkpoint["latent"].to(device))
         light.load_state_dict(checkpoint["light"])
@@ -179,6 +183,7 @@ def run_geometry_stage(
                 "position_optimizer": positions.optimizer.state_dict(),
                 "albedo_optimizer": albedo_optimizer.state_dict(),
                 "light_optimizer": light_optimizer.state_dict(),
+                "effects": effects.state_dict(),
                 "random": random_states(generator),
             },
         )
@@ -207,10 +212,12 @@ def run_geometry_stage(
         positions.optimizer.zero_grad()
         albedo_optimizer.zero_grad()
         light_optimizer.zero_grad()
+        effects.zero_grad()
         loss.backward()
         positions.optimizer.step()
         albedo_optimizer.step()
         light_optimizer.step()
+        effects.step(progress)
 
         if step % LOG_EVERY == 0 or step == geometry.steps - 1:
             record = step_record(
@@ -241,7 +248,7 @@ def run_geometry_stage(
     bar.close()
     save(geometry.steps, stage="geometry_done")
     return GeometryResult(
-        positions.verts().detach(), positions.faces, albedo.detach().clamp(0, 1), light
+        positions.verts().detach(), positions.faces, albedo.detach().clamp(0, 1), light, effects
     )
 
 

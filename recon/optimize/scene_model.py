@@ -14,6 +14,44 @@ from recon.io.images import linear_to_srgb
 from recon.render.shading import SH_COEFFICIENT_COUNT, DirectionalLight, Lighting
 
 
+class FitEffects:
+    """The optional effect modules of a fit's forward model (config fit.effects; none by
+    default), with their own optimizer, learning rates and lock fractions."""
+
+    def __init__(self, names: list[str], view_count: int, device: torch.device) -> None:
+        from recon.effects.registry import make_effect
+
+        self.modules = [make_effect(name, view_count=view_count).to(device) for name in names]
+        groups = [group for module in self.modules for group in module.parameter_groups()]
+        self.optimizer = torch.optim.Adam(groups) if groups else None
+
+    def zero_grad(self) -> None:
+        if self.optimizer is not None:
+            self.optimizer.zero_grad()
+
+    def step(self, progress: float) -> None:
+        """One optimizer step; effects still inside their lock fraction keep their values."""
+        if self.optimizer is None:
+            return
+        for module in self.modules:
+            if module.is_locked(progress):
+                for parameter in module.parameters():
+                    parameter.grad = None
+        self.optimizer.step()
+
+    def state_dict(self) -> dict:
+        return {
+            "modules": [module.state_dict() for module in self.modules],
+            "optimizer": None if self.optimizer is None else self.optimizer.state_dict(),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        for module, module_state in zip(self.modules, state["modules"], strict=True):
+            module.load_state_dict(module_state)
+        if self.optimizer is not None and state["optimizer"] is not None:
+            self.optimizer.load_state_dict(state["optimizer"])
+
+
 class LightModel(torch.nn.Module):
     """SH environment [9, 3] plus an optional sun (direction, log irradiance)."""
 

@@ -12,6 +12,7 @@ from scipy.spatial import cKDTree
 from tqdm import tqdm
 
 from recon.config.run_config import FitConfig
+from recon.effects.forward import render_with_effects
 from recon.io.datasets import CaptureSet
 from recon.mesh.mesh import Mesh
 from recon.mesh.uv import bake_vertex_attribute, dilate, unwrap
@@ -25,6 +26,7 @@ from recon.optimize.checkpoint import (
 from recon.optimize.geometry_stage import GeometryResult
 from recon.optimize.large_steps import LaplacianPreconditioner, UniformAdam
 from recon.optimize.scene_model import (
+    FitEffects,
     LightModel,
     TrainingPyramid,
     image_loss,
@@ -40,10 +42,11 @@ LOG_EVERY = 10
 
 @dataclass
 class TextureResult:
-    """The final textured mesh and the light."""
+    """The final textured mesh, the light and the effect modules (empty when none)."""
 
     mesh: Mesh
     light: LightModel
+    effects: FitEffects | None = None
 
 
 def simplify_and_unwrap(geometry: GeometryResult, config: FitConfig) -> tuple[Mesh, torch.Tensor]:
@@ -88,7 +91,12 @@ def run_texture_stage(
     checkpoint_path: Path,
     history: History,
     resume: bool = False,
+    initial: Mesh | None = None,
+    effects: FitEffects | None = None,
 ) -> TextureResult:
+    """initial: an already textured mesh to start from (skips simplify + unwrap; a warm-started
+    refit). effects: effect modules to keep optimising (default: the geometry stage's, else
+    those config.effects names)."""
     settings = config.texture
     generator = torch.Generator().manual_seed(seed + 1)
     checkpoint = load_checkpoint(checkpoint_path) if resume else None
@@ -102,9 +110,15 @@ def run_texture_stage(
         )
         coverage = checkpoint["coverage"].to(device)
         start_step = checkpoint["step"]
+    elif initial is not None:
+        mesh = initial
+        coverage = torch.ones(mesh.texture.shape[:2], dtype=torch.bool, device=device)
+        start_step = 0
     else:
         mesh, coverage = simplify_and_unwrap(geometry, config)
         start_step = 0
+    if effects is None:
+        effects = geometry.effects or FitEffects(config.effects, len(captures.cameras), device)
     light = geometry.light
     pyramid = TrainingPyramid.build(captures, [max(captures.cameras.image_size)], device)
     cameras, images, masks = pyramid.levels[-1]
@@ -120,6 +134,7 @@ def run_texture_stage(
     light_optimizer = torch.optim.Adam(light.parameters(), lr=settings.light_learning_rate)
     if checkpoint is not None:
         latent.data.copy_(checkpoint["latent"].to(device))
+        effects.load_state_dict(checkpoint["effects"])
         light.load_state_dict(checkpoint["light"])
         position_optimizer.load_state_dict(checkpoint["position_optimizer"])
         texture_optimizer.load_state_dict(checkpoint["texture_optimizer"])
@@ -143,6 +158,7 @@ def run_texture_stage(
                 "position_optimizer": position_optimizer.state_dict(),
                 "texture_optimizer": texture_optimizer.state_dict(),
                 "light_optimizer": light_optimizer.state_dict(),
+                "effects": effects.state_dict(),
                 "random": random_states(generator),
             },
         )
@@ -159,10 +175,13 @@ def run_texture_stage(
         views = sample_views(len(cameras), settings.views_per_step, generator).to(device)
         verts = preconditioner.from_latent(latent)
         current = Mesh(verts, mesh.faces, uvs=mesh.uvs, uv_faces=mesh.uv_faces, texture=texture)
-        output = renderer.render(
+        output = render_with_effects(
+            renderer,
             current,
             cameras[views],
             light.lighting(),
+            effects.modules,
+            view_indices=views,
             topology=topology,
             mip_pyramid=build_mip_pyramid(texture),
         )
@@ -178,10 +197,13 @@ def run_texture_stage(
         position_optimizer.zero_grad()
         texture_optimizer.zero_grad()
         light_optimizer.zero_grad()
+        effects.zero_grad()
         loss.backward()
         position_optimizer.step()
         texture_optimizer.step()
         light_optimizer.step()
+        # The geometry stage already ran: effects are past their lock here.
+        effects.step(1.0)
         with torch.no_grad():
             texture.clamp_(0, 1)
         if step % LOG_EVERY == 0 or step == settings.steps - 1:
@@ -212,4 +234,4 @@ def run_texture_stage(
         texture=final_texture,
     )
     save(settings.steps, stage="texture_done")
-    return TextureResult(final, light)
+    return TextureResult(final, light, effects)
