@@ -120,6 +120,8 @@ def render_split(
             material=config.scene.material,
         )
         colors, alphas = render_mitsuba(mesh.to("cpu"), cameras, world, options)
+        if not config.capture.write_depth_normals:
+            return RenderedViews(colors, alphas, torch.zeros_like(alphas), torch.zeros_like(colors))
         # The path tracer gives no depth/normal buffers: take them from recon's rasterizer.
         geometry = render_views_own(mesh, cameras.to(device), world, description)
         return RenderedViews(colors, alphas, geometry.depth, geometry.normals)
@@ -132,20 +134,47 @@ def synth_stage(
     device: torch.device,
     withhold: int = 0,
     truth_out: str | Path | None = None,
+    withhold_effects: list[str] | None = None,
 ) -> dict:
-    """Entry point 'synth' of the recon.stages group (see SynthOptions for the keywords)."""
+    """Entry point 'synth' of the recon.stages group (see SynthOptions for the keywords).
+
+    withhold_effects: withhold exactly these effects (random plausible strengths) instead of
+    drawing withhold of them at random (the blind benchmark chooses its cases)."""
     options = SynthOptions(withhold, None if truth_out is None else Path(truth_out))
+    # Separate streams: switching an effect on must not move the cameras, and vice versa.
     generator = torch.Generator().manual_seed(config.seed)
+    effect_generator = torch.Generator().manual_seed(config.seed + 104729)
     mesh = build_mesh(config.scene).to(device)
     world = build_lighting(config.scene.lighting)
     world.lighting = world.lighting.to(device)
     capture_config = config.capture
     withheld: list[EffectConfig] = []
-    if options.withhold:
+    if withhold_effects:
+        from data_synth.withhold import sample_effects
+
+        withheld = sample_effects(
+            list(withhold_effects),
+            torch.Generator().manual_seed(config.seed + 7919),
+            make_cameras(capture_config.cameras, 1, torch.Generator().manual_seed(0)),
+        )
+        options.withhold = len(withheld)
+    elif options.withhold:
+        from data_synth.effects.base import ADDABLE
         from data_synth.withhold import choose_withheld_effects
 
+        # recon's own backend cannot render light transport: never withhold what it can't make.
+        candidates = (
+            tuple(name for name in ADDABLE if name not in LIGHT_TRANSPORT)
+            if capture_config.backend == "own"
+            else ADDABLE
+        )
         withheld = choose_withheld_effects(
-            options.withhold, config.seed, exclude=[e.name for e in capture_config.effects]
+            options.withhold,
+            config.seed,
+            exclude=[e.name for e in capture_config.effects],
+            candidates=candidates,
+            # Pixel-scale strengths follow the real image size and field of view.
+            cameras=make_cameras(capture_config.cameras, 1, torch.Generator().manual_seed(0)),
         )
     if withheld and options.truth_out is None:
         raise ReconError("--withhold needs --truth-out PATH (the truth never goes in the dataset)")
@@ -192,7 +221,7 @@ def synth_stage(
         if image_effects:
             from data_synth.effects.registry import apply_effects
 
-            applied = apply_effects(capture, image_effects, generator)
+            applied = apply_effects(capture, image_effects, effect_generator)
         realised[split] = [{"name": item.name, "parameters": item.parameters} for item in applied]
         write_nerf_synthetic(
             paths.dataset,

@@ -44,9 +44,15 @@ def choose_withheld_effects(
         )
     generator = torch.Generator().manual_seed(seed + _WITHHOLD_SEED_OFFSET)
     order = torch.randperm(len(available), generator=generator)[:count].tolist()
+    return sample_effects([available[index] for index in sorted(order)], generator, cameras)
+
+
+def sample_effects(
+    names: list[str], generator: torch.Generator, cameras: Cameras | None = None
+) -> list[EffectConfig]:
+    """The named effects, each with random plausible strengths drawn from generator."""
     chosen = []
-    for index in sorted(order):
-        name = available[index]
+    for name in names:
         parameters = effect_class(name).sample_strength(generator, cameras)
         chosen.append(
             EffectConfig(name=name, parameters={k: float(v) for k, v in parameters.items()})

@@ -62,6 +62,28 @@ def build_parser() -> argparse.ArgumentParser:
         stage_parser = commands.add_parser(name, help=text)
         stage_parser.add_argument("run", help="run folder")
         _add_common(stage_parser)
+    diagnose_parser = commands.add_parser(
+        "diagnose",
+        help="where the sim-to-real gap lies, which effect causes it, how far it shrinks",
+    )
+    diagnose_parser.add_argument("run", help="a fitted run folder")
+    diagnose_parser.add_argument("--data", help="diagnose against this dataset instead")
+    diagnose_parser.add_argument("--refit", choices=["none", "top", "greedy"], default="top")
+    diagnose_parser.add_argument(
+        "--effects", default="all", help="candidates: 'all' or a comma-separated list"
+    )
+    diagnose_parser.add_argument("--device", choices=["auto", "cpu", "cuda"])
+    bench_parser = commands.add_parser(
+        "diagnose-bench", help="blind check: withheld effects -> fit -> diagnose -> score"
+    )
+    bench_parser.add_argument("config", help="the scene/fit config of every case")
+    bench_parser.add_argument("--out", required=True, help="benchmark folder")
+    bench_parser.add_argument("--effects", default="all", help="'all' or a comma-separated list")
+    bench_parser.add_argument("--seeds", default="0,1,2", help="comma-separated seeds")
+    bench_parser.add_argument("--clean", type=int, default=3, help="clean datasets")
+    bench_parser.add_argument("--no-pairs", action="store_true", help="skip two-effect cases")
+    bench_parser.add_argument("--refit", choices=["none", "top", "greedy"], default="top")
+    _add_common(bench_parser)
     compare_parser = commands.add_parser(
         "compare", help="compare a run's metrics with a baseline; exit 1 on a regression"
     )
@@ -116,6 +138,52 @@ def _compare(arguments) -> int:
     return 0 if all(item.passed for item in results) else 1
 
 
+def _diagnose(arguments) -> int:
+    from recon import pipeline
+    from recon.diagnose.diagnose import diagnose_run
+    from recon.io.run_folder import open_run_folder
+
+    config = load_config(Path(arguments.run) / "config.resolved.yaml", RunConfig)
+    paths = open_run_folder(arguments.run, arguments.data or config.data)
+    candidates = None if arguments.effects == "all" else arguments.effects.split(",")
+    device = pipeline.resolve_device(arguments.device or config.device)
+    result = diagnose_run(paths, config, device, refit=arguments.refit, candidates=candidates)
+    for candidate in result["ranking"]:
+        flag = "significant" if candidate["significant"] else ""
+        print(
+            f"{candidate['effect']:16} held-out reduction {candidate['heldout_reduction']:7.3f} "
+            f"[{candidate['interval'][0]:.3f}, {candidate['interval'][1]:.3f}] {flag}"
+        )
+    for refit in result["refits"]:
+        print(
+            f"refit with {' + '.join(refit['effects'])}: RMSE {refit['before_rmse']:.4f} -> "
+            f"{refit['after_rmse']:.4f}, closed {100 * refit['closed_fraction']:.0f} % of the gap "
+            "above the floor"
+        )
+    print(f"verdict: {result['verdict']}")
+    print(f"diagnosis: {paths.root / 'diagnosis.json'}")
+    return 0
+
+
+def _diagnose_bench(arguments) -> int:
+    from recon import pipeline
+    from recon.diagnose_bench import diagnose_bench
+
+    summary = diagnose_bench(
+        arguments.config,
+        arguments.out,
+        pipeline.resolve_device(arguments.device or "auto"),
+        effects=None if arguments.effects == "all" else arguments.effects.split(","),
+        seeds=[int(seed) for seed in arguments.seeds.split(",")],
+        pairs=[] if arguments.no_pairs else None,
+        clean=arguments.clean,
+        refit=arguments.refit,
+        overrides=arguments.overrides,
+    )
+    print(json.dumps(summary, indent=2))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     from recon import pipeline
 
@@ -124,6 +192,10 @@ def main(argv: list[str] | None = None) -> int:
         command = arguments.command
         if command == "compare":
             return _compare(arguments)
+        if command == "diagnose":
+            return _diagnose(arguments)
+        if command == "diagnose-bench":
+            return _diagnose_bench(arguments)
         if command in ("evaluate", "report"):
             paths = pipeline.run_stage_on(
                 arguments.run, command, arguments.device, arguments.overrides

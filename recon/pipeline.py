@@ -106,9 +106,7 @@ def run(
     if config.data is not None:
         paths = RunPaths(paths.root, Path(config.data))
     dump_resolved(config, paths.resolved_config)
-    return _run_stages(
-        config, paths, resolved_device, _stages_to_run(config, stages), stage_options
-    )
+    return run_stages(config, paths, resolved_device, _stages_to_run(config, stages), stage_options)
 
 
 def resume(
@@ -125,7 +123,7 @@ def resume(
     chosen = _stages_to_run(config, stages)
     if "synth" in chosen and (paths.dataset / "transforms_train.json").exists():
         chosen.remove("synth")
-    return _run_stages(config, paths, resolved_device, chosen, stage_options, resume=True)
+    return run_stages(config, paths, resolved_device, chosen, stage_options, resume=True)
 
 
 def run_stage_on(
@@ -136,10 +134,10 @@ def run_stage_on(
     paths = open_run_folder(run_folder, config.data)
     if overrides:
         dump_resolved(config, paths.resolved_config)
-    return _run_stages(config, paths, resolve_device(device or config.device), [stage], None)
+    return run_stages(config, paths, resolve_device(device or config.device), [stage], None)
 
 
-def _run_stages(
+def run_stages(
     config: RunConfig,
     paths: RunPaths,
     device: torch.device,

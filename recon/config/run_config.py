@@ -231,6 +231,15 @@ class CaptureConfig:
         check_range(self.mitsuba_spp, "mitsuba_spp", low=1, high=65536)
         _check_vector(self.background, "background")
         names = [effect.name for effect in self.effects]
+        light_transport = [
+            name for name in names if name in ("specular", "shadows", "interreflection")
+        ]
+        if self.backend == "own" and light_transport:
+            raise ConfigFieldError(
+                "backend",
+                f"'own' cannot render light-transport effects {light_transport}; use 'auto' or "
+                "'mitsuba'",
+            )
         duplicates = sorted({name for name in names if names.count(name) > 1})
         if duplicates:
             raise ConfigFieldError("effects", f"each effect at most once, got {duplicates} twice")

@@ -26,7 +26,19 @@ def bench():
 def test_tiniest_run_reports_positive_times(bench, tmp_path, capsys):
     out = tmp_path / "bench.json"
     report = bench.main(
-        ["--configs", "1k:64:1", "--runs", "2", "--no-peer", "--device", "cpu", "--out", str(out)]
+        [
+            "--configs",
+            "1k:64:1",
+            "--runs",
+            "2",
+            "--no-peer",
+            "--device",
+            "cpu",
+            "--threads",
+            "1",
+            "--out",
+            str(out),
+        ]
     )
     printed = json.loads(capsys.readouterr().out)
     assert printed == json.loads(out.read_text()) == report

@@ -1,0 +1,274 @@
+"""What the sim-to-real diagnosis looks at: observed views beside the fitted scene's renders.
+
+"Sim" is the fitted forward model (the fitted mesh, texture and light rendered by recon's
+Renderer); "real" is the observed images of one split. DiagnosisData keeps, besides the two
+images, the render's auxiliary buffers (normals, depth, texel coordinates, triangle ids) so the
+residual can be binned in image, surface, light and edge domains without rendering again.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import torch
+
+from recon.camera.cameras import Cameras
+from recon.effects.base import ModelEffect
+from recon.effects.forward import render_with_effects
+from recon.errors import ReconError
+from recon.io.datasets import read_captures
+from recon.io.meshes import load_mesh
+from recon.io.run_folder import RunPaths
+from recon.mesh.mesh import Mesh
+from recon.optimize.fit import load_fitted_light
+from recon.render.interpolate import interpolate
+from recon.render.renderer import Renderer, RenderOutput
+from recon.render.shading import Lighting
+
+# Pixels around the silhouette that still count: blur, distortion and pose error leave their
+# residual on both sides of the edge, and a mask of the object alone would hide the outer half.
+DEFAULT_BAND_PIXELS = 3
+# Coverage above this counts as the object (antialiased alpha is fractional at the edge).
+COVERAGE_THRESHOLD = 0.5
+VIEWS_PER_BATCH = 4
+
+
+@dataclass
+class DiagnosisData:
+    """A set of B views of one split: observations, the fitted scene's renders and its buffers.
+
+    observed: [B, H, W, 3] linear colour, premultiplied by coverage (background removed).
+    rendered: [B, H, W, 3] linear colour of the fitted scene, premultiplied (over black).
+    observed_alpha: [B, H, W, 1] observed coverage in [0, 1].
+    rendered_alpha: [B, H, W, 1] antialiased rendered coverage in [0, 1].
+    region: [B, H, W, 1] float 0/1: observed or rendered object, dilated by a band of pixels.
+    normals: [B, H, W, 3] world shading normals (0 where no triangle covers the pixel centre).
+    depth: [B, H, W, 1] camera-space depth z (0 on background).
+    texel_uv: [B, H, W, 2] fitted texture coordinates in [0, 1] ((0, 0) = the texture's top-left),
+        -1 where no triangle covers the pixel or the mesh has no UVs.
+    triangle_id: [B, H, W] int64 rendered triangle per pixel centre, -1 on background.
+    cameras, lighting, mesh: the fitted scene (on the device it was rendered on).
+    names: B view names; split: the dataset split they come from.
+    """
+
+    observed: torch.Tensor
+    rendered: torch.Tensor
+    observed_alpha: torch.Tensor
+    rendered_alpha: torch.Tensor
+    region: torch.Tensor
+    normals: torch.Tensor
+    depth: torch.Tensor
+    texel_uv: torch.Tensor
+    triangle_id: torch.Tensor
+    cameras: Cameras
+    lighting: Lighting
+    mesh: Mesh
+    names: list[str] = field(default_factory=list)
+    split: str = ""
+
+    def __post_init__(self) -> None:
+        if self.observed.ndim != 4 or self.observed.shape[-1] != 3:
+            raise ReconError(
+                f"diagnosis_data.observed: expected shape [B, H, W, 3], got "
+                f"{tuple(self.observed.shape)}"
+            )
+        batch, height, width, _ = self.observed.shape
+        expected = {
+            "rendered": (batch, height, width, 3),
+            "observed_alpha": (batch, height, width, 1),
+            "rendered_alpha": (batch, height, width, 1),
+            "region": (batch, height, width, 1),
+            "normals": (batch, height, width, 3),
+            "depth": (batch, height, width, 1),
+            "texel_uv": (batch, height, width, 2),
+            "triangle_id": (batch, height, width),
+        }
+        for name, shape in expected.items():
+            actual = tuple(getattr(self, name).shape)
+            if actual != shape:
+                raise ReconError(
+                    f"diagnosis_data.{name}: expected shape {list(shape)}, got {list(actual)}"
+                )
+        if len(self.cameras) != batch or tuple(self.cameras.image_size) != (height, width):
+            raise ReconError(
+                f"diagnosis_data.cameras: expected {batch} cameras of size ({height}, {width}), "
+                f"got {len(self.cameras)} of size {self.cameras.image_size}"
+            )
+        if not self.names:
+            self.names = [str(index) for index in range(batch)]
+
+    @property
+    def residual(self) -> torch.Tensor:
+        """observed - rendered [B, H, W, 3], linear radiance."""
+        return self.observed - self.rendered
+
+    @property
+    def view_count(self) -> int:
+        return self.observed.shape[0]
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        return (self.observed.shape[1], self.observed.shape[2])
+
+    @property
+    def rendered_mask(self) -> torch.Tensor:
+        """[B, H, W] bool: a fitted triangle covers the pixel centre."""
+        return self.triangle_id >= 0
+
+
+def region_mask(
+    observed_alpha: torch.Tensor,
+    rendered_alpha: torch.Tensor,
+    band_pixels: int = DEFAULT_BAND_PIXELS,
+) -> torch.Tensor:
+    """The pixels the gap is measured on: [B, H, W, 1] float 0/1.
+
+    The union of the observed and the rendered object (alpha [B, H, W, 1] above one half), so a
+    silhouette that is too small or too large is counted on both sides, dilated by band_pixels
+    (a square structuring element) so that edge residuals outside both silhouettes count too.
+    """
+    covered = (observed_alpha > COVERAGE_THRESHOLD) | (rendered_alpha > COVERAGE_THRESHOLD)
+    covered = covered.float().permute(0, 3, 1, 2)  # [B, 1, H, W]
+    if band_pixels > 0:
+        size = 2 * band_pixels + 1
+        covered = torch.nn.functional.max_pool2d(covered, size, stride=1, padding=band_pixels)
+    return covered.permute(0, 2, 3, 1).contiguous()
+
+
+def texel_coordinates(output: RenderOutput, mesh: Mesh) -> torch.Tensor:
+    """Fitted UVs at each pixel [B, H, W, 2], -1 where no triangle covers it or no UVs exist."""
+    fragments = output.fragments
+    batch = fragments.batch_size
+    height, width = fragments.resolution
+    if mesh.uvs is None or mesh.uv_faces is None:
+        return torch.full((batch, height, width, 2), -1.0, device=output.color.device)
+    uv = interpolate(mesh.uvs, fragments, mesh.uv_faces)
+    covered = (fragments.tri_id >= 0).unsqueeze(-1)
+    return torch.where(covered, uv, torch.full_like(uv, -1.0))
+
+
+def build_diagnosis_data(
+    observed: torch.Tensor,
+    observed_alpha: torch.Tensor,
+    output: RenderOutput,
+    cameras: Cameras,
+    lighting: Lighting,
+    mesh: Mesh,
+    band_pixels: int = DEFAULT_BAND_PIXELS,
+    names: list[str] | None = None,
+    split: str = "",
+) -> DiagnosisData:
+    """Bundle observations [B, H, W, 3] / [B, H, W, 1] with a render of the fitted scene.
+
+    output: the Renderer's output for the same cameras, rendered over a black background so
+    its colour is premultiplied like the observations. Everything is detached and moved to the
+    CPU: the diagnosis is analysis, not optimisation.
+    """
+    cpu = torch.device("cpu")
+    rendered_alpha = output.alpha.detach().to(cpu)
+    observed_alpha = observed_alpha.detach().to(cpu)
+    return DiagnosisData(
+        observed=observed.detach().to(cpu).float(),
+        rendered=output.color.detach().to(cpu).float(),
+        observed_alpha=observed_alpha,
+        rendered_alpha=rendered_alpha,
+        region=region_mask(observed_alpha, rendered_alpha, band_pixels),
+        normals=output.normals.detach().to(cpu),
+        depth=output.depth.detach().to(cpu),
+        texel_uv=texel_coordinates(output, mesh).detach().to(cpu),
+        triangle_id=output.fragments.tri_id.detach().to(cpu),
+        cameras=cameras.to(cpu),
+        lighting=lighting.to(cpu),
+        mesh=mesh.to(cpu),
+        names=list(names) if names is not None else [],
+        split=split,
+    )
+
+
+def load_diagnosis_data(
+    paths: RunPaths,
+    split: str,
+    device: torch.device | str = "cpu",
+    band_pixels: int = DEFAULT_BAND_PIXELS,
+    effects: Sequence[ModelEffect] | None = None,
+) -> DiagnosisData:
+    """The fitted scene of a run folder against one split of its dataset.
+
+    Renders like the evaluate stage (recon.metrics.evaluate.render_fitted: trilinear texture,
+    clamped at the border, black background) but keeps the render's buffers. effects: model
+    effects switched on in the forward model (recon.effects.render_with_effects, as for
+    held-out views: no per-view parameters); their colour and alpha are the render's, the other
+    buffers come from the underlying rasterisation. The returned tensors live on the CPU
+    whatever device rendered them.
+    """
+    if not paths.fitted_mesh.exists():
+        raise ReconError(f"diagnose: no fitted mesh at {paths.fitted_mesh} (run the fit stage)")
+    if not paths.fitted_light.exists():
+        raise ReconError(f"diagnose: no fitted light at {paths.fitted_light} (run the fit stage)")
+    device = torch.device(device)
+    captures = read_captures(paths.dataset, split)
+    if len(captures.cameras) == 0:
+        raise ReconError(f"diagnose: split '{split}' of {paths.dataset} has no views")
+    mesh = load_mesh(paths.fitted_mesh).to(device)
+    lighting = load_fitted_light(paths, device)
+    renderer = Renderer(texture_filter="linear-mipmap-linear", texture_boundary="clamp")
+    parts: list[DiagnosisData] = []
+    with torch.no_grad():
+        for start in range(0, len(captures.cameras), VIEWS_PER_BATCH):
+            stop = start + VIEWS_PER_BATCH
+            cameras = captures.cameras[start:stop].to(device)
+            if effects:
+                output = render_with_effects(renderer, mesh, cameras, lighting, effects)
+            else:
+                output = renderer.render(mesh, cameras, lighting)
+            parts.append(
+                build_diagnosis_data(
+                    captures.images[start:stop],
+                    captures.masks[start:stop],
+                    output,
+                    cameras,
+                    lighting,
+                    mesh,
+                    band_pixels,
+                    captures.names[start:stop],
+                    split,
+                )
+            )
+    return concatenate(parts)
+
+
+def concatenate(parts: list[DiagnosisData]) -> DiagnosisData:
+    """One DiagnosisData from batches of views of the same scene (in order)."""
+    if not parts:
+        raise ReconError("diagnosis_data: nothing to concatenate")
+    first = parts[0]
+    if len(parts) == 1:
+        return first
+
+    def joined(name: str) -> torch.Tensor:
+        return torch.cat([getattr(part, name) for part in parts])
+
+    cameras = Cameras(
+        world_to_cam=torch.cat([part.cameras.world_to_cam for part in parts]),
+        intrinsics=torch.cat([part.cameras.intrinsics for part in parts]),
+        image_size=first.cameras.image_size,
+        near=first.cameras.near,
+        far=first.cameras.far,
+    )
+    return DiagnosisData(
+        observed=joined("observed"),
+        rendered=joined("rendered"),
+        observed_alpha=joined("observed_alpha"),
+        rendered_alpha=joined("rendered_alpha"),
+        region=joined("region"),
+        normals=joined("normals"),
+        depth=joined("depth"),
+        texel_uv=joined("texel_uv"),
+        triangle_id=joined("triangle_id"),
+        cameras=cameras,
+        lighting=first.lighting,
+        mesh=first.mesh,
+        names=[name for part in parts for name in part.names],
+        split=first.split,
+    )

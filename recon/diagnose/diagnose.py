@@ -1,0 +1,276 @@
+"""recon diagnose: where the sim-to-real gap lies, which unmodelled effect causes it, and how far
+it shrinks once that effect is in the forward model. Writes diagnosis.json and figures.
+
+diagnosis.json (stable schema, see README "Gap diagnosis"):
+  gap:     held-out RMSE/PSNR (linear), noise floor, gap above the floor, relight error
+  where:   per domain {score, score_in_sample, summary}
+  ranking: [{effect, score, heldout_reduction, interval, significant, parameters, absorption}]
+  refits:  [{effects, before, after, floor, closed_fraction, geometry_before, geometry_after}]
+  verdict: the significant effects in order, or "no significant unmodelled effect"
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import replace
+
+import matplotlib
+import matplotlib.pyplot as plt
+import torch
+
+from recon.config.run_config import RunConfig
+from recon.diagnose.data import DiagnosisData, load_diagnosis_data
+from recon.diagnose.residuals import gap_summary, noise_floor, where_analysis
+from recon.diagnose.which import (
+    EffectProbe,
+    _per_view_mse,
+    block_halves,
+    rank_candidates,
+)
+from recon.effects.registry import MODEL_EFFECTS, make_effect
+from recon.errors import ReconError
+from recon.io.atomic import atomic_path, atomic_write_json
+from recon.io.datasets import read_captures
+from recon.io.meshes import load_mesh
+from recon.io.run_folder import RunPaths
+from recon.metrics.evaluate import _plain
+from recon.optimize.checkpoint import History
+from recon.optimize.fit import load_fitted_light
+from recon.optimize.geometry_stage import GeometryResult
+from recon.optimize.scene_model import FitEffects, LightModel
+from recon.optimize.texture_stage import run_texture_stage
+
+matplotlib.use("Agg")
+
+REFIT_STEPS = 80
+MAX_GREEDY_EFFECTS = 3
+
+
+def _light_model(paths: RunPaths, device: torch.device) -> LightModel:
+    lighting = load_fitted_light(paths, device)
+    light = LightModel(with_sun=bool(lighting.directional)).to(device)
+    with torch.no_grad():
+        light.sh.copy_(lighting.sh_coefficients)
+        if lighting.directional:
+            light.sun_direction.copy_(lighting.directional[0].direction_to_light)
+            light.sun_log_irradiance.copy_(lighting.directional[0].irradiance.clamp_min(1e-6).log())
+    return light
+
+
+def heldout_gap(data: DiagnosisData, effects_for_views) -> float:
+    """Held-out MSE on the second half of the pixel blocks, after fitting the per-view
+    parameters of the given effects on the first half (scene frozen)."""
+    batch, height, width, _ = data.observed.shape
+    first, second = block_halves(batch, height, width, data.observed.device)
+    probe = EffectProbe(data)
+    if not effects_for_views:
+        squared, count = _per_view_mse(probe.base_output.color, data.observed, second * data.region)
+        return float(squared.sum() / count.sum())
+    modules = effects_for_views
+    parameters = [group for module in modules for group in module.parameter_groups()]
+    optimizer = torch.optim.Adam(parameters) if parameters else None
+
+    def render():
+        color = probe.base_output.color
+        from recon.effects.forward import render_with_effects
+
+        if any(module.stage != "image" for module in modules):
+            output = render_with_effects(
+                probe.renderer,
+                data.mesh,
+                data.cameras,
+                data.lighting,
+                modules,
+                view_indices=probe.view_indices,
+            )
+            return output.color
+        from recon.effects.forward import apply_image_effects
+
+        color, _ = apply_image_effects(
+            modules, color, probe.base_output.alpha, data.cameras, probe.view_indices
+        )
+        return color
+
+    for _ in range(40 if optimizer else 0):
+        optimizer.zero_grad()
+        squared, count = _per_view_mse(render(), data.observed, first * data.region)
+        (squared.sum() / count.sum()).backward()
+        optimizer.step()
+    with torch.no_grad():
+        squared, count = _per_view_mse(render(), data.observed, second * data.region)
+    return float(squared.sum() / count.sum())
+
+
+def _effects_for_heldout(names: list[str], fitted: FitEffects, view_count: int, device):
+    """Held-out modules: per-view effects start at the identity (their views are new); global
+    effects copy the refit's parameters (and are refined on the first half too)."""
+    modules = []
+    for name in names:
+        module = make_effect(name, view_count=view_count, pinned_view=None).to(device)
+        source = next((m for m in fitted.modules if m.name == name), None)
+        if source is not None and not module.per_view:
+            module.load_state_dict(source.state_dict())
+        modules.append(module)
+    return modules
+
+
+def refit_with(
+    names: list[str],
+    paths: RunPaths,
+    config: RunConfig,
+    device: torch.device,
+    steps: int = REFIT_STEPS,
+):
+    """Warm start from the fitted mesh + light; optimise texture, light, positions and the
+    effects on the training views. Returns (mesh, lighting, FitEffects)."""
+    captures = read_captures(paths.dataset, "train")
+    mesh = load_mesh(paths.fitted_mesh).to(device)
+    light = _light_model(paths, device)
+    fit_config = replace(
+        config.fit, texture=replace(config.fit.texture, steps=steps, learning_rate=0.002)
+    )
+    effects = FitEffects(names, len(captures.cameras), device)
+    for module in effects.modules:
+        module.lock_fraction = 0.0
+    geometry = GeometryResult(mesh.verts, mesh.faces, torch.zeros_like(mesh.verts), light)
+    scratch = paths.root / "diagnosis" / "refit"
+    result = run_texture_stage(
+        captures,
+        geometry,
+        fit_config,
+        device,
+        config.seed,
+        scratch / f"{'+'.join(names)}.pt",
+        History(scratch / "history.jsonl"),
+        initial=mesh,
+        effects=effects,
+    )
+    return result.mesh, result.light.lighting(), result.effects
+
+
+def waterfall_figure(refits: list[dict], floor_rmse: float, path) -> None:
+    labels = ["fitted"] + ["+ " + " + ".join(r["effects"]) for r in refits]
+    values = [refits[0]["before_rmse"]] + [r["after_rmse"] for r in refits] if refits else []
+    figure, axis = plt.subplots(figsize=(6, 3.5))
+    axis.bar(range(len(values)), values, color=["#888"] + ["#3a7"] * (len(values) - 1))
+    axis.axhline(floor_rmse, color="#c33", linestyle="--", label="noise floor")
+    axis.set_xticks(range(len(values)), labels, rotation=20, ha="right")
+    axis.set_ylabel("held-out residual RMSE (linear)")
+    axis.legend()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as temporary:
+        figure.savefig(temporary, dpi=110, bbox_inches="tight", format="png")
+    plt.close(figure)
+
+
+def diagnose_run(
+    paths: RunPaths,
+    config: RunConfig,
+    device: torch.device,
+    refit: str = "top",
+    candidates: list[str] | None = None,
+    probe_steps: int = 60,
+    refit_steps: int = REFIT_STEPS,
+) -> dict:
+    if not paths.fitted_mesh.exists():
+        raise ReconError(f"diagnose: no fitted mesh at {paths.fitted_mesh} (run the fit first)")
+    if refit not in ("none", "top", "greedy"):
+        raise ReconError(f"--refit: expected none, top or greedy, got {refit!r}")
+    unknown = sorted(set(candidates or []) - set(MODEL_EFFECTS))
+    if unknown:
+        raise ReconError(f"--effects: unknown {unknown}; known: {', '.join(sorted(MODEL_EFFECTS))}")
+    started = time.perf_counter()
+    split = "test" if (paths.dataset / "transforms_test.json").exists() else "val"
+    data = load_diagnosis_data(paths, split, device)
+    gap = gap_summary(data)
+    floor = noise_floor(data)
+    floor_rmse = floor.get("floor_rmse") or 0.0
+    gap["noise_floor"] = floor
+    if (paths.dataset / "transforms_relight.json").exists():
+        relight = load_diagnosis_data(paths, "relight", device)
+        gap["relight"] = gap_summary(relight)
+    where = where_analysis(data)
+    ranking = rank_candidates(data, floor_rmse**2, candidates, steps=probe_steps)
+    timings = {"diagnose_seconds": round(time.perf_counter() - started, 2)}
+
+    refits = []
+    if refit != "none":
+        chosen: list[str] = []
+        before_mse = heldout_gap(data, [])
+        for candidate in ranking:
+            if not candidate.significant or (refit == "top" and chosen):
+                continue
+            if len(chosen) >= MAX_GREEDY_EFFECTS:
+                break
+            names = chosen + [candidate.effect]
+            mesh, lighting, fitted_effects = refit_with(names, paths, config, device, refit_steps)
+            refit_data = replace(data, mesh=mesh, lighting=lighting)
+            modules = _effects_for_heldout(names, fitted_effects, len(data.cameras), device)
+            after_mse = heldout_gap(refit_data, modules)
+            floor_mse = floor_rmse**2
+            closed = (before_mse - after_mse) / max(before_mse - floor_mse, 1e-20)
+            record = {
+                "effects": names,
+                "before": before_mse,
+                "after": after_mse,
+                "before_rmse": math.sqrt(before_mse),
+                "after_rmse": math.sqrt(max(after_mse, 0.0)),
+                "floor": floor_mse,
+                "closed_fraction": closed,
+                "parameters": {m.name: m.parameters_summary() for m in fitted_effects.modules},
+            }
+            if paths.reference_mesh.exists():
+                from recon.metrics.geometry import geometry_metrics
+
+                reference = load_mesh(paths.reference_mesh)
+                record["geometry_before"] = geometry_metrics(
+                    data.mesh.to("cpu"), reference, samples=20000
+                )["chamfer_l1"]
+                record["geometry_after"] = geometry_metrics(
+                    mesh.to("cpu"), reference, samples=20000
+                )["chamfer_l1"]
+            refits.append(record)
+            if refit == "greedy" and closed < 0.05:
+                break
+            chosen = names
+            before_mse = after_mse if refit == "greedy" else before_mse
+        timings["refit_seconds"] = round(
+            time.perf_counter() - started - timings["diagnose_seconds"], 2
+        )
+    significant = [c.effect for c in ranking if c.significant]
+    verdict = (
+        "no significant unmodelled effect"
+        if not significant
+        else "significant unmodelled effects: " + ", ".join(significant)
+    )
+    result = {
+        "gap": gap,
+        "where": where,
+        "ranking": [candidate.to_json() for candidate in ranking],
+        "refits": refits,
+        "verdict": verdict,
+        "timings": timings,
+    }
+    folder = paths.root / "diagnosis"
+    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        from recon.diagnose.figures import where_figures
+
+        result["figures"] = {
+            key: str(value.relative_to(paths.root)) if hasattr(value, "relative_to") else str(value)
+            for key, value in where_figures(data, where, folder).items()
+        }
+    except ImportError:
+        result["figures"] = {}
+    if refits:
+        waterfall_figure(refits, floor_rmse, folder / "waterfall.png")
+        result["figures"]["waterfall"] = "diagnosis/waterfall.png"
+    atomic_write_json(paths.root / "diagnosis.json", _plain(result))
+    return result
+
+
+def diagnose_stage(config: RunConfig, paths: RunPaths, device: torch.device, **options) -> dict:
+    """Entry point 'diagnose' of the recon.stages group."""
+    result = diagnose_run(paths, config, device, **options)
+    return {"verdict": result["verdict"]}

@@ -1,0 +1,208 @@
+"""Which unmodelled effect causes the gap: score test, probe fit, bootstrap, significance.
+
+For every candidate effect module (recon.effects), starting from the fitted scene (frozen):
+
+1. Score test (no fit): the gradient g of the image loss with respect to the effect's
+   parameters at zero (identity) and the first-order predicted loss reduction of a Gauss-Newton
+   step along it, (g.g)^2 / (2 g.H g) with H = J^T J estimated from one finite-difference
+   Jacobian-vector product: a Lagrange-multiplier test for an omitted variable.
+2. Probe: only the effect's parameters are fitted, on one half of each held-out view's pixels
+   (a checkerboard of blocks), and the loss reduction is measured on the other half. Per-view
+   effects (exposure of a view the fit never saw) get their per-view parameters from the same
+   view's first half; pixel noise cannot carry over between halves, structure does.
+3. Bootstrap over views gives an interval for the held-out reduction; an effect is significant
+   when the interval's lower bound clears a threshold relative to the gap above the noise floor.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+
+from recon.diagnose.data import DiagnosisData
+from recon.effects.base import ModelEffect
+from recon.effects.forward import (
+    EffectContext,
+    apply_camera_effects,
+    apply_image_effects,
+    apply_shading_effects,
+)
+from recon.effects.registry import MODEL_EFFECTS, make_effect
+from recon.render.renderer import Renderer
+
+BLOCK_PIXELS = 4
+PROBE_STEPS = 60
+BOOTSTRAP_SAMPLES = 400
+# Significance: the bootstrap's lower bound must remove at least this share of the held-out
+# loss above the noise floor, and at least MINIMUM_SHARE of the whole held-out loss.
+SIGNIFICANCE_SHARE_ABOVE_FLOOR = 0.15
+MINIMUM_SHARE = 0.02
+
+
+@dataclass
+class CandidateResult:
+    effect: str
+    score: float
+    heldout_reduction: float
+    interval: tuple[float, float]
+    significant: bool
+    parameters: dict = field(default_factory=dict)
+    absorption: float | None = None
+
+    def to_json(self) -> dict:
+        return {
+            "effect": self.effect,
+            "score": self.score,
+            "heldout_reduction": self.heldout_reduction,
+            "interval": list(self.interval),
+            "significant": self.significant,
+            "parameters": self.parameters,
+            "absorption": self.absorption,
+        }
+
+
+def block_halves(batch: int, height: int, width: int, device) -> tuple[torch.Tensor, torch.Tensor]:
+    """Two complementary [B, H, W, 1] masks: a checkerboard of BLOCK_PIXELS blocks."""
+    rows = torch.arange(height, device=device) // BLOCK_PIXELS
+    columns = torch.arange(width, device=device) // BLOCK_PIXELS
+    first = ((rows[:, None] + columns[None, :]) % 2 == 0).float()
+    first = first[None, :, :, None].expand(batch, height, width, 1)
+    return first, 1 - first
+
+
+class EffectProbe:
+    """Renders the frozen fitted scene with one effect module on top, cheaply: image effects
+    reuse the cached render, shading effects its buffers; camera effects re-render."""
+
+    def __init__(self, data: DiagnosisData, renderer: Renderer | None = None) -> None:
+        self.data = data
+        self.renderer = renderer or Renderer(
+            texture_filter="linear-mipmap-linear", texture_boundary="clamp"
+        )
+        with torch.no_grad():
+            self.base_output = self.renderer.render(data.mesh, data.cameras, data.lighting)
+        self.view_indices = torch.arange(len(data.cameras), device=data.observed.device)
+
+    def render(self, effect: ModelEffect) -> torch.Tensor:
+        """Premultiplied colour [B, H, W, 3] of the scene with the effect."""
+        if effect.stage == "camera":
+            cameras = apply_camera_effects([effect], self.data.cameras, self.view_indices)
+            output = self.renderer.render(self.data.mesh, cameras, self.data.lighting)
+            return output.color
+        if effect.stage == "shading":
+            context = EffectContext(
+                self.data.mesh,
+                self.data.lighting,
+                self.data.cameras,
+                self.view_indices,
+                self.renderer,
+            )
+            return apply_shading_effects([effect], self.base_output, context).color
+        color, _ = apply_image_effects(
+            [effect],
+            self.base_output.color,
+            self.base_output.alpha,
+            self.data.cameras,
+            self.view_indices,
+        )
+        return color
+
+
+def _per_view_mse(prediction: torch.Tensor, observed: torch.Tensor, weight: torch.Tensor):
+    squared = ((prediction - observed) ** 2 * weight).sum(dim=(1, 2, 3))
+    count = (weight.sum(dim=(1, 2, 3)) * prediction.shape[-1]).clamp_min(1)
+    return squared, count
+
+
+def probe_candidate(
+    name: str, probe: EffectProbe, floor_mse: float, steps: int = PROBE_STEPS, seed: int = 0
+) -> CandidateResult:
+    data = probe.data
+    device = data.observed.device
+    batch, height, width, _ = data.observed.shape
+    first, second = block_halves(batch, height, width, device)
+    weight_first = first * data.region
+    weight_second = second * data.region
+    effect = make_effect(name, view_count=batch, pinned_view=None).to(device)
+
+    def loss_on(weight: torch.Tensor) -> torch.Tensor:
+        squared, count = _per_view_mse(probe.render(effect), data.observed, weight)
+        return squared.sum() / count.sum()
+
+    # 1. Score test at the identity.
+    parameters = [p for p in effect.parameters() if p.requires_grad]
+    loss_zero = loss_on(weight_first)
+    gradients = torch.autograd.grad(loss_zero, parameters, allow_unused=True)
+    gradients = [
+        torch.zeros_like(p) if g is None else g for p, g in zip(parameters, gradients, strict=True)
+    ]
+    gradient_norm_squared = sum(float((g * g).sum()) for g in gradients)
+    score = 0.0
+    if gradient_norm_squared > 0:
+        with torch.no_grad():
+            base = probe.render(effect)
+            norm = gradient_norm_squared**0.5
+            step = 1e-3 / norm
+            for parameter, gradient in zip(parameters, gradients, strict=True):
+                parameter -= step * gradient
+            moved = probe.render(effect)
+            for parameter, gradient in zip(parameters, gradients, strict=True):
+                parameter += step * gradient
+            jacobian_gradient = (moved - base) / step  # J g (sign irrelevant below)
+            count = float(weight_first.sum()) * 3
+            curvature = 2 * float(((jacobian_gradient**2) * weight_first).sum()) / count
+            if curvature > 0:
+                score = gradient_norm_squared**2 / (2 * curvature) / max(float(loss_zero), 1e-20)
+
+    # 2. Probe fit on the first half, measured on the second.
+    with torch.no_grad():
+        before, counts = _per_view_mse(probe.base_output.color, data.observed, weight_second)
+    optimizer = torch.optim.Adam(effect.parameter_groups())
+    for _ in range(steps):
+        optimizer.zero_grad()
+        loss = loss_on(weight_first)
+        loss.backward()
+        optimizer.step()
+    with torch.no_grad():
+        after, _ = _per_view_mse(probe.render(effect), data.observed, weight_second)
+    total_before = float(before.sum())
+    reduction = (total_before - float(after.sum())) / max(total_before, 1e-20)
+
+    # 3. Bootstrap over views.
+    generator = torch.Generator().manual_seed(seed)
+    picks = torch.randint(0, batch, (BOOTSTRAP_SAMPLES, batch), generator=generator)
+    before_cpu, after_cpu = before.cpu(), after.cpu()
+    sampled = 1 - after_cpu[picks].sum(1) / before_cpu[picks].sum(1).clamp_min(1e-20)
+    low = float(torch.quantile(sampled, 0.05))
+    high = float(torch.quantile(sampled, 0.95))
+    mean_mse = total_before / float(counts.sum())
+    share_above_floor = max(0.0, 1 - floor_mse / max(mean_mse, 1e-20))
+    threshold = max(MINIMUM_SHARE, SIGNIFICANCE_SHARE_ABOVE_FLOOR * share_above_floor)
+    summary = effect.parameters_summary()
+    return CandidateResult(
+        effect=name,
+        score=float(score),
+        heldout_reduction=float(reduction),
+        interval=(low, high),
+        significant=low > threshold,
+        parameters=summary,
+    )
+
+
+def rank_candidates(
+    data: DiagnosisData,
+    floor_mse: float,
+    candidates: list[str] | None = None,
+    steps: int = PROBE_STEPS,
+    progress=None,
+) -> list[CandidateResult]:
+    """Every candidate probed; sorted by held-out reduction (largest first)."""
+    probe = EffectProbe(data)
+    names = candidates or sorted(MODEL_EFFECTS)
+    results = []
+    for name in names:
+        results.append(probe_candidate(name, probe, floor_mse, steps=steps))
+        if progress is not None:
+            progress(name)
+    return sorted(results, key=lambda result: result.heldout_reduction, reverse=True)

@@ -1,0 +1,241 @@
+"""recon diagnose-bench: the blind check of the gap diagnosis.
+
+For every case (one effect, two effects, or none) a dataset is synthesised with the effects
+withheld (random plausible strengths; the truth goes to a file outside the run folder), the
+scene is fitted without effects, diagnosed without reading the truth, and only then scored:
+top-1 accuracy (single effects), both-found rate (pairs), false-positive rate (clean), gap
+closed by the refit, and parameter recovery for exposure, vignetting and the response curve.
+Writes bench.json, confusion.png and bench.md.
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import matplotlib
+import matplotlib.pyplot as plt
+import torch
+from tqdm import tqdm
+
+from recon.config import load_config
+from recon.config.run_config import RunConfig
+from recon.diagnose.diagnose import diagnose_run
+from recon.effects.registry import MODEL_EFFECTS
+from recon.io.atomic import atomic_path, atomic_write_json, atomic_write_text
+from recon.io.run_folder import RunPaths, prepare_run_folder
+
+matplotlib.use("Agg")
+
+NONE = "none"
+
+
+@dataclass
+class BenchCase:
+    """One dataset of the benchmark: the withheld effects (empty = clean) and a seed."""
+
+    effects: tuple[str, ...]
+    seed: int
+
+    @property
+    def label(self) -> str:
+        return "+".join(self.effects) if self.effects else NONE
+
+    @property
+    def kind(self) -> str:
+        return {0: "clean", 1: "single"}.get(len(self.effects), "pair")
+
+
+def default_cases(
+    effects: list[str], seeds: list[int], pairs: list[tuple[str, str]], clean: int
+) -> list[BenchCase]:
+    cases = [BenchCase((name,), seed) for name in effects for seed in seeds]
+    cases += [BenchCase(pair, seeds[index % len(seeds)]) for index, pair in enumerate(pairs)]
+    cases += [BenchCase((), 100 + index) for index in range(clean)]
+    return cases
+
+
+def run_case(
+    case: BenchCase, config: RunConfig, out: Path, device: torch.device, refit: str
+) -> dict:
+    """Synth (withheld) -> fit -> diagnose (blind) -> score against the truth."""
+    from dataclasses import replace
+
+    from recon.pipeline import run_stages
+
+    case_config = replace(config, seed=case.seed, stages=["synth", "fit"])
+    paths = prepare_run_folder(out / f"{case.label}_seed{case.seed}", force=True)
+    truth_path = out / "truth" / f"{case.label}_seed{case.seed}.json"
+    from recon.config import dump_resolved
+
+    dump_resolved(case_config, paths.resolved_config)
+    started = time.perf_counter()
+    synth_options = (
+        {"withhold_effects": list(case.effects), "truth_out": truth_path} if case.effects else {}
+    )
+    run_stages(case_config, paths, device, ["synth", "fit"], {"synth": synth_options})
+    fit_seconds = time.perf_counter() - started
+    started = time.perf_counter()
+    diagnosis = diagnose_run(paths, case_config, device, refit=refit)
+    diagnose_seconds = time.perf_counter() - started
+    # Only now is the truth read: the diagnosis above never saw it.
+    truth = json.loads(truth_path.read_text()) if case.effects else {"withheld": []}
+    return score_case(case, diagnosis, truth, fit_seconds, diagnose_seconds, paths)
+
+
+def score_case(
+    case: BenchCase,
+    diagnosis: dict,
+    truth: dict,
+    fit_seconds: float,
+    diagnose_seconds: float,
+    paths: RunPaths,
+) -> dict:
+    significant = [item["effect"] for item in diagnosis["ranking"] if item["significant"]]
+    top = significant[0] if significant else NONE
+    record = {
+        "case": case.label,
+        "kind": case.kind,
+        "seed": case.seed,
+        "truth": list(case.effects),
+        "predicted_top": top,
+        "significant": significant,
+        "top1_correct": (top in case.effects) if case.effects else top == NONE,
+        "both_found": set(case.effects) <= set(significant[:3]) if len(case.effects) == 2 else None,
+        "false_positive": bool(significant) if not case.effects else None,
+        "closed_fraction": diagnosis["refits"][0]["closed_fraction"]
+        if diagnosis["refits"]
+        else None,
+        "fit_seconds": round(fit_seconds, 1),
+        "diagnose_seconds": round(diagnose_seconds, 1),
+        "run_folder": str(paths.root),
+    }
+    record["parameter_error"] = parameter_errors(diagnosis, truth)
+    return record
+
+
+def parameter_errors(diagnosis: dict, truth: dict) -> dict:
+    """Recovered vs true parameters where the two are comparable (relative units)."""
+    errors = {}
+    found = {item["effect"]: item["parameters"] for item in diagnosis["ranking"]}
+    realised = {}
+    for items in truth.get("realised", {}).values():
+        for item in items:
+            realised.setdefault(item["name"], item["parameters"])
+    if "vignetting" in realised and "vignetting" in found:
+        true_ratio = _mean(realised["vignetting"].get("corner_ratio"))
+        model_ratio = found["vignetting"].get("corner_falloff")
+        if true_ratio and model_ratio:
+            errors["vignetting_corner_falloff"] = abs(model_ratio - true_ratio) / true_ratio
+    if "response_curve" in realised and "response_curve" in found:
+        true_gamma = realised["response_curve"].get("effective_exponent")
+        model_gamma = found["response_curve"].get("effective_gamma")
+        if true_gamma and model_gamma:
+            errors["response_gamma_absolute"] = abs(model_gamma - true_gamma)
+    return errors
+
+
+def _mean(value):
+    if isinstance(value, list):
+        flat = [v for v in value if isinstance(v, (int, float))]
+        return statistics.fmean(flat) if flat else None
+    return value
+
+
+def summarise(records: list[dict]) -> dict:
+    singles = [r for r in records if r["kind"] == "single"]
+    pairs = [r for r in records if r["kind"] == "pair"]
+    clean = [r for r in records if r["kind"] == "clean"]
+    closed = [r["closed_fraction"] for r in records if r["closed_fraction"] is not None]
+
+    def share(values):
+        return sum(values) / len(values) if values else None
+
+    return {
+        "top1_accuracy": share([r["top1_correct"] for r in singles]),
+        "both_found_rate": share([r["both_found"] for r in pairs]),
+        "false_positive_rate": share([r["false_positive"] for r in clean]),
+        "median_closed_fraction": statistics.median(closed) if closed else None,
+        "cases": {"single": len(singles), "pair": len(pairs), "clean": len(clean)},
+        "median_fit_seconds": statistics.median([r["fit_seconds"] for r in records]),
+        "median_diagnose_seconds": statistics.median([r["diagnose_seconds"] for r in records]),
+    }
+
+
+def confusion_matrix(records: list[dict]) -> tuple[list[str], list[list[int]]]:
+    labels = sorted(MODEL_EFFECTS) + [NONE]
+    index = {label: position for position, label in enumerate(labels)}
+    matrix = [[0] * len(labels) for _ in labels]
+    for record in records:
+        if record["kind"] == "pair":
+            continue
+        truth = record["truth"][0] if record["truth"] else NONE
+        matrix[index[truth]][index.get(record["predicted_top"], index[NONE])] += 1
+    return labels, matrix
+
+
+def write_outputs(records: list[dict], out: Path) -> dict:
+    summary = summarise(records)
+    labels, matrix = confusion_matrix(records)
+    atomic_write_json(
+        out / "bench.json",
+        {"summary": summary, "confusion": {"labels": labels, "matrix": matrix}, "cases": records},
+    )
+    figure, axis = plt.subplots(figsize=(7, 6))
+    axis.imshow(matrix, cmap="Blues")
+    axis.set_xticks(range(len(labels)), labels, rotation=60, ha="right")
+    axis.set_yticks(range(len(labels)), labels)
+    axis.set_xlabel("diagnosed (top significant)")
+    axis.set_ylabel("withheld")
+    for row, values in enumerate(matrix):
+        for column, value in enumerate(values):
+            if value:
+                axis.text(column, row, str(value), ha="center", va="center")
+    with atomic_path(out / "confusion.png") as temporary:
+        figure.savefig(temporary, dpi=110, bbox_inches="tight", format="png")
+    plt.close(figure)
+    lines = ["# Blind diagnosis benchmark", "", "| measure | value |", "|---|---|"]
+    lines += [f"| {key} | {value} |" for key, value in summary.items()]
+    lines += ["", "| case | seed | predicted | significant | closed |", "|---|---|---|---|---|"]
+    for record in records:
+        closed = record["closed_fraction"]
+        closed_text = "" if closed is None else f"{closed:.2f}"
+        lines.append(
+            f"| {record['case']} | {record['seed']} | {record['predicted_top']} | "
+            f"{', '.join(record['significant'])} | {closed_text} |"
+        )
+    lines += ["", "![confusion matrix](confusion.png)"]
+    atomic_write_text(out / "bench.md", "\n".join(lines) + "\n")
+    return summary
+
+
+def diagnose_bench(
+    config_path: str | Path,
+    out: str | Path,
+    device: torch.device,
+    effects: list[str] | None = None,
+    seeds: list[int] | None = None,
+    pairs: list[tuple[str, str]] | None = None,
+    clean: int = 3,
+    refit: str = "top",
+    overrides: list[str] = (),
+) -> dict:
+    config = load_config(config_path, RunConfig, overrides=overrides)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    cases = default_cases(
+        effects or sorted(MODEL_EFFECTS),
+        seeds or [0, 1, 2],
+        pairs
+        if pairs is not None
+        else [("exposure", "vignetting"), ("defocus_blur", "response_curve")],
+        clean,
+    )
+    records = []
+    for case in tqdm(cases, desc="diagnose-bench", unit="case"):
+        records.append(run_case(case, config, out, device, refit))
+        write_outputs(records, out)  # keep partial results if interrupted
+    return write_outputs(records, out)
