@@ -318,7 +318,7 @@ class FitConfig:
     """The reconstruction recipe (two passes, nvdiffrec style)."""
 
     init: Literal["visual_hull", "icosphere"] = "visual_hull"
-    hull_resolution: int = 64
+    hull_resolution: int = 128
     geometry: GeometryStageConfig = field(default_factory=GeometryStageConfig)
     simplify: SimplifyConfig = field(default_factory=SimplifyConfig)
     texture: TextureStageConfig = field(default_factory=TextureStageConfig)

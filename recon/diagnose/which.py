@@ -19,6 +19,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import torch
+from tqdm import tqdm
 
 from recon.diagnose.data import DiagnosisData
 from recon.effects.base import ModelEffect
@@ -201,7 +202,9 @@ def rank_candidates(
     probe = EffectProbe(data)
     names = candidates or sorted(MODEL_EFFECTS)
     results = []
-    for name in names:
+    bar = tqdm(names, desc="diagnose candidates", unit="effect", leave=False)
+    for name in bar:
+        bar.set_postfix(effect=name)
         results.append(probe_candidate(name, probe, floor_mse, steps=steps))
         if progress is not None:
             progress(name)
