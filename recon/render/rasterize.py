@@ -302,35 +302,43 @@ def _rasterize_bucket(
     ]
     front = flat_in_front[members][:, None]
     inside = (edge[0] >= 0) & (edge[1] >= 0) & (edge[2] >= 0)
-    if not bool(front.all()):
+    all_in_front = bool(front.all())
+    if not all_in_front:
         total = edge[0] + edge[1] + edge[2]
         general = (edge[0] * total >= 0) & (edge[1] * total >= 0) & (edge[2] * total >= 0)
         inside = torch.where(front, inside, general)
     inside &= in_box
-    member_index, grid_index = torch.nonzero(inside, as_tuple=True)
-    if member_index.numel() == 0:
+    # Flat gathers (take / index_select) are several times cheaper than 2D advanced indexing.
+    flat = torch.nonzero(inside.reshape(-1)).squeeze(1)
+    if flat.numel() == 0:
         return
-    c = coefficients[member_index]
-    x = ndc_x[member_index, grid_index]
-    y = ndc_y[member_index, grid_index]
-    z_numerator = c[:, 9] + c[:, 10] * x + c[:, 11] * y
-    w_numerator = c[:, 12] + c[:, 13] * x + c[:, 14] * y
-    edge_sum = (
-        edge[0][member_index, grid_index]
-        + edge[1][member_index, grid_index]
-        + edge[2][member_index, grid_index]
+    grid_size = grid_width * grid_height
+    member_index = torch.div(flat, grid_size, rounding_mode="floor")
+    x = ndc_x.reshape(-1).take(flat)
+    y = ndc_y.reshape(-1).take(flat)
+    depth_coefficients = coefficients[:, 9:15].index_select(0, member_index)  # [N, 6]
+    z_numerator = (
+        depth_coefficients[:, 0] + depth_coefficients[:, 1] * x + depth_coefficients[:, 2] * y
+    )
+    w_numerator = (
+        depth_coefficients[:, 3] + depth_coefficients[:, 4] * x + depth_coefficients[:, 5] * y
     )
     depth = z_numerator / w_numerator
-    # Interpolated w = w_numerator / edge_sum must be positive: the hit is in front.
-    visible = (w_numerator * edge_sum > 0) & (depth >= -1) & (depth <= 1)
-    flat_item = members[member_index[visible]]
+    visible = (depth >= -1) & (depth <= 1)
+    if not all_in_front:
+        # Interpolated w = w_numerator / (sum of edges) must be positive: the hit is in front.
+        edge_sum = (edge[0] + edge[1] + edge[2]).reshape(-1).take(flat)
+        visible &= w_numerator * edge_sum > 0
+    keep = torch.nonzero(visible).squeeze(1)
+    flat_item = members.index_select(0, member_index.index_select(0, keep))
     batch_index = torch.div(flat_item, face_count, rounding_mode="floor")
     face_index = flat_item - batch_index * face_count
-    pixel_index = (batch_index * height + pixel_y[member_index, grid_index][visible]) * width + (
-        pixel_x[member_index, grid_index][visible]
+    kept_flat = flat.index_select(0, keep)
+    pixel_index = (batch_index * height + pixel_y.reshape(-1).take(kept_flat)) * width + (
+        pixel_x.reshape(-1).take(kept_flat)
     )
     # Map depth from [-1, 1] to [0, 1]: non-negative float32 bits order like the floats.
-    depth01 = ((depth[visible] + 1) * 0.5).clamp(0, 1)
+    depth01 = ((depth.index_select(0, keep) + 1) * 0.5).clamp(0, 1)
     depth_bits = depth01.contiguous().view(torch.int32).to(torch.int64)
     keys.scatter_reduce_(0, pixel_index, (depth_bits << 32) | face_index, reduce="amin")
 
