@@ -121,9 +121,32 @@ def report_stage(config: RunConfig, paths: RunPaths, device: torch.device) -> di
             figures.append((f"Held-out view {render.stem}: target | render | error", render))
     metrics = json.loads(paths.metrics.read_text()) if paths.metrics.exists() else {}
     rows = _metric_rows(metrics)
+    diagnosis_path = paths.root / "diagnosis.json"
+    diagnosis_markdown: list[str] = []
+    if diagnosis_path.exists():
+        diagnosis = json.loads(diagnosis_path.read_text())
+        rows.append(("diagnosis.verdict", diagnosis["verdict"]))
+        diagnosis_markdown = [
+            "",
+            "## Gap diagnosis",
+            "",
+            f"Verdict: {diagnosis['verdict']}",
+            "",
+            "| effect | held-out reduction | interval | significant |",
+            "|---|---|---|---|",
+        ]
+        for item in diagnosis["ranking"]:
+            low, high = item["interval"]
+            diagnosis_markdown.append(
+                f"| {item['effect']} | {item['heldout_reduction']:.3f} | [{low:.3f}, {high:.3f}] "
+                f"| {'yes' if item['significant'] else ''} |"
+            )
+        for name, link in diagnosis.get("figures", {}).items():
+            figures.append((f"Diagnosis: {name.replace('_', ' ')}", paths.root / link))
     relative = [(title, figure.relative_to(paths.root).as_posix()) for title, figure in figures]
     markdown = [f"# recon report: {config.name}", "", "| metric | value |", "|---|---|"]
     markdown += [f"| {name} | {value} |" for name, value in rows]
+    markdown += diagnosis_markdown
     for title, link in relative:
         markdown += ["", f"## {title}", "", f"![{title}]({link})"]
     atomic_write_text(paths.report_markdown, "\n".join(markdown) + "\n")
