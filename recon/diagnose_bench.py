@@ -111,6 +111,10 @@ def score_case(
         else None,
         "fit_seconds": round(fit_seconds, 1),
         "diagnose_seconds": round(diagnose_seconds, 1),
+        # Diagnosis alone (where + which) and the refit, as shares of the fit's time.
+        "diagnosis_share_of_fit": diagnosis["timings"]["diagnose_seconds"] / max(fit_seconds, 1e-9),
+        "refit_share_of_fit": diagnosis["timings"].get("refit_seconds", 0.0)
+        / max(fit_seconds, 1e-9),
         "run_folder": str(paths.root),
     }
     record["parameter_error"] = parameter_errors(diagnosis, truth)
@@ -162,6 +166,10 @@ def summarise(records: list[dict]) -> dict:
         "cases": {"single": len(singles), "pair": len(pairs), "clean": len(clean)},
         "median_fit_seconds": statistics.median([r["fit_seconds"] for r in records]),
         "median_diagnose_seconds": statistics.median([r["diagnose_seconds"] for r in records]),
+        "median_diagnosis_share_of_fit": statistics.median(
+            [r["diagnosis_share_of_fit"] for r in records]
+        ),
+        "median_refit_share_of_fit": statistics.median([r["refit_share_of_fit"] for r in records]),
     }
 
 

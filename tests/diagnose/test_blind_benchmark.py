@@ -1,0 +1,51 @@
+"""A small blind benchmark in the suite: withheld effects at 48 px, fit without them, diagnose
+blind, score against the truth only afterwards."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+
+from recon.config import load_config
+from recon.config.run_config import RunConfig
+from recon.diagnose_bench import BenchCase, run_case, summarise
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture
+def tiny_config(tmp_path) -> RunConfig:
+    config = yaml.safe_load((REPO_ROOT / "configs" / "bench" / "diagnose.yaml").read_text())
+    config["capture"]["cameras"]["resolution"] = [48, 48]
+    config["capture"]["train_views"] = 8
+    config["capture"]["test_views"] = 4
+    config["scene"]["shape"]["resolution"] = 32
+    config["fit"] = {
+        "hull_resolution": 32,
+        "geometry": {"steps": 60, "resolutions": [48], "remesh_every": 30},
+        "texture": {"steps": 30, "texture_size": 64},
+        "simplify": {"target_faces": 3000},
+    }
+    path = tmp_path / "blind.yaml"
+    path.write_text(yaml.safe_dump(config))
+    return load_config(path, RunConfig)
+
+
+def test_blind_exposure_is_found_and_clean_is_clean(tiny_config, tmp_path):
+    torch.set_num_threads(1)
+    records = [
+        run_case(
+            BenchCase(("exposure",), seed=0), tiny_config, tmp_path, torch.device("cpu"), "none"
+        ),
+        run_case(BenchCase((), seed=100), tiny_config, tmp_path, torch.device("cpu"), "none"),
+    ]
+    summary = summarise(records)
+    # A per-view exposure change cannot be absorbed by the texture: it must come out on top.
+    assert records[0]["predicted_top"] == "exposure", records[0]
+    assert summary["top1_accuracy"] == 1.0
+    assert summary["false_positive_rate"] == 0.0, records[1]
+    # The diagnosis never read the truth file before scoring (it lies outside the run folder).
+    assert not any("truth" in path.name for path in Path(records[0]["run_folder"]).rglob("*"))
