@@ -40,6 +40,7 @@ from recon.optimize.fit import load_fitted_light
 from recon.optimize.geometry_stage import GeometryResult
 from recon.optimize.scene_model import FitEffects, LightModel
 from recon.optimize.texture_stage import run_texture_stage
+from recon.render.shading import DirectionalLight, Lighting
 
 matplotlib.use("Agg")
 
@@ -146,7 +147,16 @@ def refit_with(
         initial=mesh,
         effects=effects,
     )
-    return result.mesh, result.light.lighting(), result.effects
+    # Detached: the held-out probes run their own optimisations on top of this frozen scene.
+    lighting = result.light.lighting()
+    frozen = Lighting(
+        sh_coefficients=lighting.sh_coefficients.detach(),
+        directional=[
+            DirectionalLight(light.direction_to_light.detach(), light.irradiance.detach())
+            for light in lighting.directional
+        ],
+    )
+    return result.mesh, frozen, result.effects
 
 
 def waterfall_figure(refits: list[dict], floor_rmse: float, path) -> None:

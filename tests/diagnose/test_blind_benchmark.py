@@ -3,6 +3,7 @@ blind, score against the truth only afterwards."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
@@ -47,5 +48,11 @@ def test_blind_exposure_is_found_and_clean_is_clean(tiny_config, tmp_path):
     assert records[0]["predicted_top"] == "exposure", records[0]
     assert summary["top1_accuracy"] == 1.0
     assert summary["false_positive_rate"] == 0.0, records[1]
-    # The diagnosis never read the truth file before scoring (it lies outside the run folder).
-    assert not any("truth" in path.name for path in Path(records[0]["run_folder"]).rglob("*"))
+    # The truth lies outside the run folder, and nothing inside names the withheld effect
+    # except the diagnosis' own output.
+    run_folder = Path(records[0]["run_folder"])
+    effects_record = json.loads((run_folder / "ground_truth" / "effects.json").read_text())
+    assert effects_record["withheld"] is True and effects_record["effects"] == []
+    for path in run_folder.rglob("*.json"):
+        if path.name != "diagnosis.json" and "refit" not in path.parts:
+            assert '"exposure"' not in path.read_text(), path
