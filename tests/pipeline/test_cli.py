@@ -116,3 +116,37 @@ def test_imports_point_one_way():
                 target = parts[1]
                 if target in rank:
                     assert rank[target] <= rank[own], f"{path} ({own}) imports {name}"
+
+
+def test_fit_an_external_dataset_then_compare_with_a_baseline(tmp_path, capsys):
+    config = _tiny_config(tmp_path, val_views=0, test_views=2)
+    captures = tmp_path / "captures"
+    assert main(["synth", str(config), "--out", str(captures)]) == 0
+    run = tmp_path / "fitted"
+    fit_settings = [
+        "--set",
+        "fit.geometry.steps=8",
+        "--set",
+        "fit.geometry.resolutions=[32]",
+        "--set",
+        "fit.texture.steps=2",
+        "--set",
+        "fit.texture.texture_size=64",
+        "--set",
+        "fit.hull_resolution=32",
+    ]
+    code = main(
+        ["fit", str(config), "--data", str(captures / "dataset"), "--out", str(run)] + fit_settings
+    )
+    assert code == 0
+    assert not (run / "dataset").exists()  # the external dataset is read in place
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["image"]["psnr"] > 10
+    baseline = tmp_path / "baseline.yaml"
+    assert main(["compare", str(run), "--baseline", str(baseline), "--write"]) == 0
+    assert main(["compare", str(run), "--baseline", str(baseline)]) == 0
+    baseline.write_text("image.psnr: {min: 99.0}\n")
+    assert main(["compare", str(run), "--baseline", str(baseline)]) == 1
+    assert "REGRESSION" in capsys.readouterr().out
+    baseline.write_text("image.psnr: {minimum: 1}\n")
+    assert main(["compare", str(run), "--baseline", str(baseline)]) == 2
