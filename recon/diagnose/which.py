@@ -51,6 +51,7 @@ class CandidateResult:
     significant: bool
     parameters: dict = field(default_factory=dict)
     absorption: float | None = None
+    absorption_interval: tuple[float, float] | None = None
 
     def to_json(self) -> dict:
         return {
@@ -61,6 +62,9 @@ class CandidateResult:
             "significant": self.significant,
             "parameters": self.parameters,
             "absorption": self.absorption,
+            "absorption_interval": None
+            if self.absorption_interval is None
+            else list(self.absorption_interval),
         }
 
 
@@ -169,18 +173,10 @@ def probe_candidate(
     with torch.no_grad():
         after, _ = _per_view_mse(probe.render(effect), data.observed, weight_second)
     total_before = float(before.sum())
-    reduction = (total_before - float(after.sum())) / max(total_before, 1e-20)
 
     # 3. Bootstrap over views.
-    generator = torch.Generator().manual_seed(seed)
-    picks = torch.randint(0, batch, (BOOTSTRAP_SAMPLES, batch), generator=generator)
-    before_cpu, after_cpu = before.cpu(), after.cpu()
-    sampled = 1 - after_cpu[picks].sum(1) / before_cpu[picks].sum(1).clamp_min(1e-20)
-    low = float(torch.quantile(sampled, 0.05))
-    high = float(torch.quantile(sampled, 0.95))
-    mean_mse = total_before / float(counts.sum())
-    share_above_floor = max(0.0, 1 - floor_mse / max(mean_mse, 1e-20))
-    threshold = max(MINIMUM_SHARE, SIGNIFICANCE_SHARE_ABOVE_FLOOR * share_above_floor)
+    reduction, (low, high) = bootstrap_reduction(before, after, seed)
+    threshold = significance_threshold(total_before / float(counts.sum()), floor_mse)
     summary = effect.parameters_summary()
     return CandidateResult(
         effect=name,
@@ -190,6 +186,26 @@ def probe_candidate(
         significant=low > threshold,
         parameters=summary,
     )
+
+
+def bootstrap_reduction(
+    before: torch.Tensor, after: torch.Tensor, seed: int = 0
+) -> tuple[float, tuple[float, float]]:
+    """Share of the error removed, 1 - sum(after) / sum(before), over per-view error sums [B],
+    and its 90 % bootstrap interval over views."""
+    before, after = before.detach().cpu().double(), after.detach().cpu().double()
+    batch = before.shape[0]
+    generator = torch.Generator().manual_seed(seed)
+    picks = torch.randint(0, batch, (BOOTSTRAP_SAMPLES, batch), generator=generator)
+    sampled = 1 - after[picks].sum(1) / before[picks].sum(1).clamp_min(1e-20)
+    reduction = float(1 - after.sum() / before.sum().clamp_min(1e-20))
+    return reduction, (float(torch.quantile(sampled, 0.05)), float(torch.quantile(sampled, 0.95)))
+
+
+def significance_threshold(mean_mse: float, floor_mse: float) -> float:
+    """The held-out reduction a bootstrap lower bound must clear to count as significant."""
+    share_above_floor = max(0.0, 1 - floor_mse / max(mean_mse, 1e-20))
+    return max(MINIMUM_SHARE, SIGNIFICANCE_SHARE_ABOVE_FLOOR * share_above_floor)
 
 
 def rank_candidates(
