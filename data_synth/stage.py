@@ -11,7 +11,7 @@ linear radiance, then 8-bit quantisation when the PNG is written.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -48,7 +48,6 @@ class SynthOptions:
 
     withhold: int = 0
     truth_out: Path | None = None
-    extra_effects: list[EffectConfig] = field(default_factory=list)
 
 
 @dataclass
@@ -157,7 +156,6 @@ def synth_stage(
             torch.Generator().manual_seed(config.seed + 7919),
             make_cameras(capture_config.cameras, 1, torch.Generator().manual_seed(0)),
         )
-        options.withhold = len(withheld)
     elif options.withhold:
         from data_synth.effects.base import ADDABLE
         from data_synth.withhold import choose_withheld_effects
@@ -183,7 +181,7 @@ def synth_stage(
             f"--truth-out {options.truth_out}: must lie outside the run folder {paths.root}, "
             "or the diagnosis could read it"
         )
-    effects = list(capture_config.effects) + list(options.extra_effects) + withheld
+    effects = list(capture_config.effects) + withheld
     image_effects = _image_effects(effects)
     counts = {
         "train": capture_config.train_views,

@@ -213,7 +213,6 @@ def rank_candidates(
     floor_mse: float,
     candidates: list[str] | None = None,
     steps: int = PROBE_STEPS,
-    progress=None,
 ) -> list[CandidateResult]:
     """Every candidate probed; sorted by held-out reduction (largest first)."""
     probe = EffectProbe(data)
@@ -223,6 +222,4 @@ def rank_candidates(
     for name in bar:
         bar.set_postfix(effect=name)
         results.append(probe_candidate(name, probe, floor_mse, steps=steps))
-        if progress is not None:
-            progress(name)
     return sorted(results, key=lambda result: result.heldout_reduction, reverse=True)
