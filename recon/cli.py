@@ -83,6 +83,14 @@ def build_parser() -> argparse.ArgumentParser:
     bench_parser.add_argument("--clean", type=int, default=3, help="clean datasets")
     bench_parser.add_argument("--no-pairs", action="store_true", help="skip two-effect cases")
     bench_parser.add_argument("--refit", choices=["none", "top", "greedy"], default="top")
+    bench_parser.add_argument(
+        "--reuse-fits",
+        action="store_true",
+        help="keep cases whose fit finished under the same config (rediagnose the same data)",
+    )
+    bench_parser.add_argument(
+        "--fits-only", action="store_true", help="synthesise and fit every case, then stop"
+    )
     _add_common(bench_parser)
     compare_parser = commands.add_parser(
         "compare", help="compare a run's metrics with a baseline; exit 1 on a regression"
@@ -179,6 +187,8 @@ def _diagnose_bench(arguments) -> int:
         clean=arguments.clean,
         refit=arguments.refit,
         overrides=arguments.overrides,
+        reuse_fits=arguments.reuse_fits,
+        fits_only=arguments.fits_only,
     )
     print(json.dumps(summary, indent=2))
     return 0

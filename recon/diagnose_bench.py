@@ -26,11 +26,20 @@ from recon.config.run_config import RunConfig
 from recon.diagnose.diagnose import diagnose_run
 from recon.effects.registry import MODEL_EFFECTS
 from recon.io.atomic import atomic_path, atomic_write_json, atomic_write_text
-from recon.io.run_folder import RunPaths, prepare_run_folder
+from recon.io.run_folder import RunPaths, open_run_folder, prepare_run_folder
 
 matplotlib.use("Agg")
 
 NONE = "none"
+# Two-effect cases: one camera-photometric + one optical, one optical + one tone, one per-view
+# colour + one light-transport, one geometric + one geometric (each pair from a different
+# family, so a pair is not two readings of one signal).
+DEFAULT_PAIRS = [
+    ("exposure", "vignetting"),
+    ("defocus_blur", "response_curve"),
+    ("white_balance", "specular"),
+    ("pose_error", "lens_distortion"),
+]
 
 
 @dataclass
@@ -59,25 +68,48 @@ def default_cases(
 
 
 def run_case(
-    case: BenchCase, config: RunConfig, out: Path, device: torch.device, refit: str
-) -> dict:
-    """Synth (withheld) -> fit -> diagnose (blind) -> score against the truth."""
+    case: BenchCase,
+    config: RunConfig,
+    out: Path,
+    device: torch.device,
+    refit: str,
+    reuse_fits: bool = False,
+    fits_only: bool = False,
+) -> dict | None:
+    """Synth (withheld) -> fit -> diagnose (blind) -> score against the truth.
+
+    reuse_fits: keep a case folder whose fit finished under the same config (its bench_fit.json
+    records the config hash and the fit's time), so the diagnosis can be rerun on the same data.
+    fits_only: stop after the fit (returns None); a later run with reuse_fits diagnoses.
+    """
     from dataclasses import replace
 
+    from recon.config import config_hash, dump_resolved
     from recon.pipeline import run_stages
 
     case_config = replace(config, seed=case.seed, stages=["synth", "fit"])
-    paths = prepare_run_folder(out / f"{case.label}_seed{case.seed}", force=True)
+    folder = out / f"{case.label}_seed{case.seed}"
     truth_path = out / "truth" / f"{case.label}_seed{case.seed}.json"
-    from recon.config import dump_resolved
-
-    dump_resolved(case_config, paths.resolved_config)
-    started = time.perf_counter()
-    synth_options = (
-        {"withhold_effects": list(case.effects), "truth_out": truth_path} if case.effects else {}
-    )
-    run_stages(case_config, paths, device, ["synth", "fit"], {"synth": synth_options})
-    fit_seconds = time.perf_counter() - started
+    fit_record_path = folder / "bench_fit.json"
+    digest = config_hash(case_config)
+    fit_record = json.loads(fit_record_path.read_text()) if fit_record_path.exists() else {}
+    if reuse_fits and fit_record.get("config_hash") == digest:
+        paths = open_run_folder(folder)
+        fit_seconds = float(fit_record["fit_seconds"])
+    else:
+        paths = prepare_run_folder(folder, force=True)
+        dump_resolved(case_config, paths.resolved_config)
+        started = time.perf_counter()
+        synth_options = (
+            {"withhold_effects": list(case.effects), "truth_out": truth_path}
+            if case.effects
+            else {}
+        )
+        run_stages(case_config, paths, device, ["synth", "fit"], {"synth": synth_options})
+        fit_seconds = time.perf_counter() - started
+        atomic_write_json(fit_record_path, {"config_hash": digest, "fit_seconds": fit_seconds})
+    if fits_only:
+        return None
     started = time.perf_counter()
     diagnosis = diagnose_run(paths, case_config, device, refit=refit)
     diagnose_seconds = time.perf_counter() - started
@@ -230,6 +262,8 @@ def diagnose_bench(
     clean: int = 3,
     refit: str = "top",
     overrides: list[str] = (),
+    reuse_fits: bool = False,
+    fits_only: bool = False,
 ) -> dict:
     config = load_config(config_path, RunConfig, overrides=overrides)
     out = Path(out)
@@ -239,11 +273,13 @@ def diagnose_bench(
         seeds or [0, 1, 2],
         pairs
         if pairs is not None
-        else [("exposure", "vignetting"), ("defocus_blur", "response_curve")],
+        else DEFAULT_PAIRS,
         clean,
     )
     records = []
     for case in tqdm(cases, desc="diagnose-bench", unit="case"):
-        records.append(run_case(case, config, out, device, refit))
-        write_outputs(records, out)  # keep partial results if interrupted
-    return write_outputs(records, out)
+        record = run_case(case, config, out, device, refit, reuse_fits, fits_only)
+        if record is not None:
+            records.append(record)
+            write_outputs(records, out)  # keep partial results if interrupted
+    return write_outputs(records, out) if records else {"fitted_cases": len(cases)}

@@ -33,6 +33,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", default="0,1,2")
     parser.add_argument("--clean", type=int, default=3)
     parser.add_argument("--out", default="runs/bench_diagnose")
+    parser.add_argument("--refit", choices=["none", "top", "greedy"], default="top")
+    parser.add_argument("--reuse-fits", action="store_true", help="rediagnose finished fits")
+    parser.add_argument("--fits-only", action="store_true", help="synthesise and fit, then stop")
     arguments = parser.parse_args(argv)
     results = {}
     for scene in arguments.scenes:
@@ -46,6 +49,9 @@ def main(argv: list[str] | None = None) -> int:
             seeds=[int(seed) for seed in arguments.seeds.split(",")],
             clean=arguments.clean,
             overrides=SPOT_OVERRIDES if scene == "spot" else [],
+            refit=arguments.refit,
+            reuse_fits=arguments.reuse_fits,
+            fits_only=arguments.fits_only,
         )
     print(json.dumps(results, indent=2))
     return 0

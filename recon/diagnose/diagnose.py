@@ -20,12 +20,16 @@ import matplotlib.pyplot as plt
 import torch
 
 from recon.config.run_config import RunConfig
+from recon.diagnose.calibration import absorption_threshold
 from recon.diagnose.data import DiagnosisData, load_diagnosis_data
+from recon.diagnose.fingerprint import FINGERPRINT_EFFECTS, visibility_fingerprint
 from recon.diagnose.residuals import gap_summary, noise_floor, where_analysis
 from recon.diagnose.which import (
+    CandidateResult,
     EffectProbe,
     _per_view_mse,
     block_halves,
+    bootstrap_reduction,
     rank_candidates,
 )
 from recon.effects.registry import MODEL_EFFECTS, make_effect
@@ -45,6 +49,8 @@ from recon.render.shading import DirectionalLight, Lighting
 matplotlib.use("Agg")
 
 REFIT_STEPS = 80
+# Adam steps fitting the per-view parameters of held-out views (first half of their blocks).
+HELDOUT_STEPS = 40
 MAX_GREEDY_EFFECTS = 3
 
 
@@ -68,44 +74,26 @@ def heldout_gap(data: DiagnosisData, effects_for_views) -> float:
 
 def heldout_errors(data: DiagnosisData, effects_for_views) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-view squared error sums and counts [B] on the second half of the pixel blocks (see
-    heldout_gap)."""
+    heldout_gap). Only per-view parameters are fitted (on the first half); global effects keep
+    the parameters they came with."""
     batch, height, width, _ = data.observed.shape
     first, second = block_halves(batch, height, width, data.observed.device)
     probe = EffectProbe(data)
-    if not effects_for_views:
-        return _per_view_mse(probe.base_output.color, data.observed, second * data.region)
-    modules = effects_for_views
-    parameters = [group for module in modules for group in module.parameter_groups()]
-    optimizer = torch.optim.Adam(parameters) if parameters else None
-
-    def render():
-        color = probe.base_output.color
-        from recon.effects.forward import render_with_effects
-
-        if any(module.stage != "image" for module in modules):
-            output = render_with_effects(
-                probe.renderer,
-                data.mesh,
-                data.cameras,
-                data.lighting,
-                modules,
-                view_indices=probe.view_indices,
+    modules = list(effects_for_views or [])
+    per_view = [module for module in modules if module.per_view]
+    if per_view:
+        parameters = [group for module in per_view for group in module.parameter_groups()]
+        optimizer = torch.optim.Adam(parameters)
+        for _ in range(HELDOUT_STEPS):
+            optimizer.zero_grad()
+            squared, count = _per_view_mse(
+                probe.render(modules), data.observed, first * data.region
             )
-            return output.color
-        from recon.effects.forward import apply_image_effects
-
-        color, _ = apply_image_effects(
-            modules, color, probe.base_output.alpha, data.cameras, probe.view_indices
-        )
-        return color
-
-    for _ in range(40 if optimizer else 0):
-        optimizer.zero_grad()
-        squared, count = _per_view_mse(render(), data.observed, first * data.region)
-        (squared.sum() / count.sum()).backward()
-        optimizer.step()
+            (squared.sum() / count.sum()).backward()
+            optimizer.step()
     with torch.no_grad():
-        return _per_view_mse(render(), data.observed, second * data.region)
+        color = probe.render(modules) if modules else probe.base_output.color
+        return _per_view_mse(color, data.observed, second * data.region)
 
 
 def _effects_for_heldout(names: list[str], fitted: FitEffects, view_count: int, device):
@@ -164,16 +152,11 @@ def refit_with(
     return result.mesh, frozen, result.effects
 
 
-# Effects that look the same in every view: a fit absorbs them into texture and light, so a probe
-# on the frozen scene sees only what is left. The absorption probe refits with each of them.
-ABSORBABLE = (
-    "vignetting",
-    "response_curve",
-    "lens_distortion",
-    "shadows",
-    "specular",
-    "interreflection",
-)
+# Effects that look the same in every view and that a short refit can pull back out of the texture
+# and light: a probe on the frozen scene sees only what the fit left, the absorption probe refits
+# with each of them. (Shadows and interreflection are baked in for good under one light; their
+# evidence is the albedo fingerprint, recon.diagnose.fingerprint.)
+ABSORBABLE = ("vignetting", "lens_distortion", "specular")
 ABSORPTION_STEPS = 30
 
 
@@ -183,23 +166,15 @@ def absorption_probes(
     paths: RunPaths,
     config: RunConfig,
     device: torch.device,
-    floor_mse: float,
     steps: int = ABSORPTION_STEPS,
 ) -> None:
-    """For each view-independent candidate: refit texture, light and the effect for a few steps
-    on the training views, against a control refit of the same length without it; the held-out
+    """For each candidate in ABSORBABLE: refit texture, light and the effect for a few steps on
+    the training views, against a control refit of the same length without it; the held-out
     reduction relative to the control (bootstrapped over views) is the absorption evidence, and
     it can make the candidate significant (recorded in place on the ranking entries)."""
-    from recon.diagnose.which import MINIMUM_SHARE, bootstrap_reduction, significance_threshold
-
     control_mesh, control_lighting, _ = refit_with([], paths, config, device, steps)
     control = replace(data, mesh=control_mesh, lighting=control_lighting)
-    control_squared, counts = heldout_errors(control, [])
-    # Measured against a control refit (not against the frozen fit), the evidence needs a lower
-    # bar than the probe's: half its threshold (provisional, from the first blind cases, where
-    # clean datasets stayed below 0.02).
-    threshold = 0.5 * significance_threshold(float(control_squared.sum() / counts.sum()), floor_mse)
-    threshold = max(threshold, MINIMUM_SHARE)
+    control_squared, _ = heldout_errors(control, [])
     for candidate in ranking:
         if candidate.effect not in ABSORBABLE:
             continue
@@ -209,10 +184,25 @@ def absorption_probes(
         reduction, (low, high) = bootstrap_reduction(control_squared, squared)
         candidate.absorption = reduction
         candidate.absorption_interval = (low, high)
-        if low > threshold and not candidate.significant:
+        if low > absorption_threshold(candidate.effect) and not candidate.significant:
             candidate.significant = True
-            candidate.heldout_reduction = max(candidate.heldout_reduction, reduction)
+            candidate.evidence = "absorption"
             candidate.parameters = fitted.modules[0].parameters_summary()
+
+
+def fingerprint_evidence(ranking, data: DiagnosisData) -> dict:
+    """The visibility fingerprint of the fitted albedo; when significant it makes the effect it
+    names (shadows or interreflection) significant. Recorded on those ranking entries."""
+    probe = EffectProbe(data)
+    fingerprint = visibility_fingerprint(data, probe.base_output)
+    record = fingerprint.to_json()
+    for candidate in ranking:
+        if candidate.effect in FINGERPRINT_EFFECTS:
+            candidate.fingerprint = record
+            if fingerprint.effect == candidate.effect and not candidate.significant:
+                candidate.significant = True
+                candidate.evidence = "fingerprint"
+    return record
 
 
 def waterfall_figure(refits: list[dict], floor_rmse: float, path) -> None:
@@ -258,10 +248,11 @@ def diagnose_run(
         relight = load_diagnosis_data(paths, "relight", device)
         gap["relight"] = gap_summary(relight)
     where = where_analysis(data)
-    ranking = rank_candidates(data, floor_rmse**2, candidates, steps=probe_steps)
+    ranking = rank_candidates(data, candidates, steps=probe_steps)
+    gap["visibility_fingerprint"] = fingerprint_evidence(ranking, data)
     if absorption:
-        absorption_probes(ranking, data, paths, config, device, floor_rmse**2)
-        ranking.sort(key=lambda item: (item.significant, item.heldout_reduction), reverse=True)
+        absorption_probes(ranking, data, paths, config, device)
+    ranking.sort(key=CandidateResult.rank_key, reverse=True)
     timings = {"diagnose_seconds": round(time.perf_counter() - started, 2)}
 
     refits = []

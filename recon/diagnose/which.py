@@ -11,7 +11,8 @@ For every candidate effect module (recon.effects), starting from the fitted scen
    effects (exposure of a view the fit never saw) get their per-view parameters from the same
    view's first half; pixel noise cannot carry over between halves, structure does.
 3. Bootstrap over views gives an interval for the held-out reduction; an effect is significant
-   when the interval's lower bound clears a threshold relative to the gap above the noise floor.
+   when the interval's lower bound clears the probe's null allowance (recon.diagnose.calibration:
+   what the same probe reaches on clean data).
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from dataclasses import dataclass, field
 import torch
 from tqdm import tqdm
 
+from recon.diagnose.calibration import probe_threshold
 from recon.diagnose.data import DiagnosisData
 from recon.effects.base import ModelEffect
 from recon.effects.forward import (
@@ -35,11 +37,6 @@ from recon.render.renderer import Renderer
 BLOCK_PIXELS = 4
 PROBE_STEPS = 60
 BOOTSTRAP_SAMPLES = 400
-# Significance (provisional, set from a handful of blind cases): the bootstrap's lower bound
-# must remove at least this share of the held-out
-# loss above the noise floor, and at least MINIMUM_SHARE of the whole held-out loss.
-SIGNIFICANCE_SHARE_ABOVE_FLOOR = 0.10
-MINIMUM_SHARE = 0.02
 
 
 @dataclass
@@ -52,6 +49,17 @@ class CandidateResult:
     parameters: dict = field(default_factory=dict)
     absorption: float | None = None
     absorption_interval: tuple[float, float] | None = None
+    fingerprint: dict | None = None
+    # What made it significant: "probe", "absorption" or "fingerprint" ("" when nothing did).
+    evidence: str = ""
+
+    def rank_key(self) -> tuple:
+        """Significant first; then held-out evidence (probe or absorption reduction) before the
+        albedo fingerprint alone, whose effect shows in no held-out residual."""
+        reduction = max(self.heldout_reduction, self.absorption or 0.0)
+        by_residual = self.evidence in ("probe", "absorption")
+        strength = (self.fingerprint or {}).get("share", 0.0)
+        return (self.significant, by_residual, reduction if by_residual else strength)
 
     def to_json(self) -> dict:
         return {
@@ -65,6 +73,8 @@ class CandidateResult:
             "absorption_interval": None
             if self.absorption_interval is None
             else list(self.absorption_interval),
+            "fingerprint": self.fingerprint,
+            "evidence": self.evidence,
         }
 
 
@@ -90,27 +100,22 @@ class EffectProbe:
             self.base_output = self.renderer.render(data.mesh, data.cameras, data.lighting)
         self.view_indices = torch.arange(len(data.cameras), device=data.observed.device)
 
-    def render(self, effect: ModelEffect) -> torch.Tensor:
-        """Premultiplied colour [B, H, W, 3] of the scene with the effect."""
-        if effect.stage == "camera":
-            cameras = apply_camera_effects([effect], self.data.cameras, self.view_indices)
+    def render(self, effect: ModelEffect | list[ModelEffect]) -> torch.Tensor:
+        """Premultiplied colour [B, H, W, 3] of the scene with the effect(s): the geometry is
+        re-rendered only when one of them moves the cameras."""
+        effects = effect if isinstance(effect, list) else [effect]
+        output = self.base_output
+        cameras = self.data.cameras
+        if any(module.stage == "camera" for module in effects):
+            cameras = apply_camera_effects(effects, cameras, self.view_indices)
             output = self.renderer.render(self.data.mesh, cameras, self.data.lighting)
-            return output.color
-        if effect.stage == "shading":
+        if any(module.stage == "shading" for module in effects):
             context = EffectContext(
-                self.data.mesh,
-                self.data.lighting,
-                self.data.cameras,
-                self.view_indices,
-                self.renderer,
+                self.data.mesh, self.data.lighting, cameras, self.view_indices, self.renderer
             )
-            return apply_shading_effects([effect], self.base_output, context).color
+            output = apply_shading_effects(effects, output, context)
         color, _ = apply_image_effects(
-            [effect],
-            self.base_output.color,
-            self.base_output.alpha,
-            self.data.cameras,
-            self.view_indices,
+            effects, output.color, output.alpha, self.data.cameras, self.view_indices
         )
         return color
 
@@ -122,7 +127,7 @@ def _per_view_mse(prediction: torch.Tensor, observed: torch.Tensor, weight: torc
 
 
 def probe_candidate(
-    name: str, probe: EffectProbe, floor_mse: float, steps: int = PROBE_STEPS, seed: int = 0
+    name: str, probe: EffectProbe, steps: int = PROBE_STEPS, seed: int = 0
 ) -> CandidateResult:
     data = probe.data
     device = data.observed.device
@@ -163,7 +168,7 @@ def probe_candidate(
 
     # 2. Probe fit on the first half, measured on the second.
     with torch.no_grad():
-        before, counts = _per_view_mse(probe.base_output.color, data.observed, weight_second)
+        before, _ = _per_view_mse(probe.base_output.color, data.observed, weight_second)
     optimizer = torch.optim.Adam(effect.parameter_groups())
     for _ in range(steps):
         optimizer.zero_grad()
@@ -172,19 +177,18 @@ def probe_candidate(
         optimizer.step()
     with torch.no_grad():
         after, _ = _per_view_mse(probe.render(effect), data.observed, weight_second)
-    total_before = float(before.sum())
 
     # 3. Bootstrap over views.
     reduction, (low, high) = bootstrap_reduction(before, after, seed)
-    threshold = significance_threshold(total_before / float(counts.sum()), floor_mse)
-    summary = effect.parameters_summary()
+    significant = low > probe_threshold(name)
     return CandidateResult(
         effect=name,
         score=float(score),
         heldout_reduction=float(reduction),
         interval=(low, high),
-        significant=low > threshold,
-        parameters=summary,
+        significant=significant,
+        parameters=effect.parameters_summary(),
+        evidence="probe" if significant else "",
     )
 
 
@@ -202,15 +206,8 @@ def bootstrap_reduction(
     return reduction, (float(torch.quantile(sampled, 0.05)), float(torch.quantile(sampled, 0.95)))
 
 
-def significance_threshold(mean_mse: float, floor_mse: float) -> float:
-    """The held-out reduction a bootstrap lower bound must clear to count as significant."""
-    share_above_floor = max(0.0, 1 - floor_mse / max(mean_mse, 1e-20))
-    return max(MINIMUM_SHARE, SIGNIFICANCE_SHARE_ABOVE_FLOOR * share_above_floor)
-
-
 def rank_candidates(
     data: DiagnosisData,
-    floor_mse: float,
     candidates: list[str] | None = None,
     steps: int = PROBE_STEPS,
 ) -> list[CandidateResult]:
@@ -221,5 +218,5 @@ def rank_candidates(
     bar = tqdm(names, desc="diagnose candidates", unit="effect", leave=False)
     for name in bar:
         bar.set_postfix(effect=name)
-        results.append(probe_candidate(name, probe, floor_mse, steps=steps))
-    return sorted(results, key=lambda result: result.heldout_reduction, reverse=True)
+        results.append(probe_candidate(name, probe, steps=steps))
+    return sorted(results, key=CandidateResult.rank_key, reverse=True)

@@ -394,19 +394,19 @@ class Shadows(ModelEffect):
 # --------------------------------------------------------------------------------------------
 
 
-def vertex_occlusion(
-    verts: torch.Tensor, faces: torch.Tensor, directions: int = 64, resolution: int = 96
-) -> torch.Tensor:
-    """Cosine-weighted share [V] of each vertex's hemisphere that sees the mesh itself.
+def vertex_direction_visibility(
+    verts: torch.Tensor, faces: torch.Tensor, sphere: torch.Tensor, resolution: int = 96
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(cosine [K, V], seen [K, V]) of each vertex toward each direction of sphere [K, 3].
 
-    Depth maps along `directions` Fibonacci directions; a vertex sees direction d unless the
-    map along d has a surface in front of it (a 2 x 2 filtered, nearly hard comparison, with the
-    vertex lifted by a texel along its normal against self-occlusion). No gradient.
+    seen is 1 where the depth map along the direction has no surface in front of the vertex (a
+    2 x 2 filtered, nearly hard comparison, with the vertex lifted by a texel along its normal
+    against self-occlusion); cosine is max(0, n.d). No gradient.
     """
     with torch.no_grad():
         verts = verts.detach().float()
         normals = vertex_normals(verts, faces)
-        sphere = fibonacci_directions(directions).to(verts)
+        sphere = sphere.to(verts)
         frames = OrthographicFrames.build(verts, sphere)
         maps = frames.depth_maps(verts, faces, resolution)
         texel = 2.0 / resolution
@@ -416,8 +416,57 @@ def vertex_occlusion(
         slope = torch.sqrt(1 - cosine.clamp(0.05, 1.0) ** 2) / cosine.clamp(0.05, 1.0)
         bias = texel * (1.0 + 1.5 * slope.clamp(max=10.0))
         seen = filtered_visibility(maps, ndc, bias, torch.tensor(0.1 * texel))
-        weight = cosine.sum(dim=0).clamp(min=1e-12)
-        return 1 - (cosine * seen).sum(dim=0) / weight
+        return cosine, seen
+
+
+def vertex_occlusion(
+    verts: torch.Tensor, faces: torch.Tensor, directions: int = 64, resolution: int = 96
+) -> torch.Tensor:
+    """Cosine-weighted share [V] of each vertex's hemisphere that sees the mesh itself
+    (vertex_direction_visibility along `directions` Fibonacci directions). No gradient."""
+    sphere = fibonacci_directions(directions)
+    cosine, seen = vertex_direction_visibility(verts, faces, sphere, resolution)
+    weight = cosine.sum(dim=0).clamp(min=1e-12)
+    return 1 - (cosine * seen).sum(dim=0) / weight
+
+
+def vertex_light_visibility(
+    verts: torch.Tensor,
+    faces: torch.Tensor,
+    lighting: Lighting,
+    directions: int = 64,
+    resolution: int = 96,
+) -> torch.Tensor:
+    """Share [V] of each vertex's irradiance (luminance) from the light that the mesh does not
+    block: sum over directions of cos x seen x radiance over the same without `seen`.
+
+    The SH environment is sampled along `directions` Fibonacci directions (negative radiance
+    clipped); each directional light adds its own direction. 1 for a convex mesh. No gradient.
+    """
+    from recon.render.shading import sh_basis
+
+    with torch.no_grad():
+        sphere = fibonacci_directions(directions).to(verts.device)
+        weights = torch.tensor([0.2126, 0.7152, 0.0722], dtype=torch.float64, device=verts.device)
+        coefficients = lighting.sh_coefficients.detach().to(sphere)
+        channels = coefficients.shape[-1]
+        luminance = weights[:channels] / weights[:channels].sum()
+        radiance = (sh_basis(sphere) @ coefficients).clamp(min=0.0) @ luminance  # [K]
+        # Monte Carlo weight of a direction: 4 pi / K of solid angle.
+        power = radiance * (4 * math.pi / directions)
+        suns = [light.direction_to_light.detach().to(sphere) for light in lighting.directional]
+        if suns:
+            sun_directions = torch.nn.functional.normalize(torch.stack(suns), dim=-1)
+            sun_power = torch.stack(
+                [light.irradiance.detach().to(sphere) @ luminance for light in lighting.directional]
+            )
+            sphere = torch.cat([sphere, sun_directions])
+            power = torch.cat([power, sun_power])
+        cosine, seen = vertex_direction_visibility(verts, faces, sphere, resolution)
+        cosine, seen = cosine.double(), seen.double()
+        total = (cosine * power[:, None]).sum(dim=0)
+        visible = (cosine * seen * power[:, None]).sum(dim=0)
+        return torch.where(total > 1e-12, visible / total.clamp(min=1e-12), torch.ones_like(total))
 
 
 class Interreflection(ModelEffect):

@@ -1,0 +1,69 @@
+"""Null allowances of the gap diagnosis from clean calibration fits.
+
+Diagnoses run folders fitted on clean data (no effect injected) and prints, per candidate
+effect, the largest held-out reduction its probe and its absorption refit reached, and the
+allowance recon.diagnose.calibration uses (twice that, floored at MINIMUM_SHARE), plus the
+visibility fingerprint's largest share. The runs must not be cases the blind benchmark scores.
+
+    python scripts/calibrate_diagnosis.py RUN [RUN ...]
+
+For example the clean calibration seeds of the benchmark (fitted with
+``python scripts/bench_diagnose.py --fits-only --clean 6``; seeds 103-105 calibrate,
+100-102 are scored):
+
+    python scripts/calibrate_diagnosis.py runs/bench_diagnose/*/none_seed10[345]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+
+def main(argv: list[str] | None = None) -> int:
+    import torch
+
+    from recon.config import load_config
+    from recon.config.run_config import RunConfig
+    from recon.diagnose.calibration import MINIMUM_SHARE
+    from recon.diagnose.diagnose import diagnose_run
+    from recon.io.run_folder import open_run_folder
+
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("runs", nargs="+", help="run folders fitted on clean data")
+    arguments = parser.parse_args(argv)
+    probe, absorption, shares = {}, {}, []
+    for run in arguments.runs:
+        paths = open_run_folder(Path(run))
+        config = load_config(paths.resolved_config, RunConfig)
+        result = diagnose_run(paths, config, torch.device("cpu"), refit="none")
+        for item in result["ranking"]:
+            name = item["effect"]
+            probe[name] = max(probe.get(name, 0.0), item["heldout_reduction"])
+            if item["absorption"] is not None:
+                absorption[name] = max(absorption.get(name, 0.0), item["absorption"])
+        shares.append(result["gap"]["visibility_fingerprint"]["share"])
+
+    def allowance(values: dict) -> dict:
+        return {name: round(max(MINIMUM_SHARE, 2 * value), 3) for name, value in values.items()}
+
+    print(
+        json.dumps(
+            {
+                "runs": len(arguments.runs),
+                "probe_largest": probe,
+                "probe_allowance": allowance(probe),
+                "absorption_largest": absorption,
+                "absorption_allowance": allowance(absorption),
+                "visibility_share_largest": max(shares),
+            },
+            indent=2,
+        )
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
