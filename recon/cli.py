@@ -91,6 +91,11 @@ def build_parser() -> argparse.ArgumentParser:
     bench_parser.add_argument(
         "--fits-only", action="store_true", help="synthesise and fit every case, then stop"
     )
+    bench_parser.add_argument(
+        "--rescore",
+        action="store_true",
+        help="with --reuse-fits: re-decide stored diagnoses with the current thresholds",
+    )
     _add_common(bench_parser)
     compare_parser = commands.add_parser(
         "compare", help="compare a run's metrics with a baseline; exit 1 on a regression"
@@ -189,6 +194,7 @@ def _diagnose_bench(arguments) -> int:
         overrides=arguments.overrides,
         reuse_fits=arguments.reuse_fits,
         fits_only=arguments.fits_only,
+        rescore=arguments.rescore,
     )
     print(json.dumps(summary, indent=2))
     return 0

@@ -36,6 +36,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--refit", choices=["none", "top", "greedy"], default="top")
     parser.add_argument("--reuse-fits", action="store_true", help="rediagnose finished fits")
     parser.add_argument("--fits-only", action="store_true", help="synthesise and fit, then stop")
+    parser.add_argument(
+        "--rescore", action="store_true", help="re-decide stored diagnoses (with --reuse-fits)"
+    )
     arguments = parser.parse_args(argv)
     results = {}
     for scene in arguments.scenes:
@@ -52,6 +55,7 @@ def main(argv: list[str] | None = None) -> int:
             refit=arguments.refit,
             reuse_fits=arguments.reuse_fits,
             fits_only=arguments.fits_only,
+            rescore=arguments.rescore,
         )
     print(json.dumps(results, indent=2))
     return 0

@@ -41,8 +41,16 @@ def run_scene(scene: str, out: Path, overrides: list[str]) -> dict:
     if scene in ("spot", "bob") and not SHARED_MESHES.is_dir():
         return {"scene": scene, "skipped": f"{SHARED_MESHES} is absent"}
     run_folder = out / scene
-    command = [sys.executable, "-m", "recon.cli", "run", str(config), "--out", str(run_folder),
-               "--force"]
+    command = [
+        sys.executable,
+        "-m",
+        "recon.cli",
+        "run",
+        str(config),
+        "--out",
+        str(run_folder),
+        "--force",
+    ]
     for override in overrides:
         command += ["--set", override]
     print(f"[bench_fit] {scene}: {' '.join(command)}", file=sys.stderr, flush=True)
@@ -78,9 +86,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default="runs/bench_fit")
     parser.add_argument("--set", dest="overrides", action="append", default=[])
     arguments = parser.parse_args(argv)
-    results = [run_scene(scene, Path(arguments.out), arguments.overrides) for scene in arguments.scenes]
-    print(json.dumps({"targets": {k: list(v) for k, v in TARGETS.items()}, "scenes": results},
-                     indent=2))
+    results = [
+        run_scene(scene, Path(arguments.out), arguments.overrides) for scene in arguments.scenes
+    ]
+    print(
+        json.dumps(
+            {"targets": {k: list(v) for k, v in TARGETS.items()}, "scenes": results}, indent=2
+        )
+    )
     return 0
 
 

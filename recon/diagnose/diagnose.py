@@ -20,7 +20,6 @@ import matplotlib.pyplot as plt
 import torch
 
 from recon.config.run_config import RunConfig
-from recon.diagnose.calibration import absorption_threshold
 from recon.diagnose.data import DiagnosisData, load_diagnosis_data
 from recon.diagnose.fingerprint import FINGERPRINT_EFFECTS, visibility_fingerprint
 from recon.diagnose.residuals import gap_summary, noise_floor, where_analysis
@@ -31,6 +30,7 @@ from recon.diagnose.which import (
     block_halves,
     bootstrap_reduction,
     rank_candidates,
+    verdict_of,
 )
 from recon.effects.registry import MODEL_EFFECTS, make_effect
 from recon.errors import ReconError
@@ -184,10 +184,8 @@ def absorption_probes(
         reduction, (low, high) = bootstrap_reduction(control_squared, squared)
         candidate.absorption = reduction
         candidate.absorption_interval = (low, high)
-        if low > absorption_threshold(candidate.effect) and not candidate.significant:
-            candidate.significant = True
-            candidate.evidence = "absorption"
-            candidate.parameters = fitted.modules[0].parameters_summary()
+        candidate.absorption_parameters = fitted.modules[0].parameters_summary()
+        candidate.decide()
 
 
 def fingerprint_evidence(ranking, data: DiagnosisData) -> dict:
@@ -199,9 +197,7 @@ def fingerprint_evidence(ranking, data: DiagnosisData) -> dict:
     for candidate in ranking:
         if candidate.effect in FINGERPRINT_EFFECTS:
             candidate.fingerprint = record
-            if fingerprint.effect == candidate.effect and not candidate.significant:
-                candidate.significant = True
-                candidate.evidence = "fingerprint"
+            candidate.decide()
     return record
 
 
@@ -299,12 +295,7 @@ def diagnose_run(
         timings["refit_seconds"] = round(
             time.perf_counter() - started - timings["diagnose_seconds"], 2
         )
-    significant = [c.effect for c in ranking if c.significant]
-    verdict = (
-        "no significant unmodelled effect"
-        if not significant
-        else "significant unmodelled effects: " + ", ".join(significant)
-    )
+    verdict = verdict_of(ranking)
     result = {
         "gap": gap,
         "where": where,

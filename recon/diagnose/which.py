@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import torch
 from tqdm import tqdm
 
-from recon.diagnose.calibration import probe_threshold
+from recon.diagnose.calibration import absorption_threshold, probe_threshold
 from recon.diagnose.data import DiagnosisData
 from recon.effects.base import ModelEffect
 from recon.effects.forward import (
@@ -49,9 +49,44 @@ class CandidateResult:
     parameters: dict = field(default_factory=dict)
     absorption: float | None = None
     absorption_interval: tuple[float, float] | None = None
+    absorption_parameters: dict | None = None
     fingerprint: dict | None = None
     # What made it significant: "probe", "absorption" or "fingerprint" ("" when nothing did).
     evidence: str = ""
+
+    def decide(self) -> None:
+        """Significance from the recorded evidence and the calibrated thresholds
+        (recon.diagnose.calibration): the probe's held-out reduction, else the absorption
+        refit's, else the visibility fingerprint naming this effect."""
+        evidence = ""
+        if self.interval[0] > probe_threshold(self.effect):
+            evidence = "probe"
+        elif self.absorption_interval is not None and self.absorption_interval[
+            0
+        ] > absorption_threshold(self.effect):
+            evidence = "absorption"
+        elif self.fingerprint is not None and self.fingerprint.get("names") == self.effect:
+            evidence = "fingerprint"
+        self.evidence = evidence
+        self.significant = bool(evidence)
+
+    @classmethod
+    def from_json(cls, record: dict) -> CandidateResult:
+        """The inverse of to_json (for re-deciding a stored diagnosis)."""
+        absorption_interval = record.get("absorption_interval")
+        return cls(
+            effect=record["effect"],
+            score=record["score"],
+            heldout_reduction=record["heldout_reduction"],
+            interval=tuple(record["interval"]),
+            significant=record["significant"],
+            parameters=record.get("probe_parameters", record.get("parameters", {})),
+            absorption=record.get("absorption"),
+            absorption_interval=None if absorption_interval is None else tuple(absorption_interval),
+            absorption_parameters=record.get("absorption_parameters"),
+            fingerprint=record.get("fingerprint"),
+            evidence=record.get("evidence", ""),
+        )
 
     def rank_key(self) -> tuple:
         """Significant first; then held-out evidence (probe or absorption reduction) before the
@@ -68,7 +103,13 @@ class CandidateResult:
             "heldout_reduction": self.heldout_reduction,
             "interval": list(self.interval),
             "significant": self.significant,
-            "parameters": self.parameters,
+            # The parameters of the evidence that decided (the absorption refit's when that
+            # made it significant), and the probe's own.
+            "parameters": self.absorption_parameters
+            if self.evidence == "absorption" and self.absorption_parameters is not None
+            else self.parameters,
+            "probe_parameters": self.parameters,
+            "absorption_parameters": self.absorption_parameters,
             "absorption": self.absorption,
             "absorption_interval": None
             if self.absorption_interval is None
@@ -180,16 +221,16 @@ def probe_candidate(
 
     # 3. Bootstrap over views.
     reduction, (low, high) = bootstrap_reduction(before, after, seed)
-    significant = low > probe_threshold(name)
-    return CandidateResult(
+    result = CandidateResult(
         effect=name,
         score=float(score),
         heldout_reduction=float(reduction),
         interval=(low, high),
-        significant=significant,
+        significant=False,
         parameters=effect.parameters_summary(),
-        evidence="probe" if significant else "",
     )
+    result.decide()
+    return result
 
 
 def bootstrap_reduction(
@@ -220,3 +261,24 @@ def rank_candidates(
         bar.set_postfix(effect=name)
         results.append(probe_candidate(name, probe, steps=steps))
     return sorted(results, key=CandidateResult.rank_key, reverse=True)
+
+
+def verdict_of(ranking: list[CandidateResult]) -> str:
+    significant = [candidate.effect for candidate in ranking if candidate.significant]
+    if not significant:
+        return "no significant unmodelled effect"
+    return "significant unmodelled effects: " + ", ".join(significant)
+
+
+def redecide(diagnosis: dict) -> dict:
+    """A stored diagnosis.json's ranking re-decided with the current thresholds and re-sorted
+    (the evidence itself is kept); returns a new dict."""
+    ranking = [CandidateResult.from_json(record) for record in diagnosis["ranking"]]
+    for candidate in ranking:
+        candidate.decide()
+    ranking.sort(key=CandidateResult.rank_key, reverse=True)
+    return {
+        **diagnosis,
+        "ranking": [candidate.to_json() for candidate in ranking],
+        "verdict": verdict_of(ranking),
+    }

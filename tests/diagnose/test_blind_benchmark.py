@@ -56,3 +56,36 @@ def test_blind_exposure_is_found_and_clean_is_clean(tiny_config, tmp_path):
     for path in run_folder.rglob("*.json"):
         if path.name != "diagnosis.json" and "refit" not in path.parts:
             assert '"exposure"' not in path.read_text(), path
+
+
+def test_parameter_errors_compare_like_with_like():
+    from recon.diagnose_bench import parameter_errors
+
+    true_train = [1.0, 2.0, 0.5, 1.0]
+    truth = {
+        "realised": {
+            "train": [{"name": "exposure", "parameters": {"ratios": true_train}}],
+            "test": [
+                {"name": "vignetting", "parameters": {"corner_falloff": [0.6, 0.6]}},
+                {"name": "response_curve", "parameters": {"effective_exponent": 0.8}},
+            ],
+        }
+    }
+    # The refit's ratios are the truth up to a common scale (the fit absorbed it) and one view
+    # 10 % off; the probe's vignetting and gamma come from the held-out views.
+    refit_ratios = [3 * value for value in true_train]
+    refit_ratios[1] *= 1.1
+    diagnosis = {
+        "ranking": [
+            {"effect": "exposure", "parameters": {"ratios": [9.0, 9.0, 9.0, 9.0]}},
+            {"effect": "vignetting", "parameters": {"corner_falloff": 0.63}},
+            {"effect": "response_curve", "parameters": {"effective_gamma": 0.85}},
+        ],
+        "refits": [{"effects": ["exposure"], "parameters": {"exposure": {"ratios": refit_ratios}}}],
+    }
+    errors = parameter_errors(diagnosis, truth)
+    # Normalised by the geometric mean, the 10 % view error spreads to ~2.4 % on the others.
+    assert errors["exposure_ratio_max"] == pytest.approx(1.1**0.75 - 1, rel=1e-6)
+    assert errors["exposure_ratio_median"] == pytest.approx(1 - 1.1**-0.25, rel=1e-6)
+    assert errors["vignetting_corner_falloff"] == pytest.approx(0.05)
+    assert errors["response_gamma_absolute"] == pytest.approx(0.05)
