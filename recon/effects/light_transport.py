@@ -419,13 +419,31 @@ def vertex_direction_visibility(
         return cosine, seen
 
 
+# The last sky-visibility computation: the interreflection module and the diagnosis' visibility
+# fingerprint ask for the same mesh's 64 directions one after the other.
+_SKY_CACHE: list = []
+
+
+def sky_visibility(
+    verts: torch.Tensor, faces: torch.Tensor, directions: int = 64, resolution: int = 96
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(sphere [K, 3], cosine [K, V], seen [K, V]) along `directions` Fibonacci directions
+    (vertex_direction_visibility), cached for the last mesh asked about. No gradient."""
+    key = (_fingerprint(verts), _fingerprint(faces), int(directions), int(resolution))
+    if _SKY_CACHE and _SKY_CACHE[0][0] == key:
+        return _SKY_CACHE[0][1]
+    sphere = fibonacci_directions(directions).to(verts.device)
+    cosine, seen = vertex_direction_visibility(verts, faces, sphere, resolution)
+    _SKY_CACHE[:] = [(key, (sphere, cosine, seen))]
+    return sphere, cosine, seen
+
+
 def vertex_occlusion(
     verts: torch.Tensor, faces: torch.Tensor, directions: int = 64, resolution: int = 96
 ) -> torch.Tensor:
     """Cosine-weighted share [V] of each vertex's hemisphere that sees the mesh itself
     (vertex_direction_visibility along `directions` Fibonacci directions). No gradient."""
-    sphere = fibonacci_directions(directions)
-    cosine, seen = vertex_direction_visibility(verts, faces, sphere, resolution)
+    _, cosine, seen = sky_visibility(verts, faces, directions, resolution)
     weight = cosine.sum(dim=0).clamp(min=1e-12)
     return 1 - (cosine * seen).sum(dim=0) / weight
 
@@ -446,7 +464,8 @@ def vertex_light_visibility(
     from recon.render.shading import sh_basis
 
     with torch.no_grad():
-        sphere = fibonacci_directions(directions).to(verts.device)
+        sphere, cosine, seen = sky_visibility(verts, faces, directions, resolution)
+        sphere, cosine, seen = sphere.double(), cosine.double(), seen.double()
         weights = torch.tensor([0.2126, 0.7152, 0.0722], dtype=torch.float64, device=verts.device)
         coefficients = lighting.sh_coefficients.detach().to(sphere)
         channels = coefficients.shape[-1]
@@ -454,16 +473,20 @@ def vertex_light_visibility(
         radiance = (sh_basis(sphere) @ coefficients).clamp(min=0.0) @ luminance  # [K]
         # Monte Carlo weight of a direction: 4 pi / K of solid angle.
         power = radiance * (4 * math.pi / directions)
-        suns = [light.direction_to_light.detach().to(sphere) for light in lighting.directional]
-        if suns:
-            sun_directions = torch.nn.functional.normalize(torch.stack(suns), dim=-1)
+        if lighting.directional:
+            sun_directions = torch.nn.functional.normalize(
+                torch.stack([light.direction_to_light.detach() for light in lighting.directional]),
+                dim=-1,
+            ).to(sphere)
             sun_power = torch.stack(
                 [light.irradiance.detach().to(sphere) @ luminance for light in lighting.directional]
             )
-            sphere = torch.cat([sphere, sun_directions])
+            sun_cosine, sun_seen = vertex_direction_visibility(
+                verts, faces, sun_directions, resolution
+            )
+            cosine = torch.cat([cosine, sun_cosine.double()])
+            seen = torch.cat([seen, sun_seen.double()])
             power = torch.cat([power, sun_power])
-        cosine, seen = vertex_direction_visibility(verts, faces, sphere, resolution)
-        cosine, seen = cosine.double(), seen.double()
         total = (cosine * power[:, None]).sum(dim=0)
         visible = (cosine * seen * power[:, None]).sum(dim=0)
         return torch.where(total > 1e-12, visible / total.clamp(min=1e-12), torch.ones_like(total))
