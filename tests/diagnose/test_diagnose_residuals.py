@@ -40,15 +40,6 @@ BACKGROUND_NOISE = 0.003
 LOCATING = [domain for domain in DOMAINS if domain != "frequency"]
 
 
-@pytest.fixture(autouse=True)
-def single_thread():
-    """Many small tensor ops: one thread avoids hand-offs that dominate on a shared machine."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
-
-
 class Scene:
     """The 'fitted' scene: a textured torus under a sun, and its render from VIEWS cameras."""
 

@@ -31,14 +31,6 @@ from recon.render.shading import DirectionalLight, Lighting
 SIZE = 64
 
 
-@pytest.fixture(autouse=True)
-def single_thread():
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
-
-
 @pytest.fixture(scope="module")
 def scene():
     """A torus lying in the x-z plane (its inner ring shadows itself) under sky + sun."""
