@@ -2,7 +2,8 @@
 it shrinks once that effect is in the forward model. Writes diagnosis.json and figures.
 
 diagnosis.json (stable schema, see README "Gap diagnosis"):
-  gap:     held-out RMSE/PSNR (linear), noise floor, gap above the floor, relight error
+  gap:     held-out RMSE/PSNR (linear), noise floor, gap above the floor, relight error,
+           visibility fingerprint, geometry error against the ground truth when there is one
   where:   per domain {score, score_in_sample, summary}
   ranking: [{effect, score, heldout_reduction, interval, significant, parameters, absorption}]
   refits:  [{effects, before, after, floor, closed_fraction, geometry_before, geometry_after}]
@@ -201,6 +202,14 @@ def fingerprint_evidence(ranking, data: DiagnosisData) -> dict:
     return record
 
 
+def _geometry_errors(mesh, reference) -> dict:
+    """Chamfer-L1, normal consistency and F1@1% of a fitted mesh against the reference."""
+    from recon.metrics.geometry import geometry_metrics
+
+    metrics = geometry_metrics(mesh.to("cpu"), reference, samples=20000)
+    return {key: metrics[key] for key in ("chamfer_l1", "normal_consistency", "f1@1%")}
+
+
 def waterfall_figure(refits: list[dict], floor_rmse: float, path) -> None:
     labels = ["fitted"] + ["+ " + " + ".join(r["effects"]) for r in refits]
     values = [refits[0]["before_rmse"]] + [r["after_rmse"] for r in refits] if refits else []
@@ -250,6 +259,11 @@ def diagnose_run(
         absorption_probes(ranking, data, paths, config, device)
     ranking.sort(key=CandidateResult.rank_key, reverse=True)
     timings = {"diagnose_seconds": round(time.perf_counter() - started, 2)}
+    # Against the ground truth when the run has one (synthetic data only; not part of the
+    # diagnosis method, so outside its timing).
+    reference = load_mesh(paths.reference_mesh) if paths.reference_mesh.exists() else None
+    if reference is not None:
+        gap["parameters"] = {"geometry": _geometry_errors(data.mesh, reference)}
 
     refits = []
     if refit != "none":
@@ -277,16 +291,9 @@ def diagnose_run(
                 "closed_fraction": closed,
                 "parameters": {m.name: m.parameters_summary() for m in fitted_effects.modules},
             }
-            if paths.reference_mesh.exists():
-                from recon.metrics.geometry import geometry_metrics
-
-                reference = load_mesh(paths.reference_mesh)
-                record["geometry_before"] = geometry_metrics(
-                    data.mesh.to("cpu"), reference, samples=20000
-                )["chamfer_l1"]
-                record["geometry_after"] = geometry_metrics(
-                    mesh.to("cpu"), reference, samples=20000
-                )["chamfer_l1"]
+            if reference is not None:
+                record["geometry_before"] = gap["parameters"]["geometry"]["chamfer_l1"]
+                record["geometry_after"] = _geometry_errors(mesh, reference)["chamfer_l1"]
             refits.append(record)
             if refit == "greedy" and closed < 0.05:
                 break

@@ -51,6 +51,10 @@ def test_blind_exposure_is_found_and_clean_is_clean(tiny_config, tmp_path):
     # The truth lies outside the run folder, and nothing inside names the withheld effect
     # except the diagnosis' own output.
     run_folder = Path(records[0]["run_folder"])
+    # With a ground truth beside the run, the gap carries the fitted geometry's error.
+    geometry = json.loads((run_folder / "diagnosis.json").read_text())["gap"]["parameters"]
+    assert 0 < geometry["geometry"]["chamfer_l1"] < 0.02
+    assert geometry["geometry"]["normal_consistency"] > 0.8
     effects_record = json.loads((run_folder / "ground_truth" / "effects.json").read_text())
     assert effects_record["withheld"] is True and effects_record["effects"] == []
     for path in run_folder.rglob("*.json"):
