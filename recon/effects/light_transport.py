@@ -54,6 +54,9 @@ if TYPE_CHECKING:
 # coefficients I * _SH_BAND_ONE * d.
 _SH_BAND_ONE = 0.4886025119029199
 _SH_BAND_ZERO = 0.28209479177387814
+# Interreflection keeps its occlusion while no vertex moves more than this share of the mesh's
+# bounding-box diagonal (about a tenth of a texel of its 96-texel depth maps).
+OCCLUSION_TOLERANCE = 0.002
 # Depth maps: background depth (NDC units) far behind everything, so it never occludes.
 _EMPTY_DEPTH = 1.0e4
 
@@ -522,22 +525,25 @@ class Interreflection(ModelEffect):
                 f"{self.directions} and {self.map_resolution}"
             )
         self.strength = torch.nn.Parameter(torch.zeros(()))
-        self._cache: tuple[tuple, torch.Tensor] | None = None
+        self._cache: tuple[tuple, torch.Tensor, torch.Tensor] | None = None
 
     def occlusion(self, mesh: Mesh) -> torch.Tensor:
-        """Per-vertex occlusion [V] (cached for an unchanged mesh)."""
-        key = (
-            _fingerprint(mesh.verts),
-            _fingerprint(mesh.faces),
-            self.directions,
-            self.map_resolution,
-        )
-        if self._cache is None or self._cache[0] != key:
-            occlusion = vertex_occlusion(
-                mesh.verts, mesh.faces, self.directions, self.map_resolution
-            )
-            self._cache = (key, occlusion)
-        return self._cache[1]
+        """Per-vertex occlusion [V], cached: recomputed only for another topology or when a
+        vertex moved by more than OCCLUSION_TOLERANCE of the bounding-box diagonal (a tenth of
+        a depth-map texel), so a refit that nudges positions does not redraw 64 depth maps at
+        every step."""
+        verts = mesh.verts.detach()
+        key = (_fingerprint(mesh.faces), self.directions, self.map_resolution)
+        if self._cache is not None:
+            cached_key, cached_verts, cached = self._cache
+            if cached_key == key and cached_verts.shape == verts.shape:
+                diagonal = float((verts.max(0).values - verts.min(0).values).norm())
+                moved = float((verts - cached_verts).abs().max()) if verts.numel() else 0.0
+                if moved <= OCCLUSION_TOLERANCE * diagonal:
+                    return cached
+        occlusion = vertex_occlusion(verts, mesh.faces, self.directions, self.map_resolution)
+        self._cache = (key, verts.clone(), occlusion)
+        return occlusion
 
     def forward(self, render_output: RenderOutput, context: EffectContext) -> RenderOutput:
         _check_shading_inputs(render_output, context, self.name)
@@ -557,5 +563,5 @@ class Interreflection(ModelEffect):
     def parameters_summary(self) -> dict:
         summary = {"strength": to_float(self.strength.detach())}
         if self._cache is not None:
-            summary["mean_vertex_occlusion"] = to_float(self._cache[1].mean())
+            summary["mean_vertex_occlusion"] = to_float(self._cache[2].mean())
         return summary

@@ -11,7 +11,12 @@ import pytest
 import torch
 
 from recon.effects import EffectContext, Interreflection, Shadows, Specular, dominant_light
-from recon.effects.light_transport import mean_irradiance, vertex_occlusion, view_directions
+from recon.effects.light_transport import (
+    OCCLUSION_TOLERANCE,
+    mean_irradiance,
+    vertex_occlusion,
+    view_directions,
+)
 from recon.errors import ReconError
 from recon.render.shading import DirectionalLight, Lighting, sh_basis
 
@@ -110,6 +115,17 @@ def test_shadow_map_is_cached_for_an_unchanged_mesh(shadow_scene):
     assert effect.shadow_map(shadow_scene.mesh, direction)[1] is first
     moved = replace(shadow_scene.mesh, verts=shadow_scene.mesh.verts + 0.01)
     assert effect.shadow_map(moved, direction)[1] is not first
+
+
+def test_occlusion_is_kept_for_a_nudge_and_redrawn_for_a_move(shadow_scene):
+    effect = Interreflection(directions=16, map_resolution=32)
+    mesh = shadow_scene.mesh
+    first = effect.occlusion(mesh)
+    diagonal = float((mesh.verts.max(0).values - mesh.verts.min(0).values).norm())
+    nudged = replace(mesh, verts=mesh.verts + 0.5 * OCCLUSION_TOLERANCE * diagonal)
+    assert effect.occlusion(nudged) is first
+    moved = replace(mesh, verts=mesh.verts * 1.05)
+    assert effect.occlusion(moved) is not first
 
 
 def test_vertex_occlusion_is_zero_on_a_convex_shape_and_high_under_an_overhang(
