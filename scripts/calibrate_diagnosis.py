@@ -33,12 +33,22 @@ def main(argv: list[str] | None = None) -> int:
 
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("runs", nargs="+", help="run folders fitted on clean data")
+    parser.add_argument(
+        "--stored",
+        action="store_true",
+        help="read each run's diagnosis.json instead of diagnosing again (the evidence is the "
+        "same; only the decision depends on the thresholds)",
+    )
     arguments = parser.parse_args(argv)
     probe, absorption, shares = {}, {}, []
     for run in arguments.runs:
         paths = open_run_folder(Path(run))
-        config = load_config(paths.resolved_config, RunConfig)
-        result = diagnose_run(paths, config, torch.device("cpu"), refit="none")
+        stored = paths.root / "diagnosis.json"
+        if arguments.stored and stored.exists():
+            result = json.loads(stored.read_text())
+        else:
+            config = load_config(paths.resolved_config, RunConfig)
+            result = diagnose_run(paths, config, torch.device("cpu"), refit="none")
         for item in result["ranking"]:
             name = item["effect"]
             probe[name] = max(probe.get(name, 0.0), item["heldout_reduction"])
