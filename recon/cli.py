@@ -162,10 +162,19 @@ def _diagnose(arguments) -> int:
     device = pipeline.resolve_device(arguments.device or config.device)
     result = diagnose_run(paths, config, device, refit=arguments.refit, candidates=candidates)
     for candidate in result["ranking"]:
-        flag = "significant" if candidate["significant"] else ""
+        flag = f"significant ({candidate['evidence']})" if candidate["significant"] else ""
+        absorption = candidate.get("absorption")
+        absorbed = "" if absorption is None else f" absorption {absorption:6.3f}"
         print(
             f"{candidate['effect']:16} held-out reduction {candidate['heldout_reduction']:7.3f} "
-            f"[{candidate['interval'][0]:.3f}, {candidate['interval'][1]:.3f}] {flag}"
+            f"[{candidate['interval'][0]:.3f}, {candidate['interval'][1]:.3f}]{absorbed} {flag}"
+        )
+    fingerprint = result["gap"].get("visibility_fingerprint")
+    if fingerprint:
+        low, high = fingerprint["interval"]
+        print(
+            f"visibility fingerprint: {fingerprint['share']:.2f} [{low:.2f}, {high:.2f}] of the "
+            f"predicted self-shadowing baked into the albedo ({fingerprint['names'] or 'nothing'})"
         )
     for refit in result["refits"]:
         print(

@@ -126,21 +126,10 @@ def report_stage(config: RunConfig, paths: RunPaths, device: torch.device) -> di
     if diagnosis_path.exists():
         diagnosis = json.loads(diagnosis_path.read_text())
         rows.append(("diagnosis.verdict", diagnosis["verdict"]))
-        diagnosis_markdown = [
-            "",
-            "## Gap diagnosis",
-            "",
-            f"Verdict: {diagnosis['verdict']}",
-            "",
-            "| effect | held-out reduction | interval | significant |",
-            "|---|---|---|---|",
-        ]
-        for item in diagnosis["ranking"]:
-            low, high = item["interval"]
-            diagnosis_markdown.append(
-                f"| {item['effect']} | {item['heldout_reduction']:.3f} | [{low:.3f}, {high:.3f}] "
-                f"| {'yes' if item['significant'] else ''} |"
-            )
+        diagnosis_markdown = ["", "## Gap diagnosis", "", f"Verdict: {diagnosis['verdict']}", ""]
+        diagnosis_markdown += _markdown_table(*_ranking_table(diagnosis))
+        if diagnosis.get("refits"):
+            diagnosis_markdown += [""] + _markdown_table(*_refit_table(diagnosis))
         for name, link in diagnosis.get("figures", {}).items():
             figures.append((f"Diagnosis: {name.replace('_', ' ')}", paths.root / link))
     relative = [(title, figure.relative_to(paths.root).as_posix()) for title, figure in figures]
@@ -158,6 +147,16 @@ def report_stage(config: RunConfig, paths: RunPaths, device: torch.device) -> di
         f"<h2>{html.escape(title)}</h2><img src='{html.escape(link)}' style='max-width:100%'>"
         for title, link in relative
     )
+    if diagnosis_markdown:
+        diagnosis_tables = [_ranking_table(diagnosis)]
+        if diagnosis.get("refits"):
+            diagnosis_tables.append(_refit_table(diagnosis))
+        body = (
+            "<h2>Gap diagnosis</h2>"
+            f"<p>Verdict: {html.escape(diagnosis['verdict'])}</p>"
+            + "".join(_html_table(*table) for table in diagnosis_tables)
+            + body
+        )
     page = (
         "<!doctype html><html><head><meta charset='utf-8'>"
         f"<title>recon report: {html.escape(config.name)}</title>"
@@ -168,3 +167,52 @@ def report_stage(config: RunConfig, paths: RunPaths, device: torch.device) -> di
     )
     atomic_write_text(paths.report_html, page)
     return {"figures": len(figures)}
+
+
+def _ranking_table(diagnosis: dict) -> tuple[list[str], list[list[str]]]:
+    """The diagnosis ranking as (header, rows) of text cells."""
+    header = ["effect", "evidence", "held-out reduction", "interval", "absorption", "significant"]
+    rows = []
+    for item in diagnosis["ranking"]:
+        low, high = item["interval"]
+        absorption = item.get("absorption")
+        rows.append(
+            [
+                item["effect"],
+                item.get("evidence", ""),
+                f"{item['heldout_reduction']:.3f}",
+                f"[{low:.3f}, {high:.3f}]",
+                "" if absorption is None else f"{absorption:.3f}",
+                "yes" if item["significant"] else "",
+            ]
+        )
+    return header, rows
+
+
+def _refit_table(diagnosis: dict) -> tuple[list[str], list[list[str]]]:
+    """The refits (how far the gap shrinks) as (header, rows) of text cells."""
+    header = ["refit with", "RMSE before", "RMSE after", "floor RMSE", "gap above floor closed"]
+    rows = [
+        [
+            " + ".join(refit["effects"]),
+            f"{refit['before_rmse']:.4f}",
+            f"{refit['after_rmse']:.4f}",
+            f"{refit['floor'] ** 0.5:.4f}",
+            f"{100 * refit['closed_fraction']:.0f} %",
+        ]
+        for refit in diagnosis["refits"]
+    ]
+    return header, rows
+
+
+def _markdown_table(header: list[str], rows: list[list[str]]) -> list[str]:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    return lines + ["| " + " | ".join(row) + " |" for row in rows]
+
+
+def _html_table(header: list[str], rows: list[list[str]]) -> str:
+    head = "".join(f"<th>{html.escape(cell)}</th>" for cell in header)
+    body = "".join(
+        "<tr>" + "".join(f"<td>{html.escape(cell)}</td>" for cell in row) + "</tr>" for row in rows
+    )
+    return f"<table><tr>{head}</tr>{body}</table>"

@@ -1,0 +1,57 @@
+"""The report's gap-diagnosis section: verdict, ranking with its evidence, and the refit, in both
+report.md and report.html, from whatever diagnosis.json the run folder holds."""
+
+from __future__ import annotations
+
+import json
+
+import torch
+
+from recon.config.run_config import RunConfig
+from recon.io.run_folder import prepare_run_folder
+from recon.report.report import report_stage
+
+
+def test_report_carries_the_diagnosis(tmp_path):
+    paths = prepare_run_folder(tmp_path / "run")
+    diagnosis = {
+        "verdict": "significant unmodelled effects: vignetting",
+        "ranking": [
+            {
+                "effect": "vignetting",
+                "evidence": "absorption",
+                "heldout_reduction": 0.035,
+                "interval": [0.012, 0.06],
+                "absorption": 0.104,
+                "significant": True,
+            },
+            {
+                "effect": "pose_error",
+                "evidence": "",
+                "heldout_reduction": 0.05,
+                "interval": [-0.01, 0.09],
+                "absorption": None,
+                "significant": False,
+            },
+        ],
+        "refits": [
+            {
+                "effects": ["vignetting"],
+                "before_rmse": 0.0304,
+                "after_rmse": 0.0251,
+                "floor": 0.0077**2,
+                "closed_fraction": 0.23,
+            }
+        ],
+        "figures": {},
+    }
+    (paths.root / "diagnosis.json").write_text(json.dumps(diagnosis))
+    report_stage(RunConfig(), paths, torch.device("cpu"))
+    markdown = paths.report_markdown.read_text()
+    assert "Verdict: significant unmodelled effects: vignetting" in markdown
+    assert "| vignetting | absorption | 0.035 | [0.012, 0.060] | 0.104 | yes |" in markdown
+    assert "| pose_error |  | 0.050 | [-0.010, 0.090] |  |  |" in markdown
+    assert "| vignetting | 0.0304 | 0.0251 | 0.0077 | 23 % |" in markdown
+    page = paths.report_html.read_text()
+    assert "<h2>Gap diagnosis</h2>" in page
+    assert "<td>absorption</td><td>0.035</td>" in page and "<td>23 %</td>" in page
