@@ -4,7 +4,16 @@ both-found rate, false-positive rate, gap closed and the cost of diagnosis relat
 
     python scripts/bench_diagnose.py [--scenes default spot] [--seeds 0,1,2] [--out runs/bench_diagnose]
 
-Each scene's folder also gets bench.md and confusion.png (recon diagnose-bench writes them).
+Each scene's folder also gets bench.md and confusion.png (recon diagnose-bench writes them);
+with both scenes the pooled cases go to OUT/bench.md, OUT/bench.json and OUT/confusion.png.
+
+How the README's figures were made (clean seeds 103-105 calibrate, 100-102 are scored):
+
+    python scripts/bench_diagnose.py --fits-only --clean 6           # synthesise and fit
+    python scripts/bench_diagnose.py --reuse-fits --clean 6          # diagnose every case
+    python scripts/calibrate_diagnosis.py --stored OUT/*/none_seed10[345]
+    # -> the allowances in recon/diagnose/calibration.py
+    python scripts/bench_diagnose.py --reuse-fits --rescore --clean 3
 """
 
 from __future__ import annotations
@@ -26,7 +35,7 @@ SPOT_OVERRIDES = [
 def main(argv: list[str] | None = None) -> int:
     import torch
 
-    from recon.diagnose_bench import diagnose_bench
+    from recon.diagnose_bench import diagnose_bench, summarise, write_outputs
 
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--scenes", nargs="+", default=["default", "spot"])
@@ -57,6 +66,16 @@ def main(argv: list[str] | None = None) -> int:
             fits_only=arguments.fits_only,
             rescore=arguments.rescore,
         )
+    scored = [
+        Path(arguments.out) / scene / "bench.json"
+        for scene in arguments.scenes
+        if "skipped" not in results[scene]
+    ]
+    if len(scored) > 1:
+        # Every scored case of every scene together (each scene's confusion.png stays its own).
+        records = [case for path in scored for case in json.loads(path.read_text())["cases"]]
+        results["pooled"] = summarise(records)
+        write_outputs(records, Path(arguments.out))
     print(json.dumps(results, indent=2))
     return 0
 
