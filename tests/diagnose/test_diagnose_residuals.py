@@ -405,3 +405,37 @@ def test_load_diagnosis_data_names_a_missing_fit(tmp_path):
     (tmp_path / "config.resolved.yaml").write_text("name: x\n")
     with pytest.raises(ReconError, match="no fitted mesh"):
         load_diagnosis_data(open_run_folder(tmp_path), "test")
+
+
+def test_diagnose_command_writes_the_documented_schema(tiny_run, capsys):
+    code = main(
+        ["diagnose", str(tiny_run), "--refit", "top", "--effects", "exposure,vignetting,shadows"]
+    )
+    assert code == 0
+    printed = capsys.readouterr().out
+    assert "verdict:" in printed and "visibility fingerprint:" in printed
+    diagnosis = json.loads((tiny_run / "diagnosis.json").read_text())
+    assert {"gap", "where", "ranking", "refits", "verdict", "timings"} <= set(diagnosis)
+    assert {item["effect"] for item in diagnosis["ranking"]} == {
+        "exposure",
+        "vignetting",
+        "shadows",
+    }
+    for item in diagnosis["ranking"]:
+        assert {
+            "effect",
+            "score",
+            "heldout_reduction",
+            "interval",
+            "significant",
+            "parameters",
+            "evidence",
+        } <= set(item)
+        assert item["evidence"] in ("", "probe", "absorption", "fingerprint")
+        assert item["significant"] == bool(item["evidence"])
+    # Vignetting is absorbable: it carries the absorption refit's evidence.
+    vignetting = next(item for item in diagnosis["ranking"] if item["effect"] == "vignetting")
+    assert vignetting["absorption"] is not None and len(vignetting["absorption_interval"]) == 2
+    assert set(diagnosis["gap"]["visibility_fingerprint"]) >= {"share", "interval", "names"}
+    for refit in diagnosis["refits"]:
+        assert {"effects", "before", "after", "floor", "closed_fraction"} <= set(refit)
