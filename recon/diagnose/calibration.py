@@ -9,7 +9,10 @@ its null allowance, not with zero.
 The allowances were measured with ``scripts/calibrate_diagnosis.py`` on clean calibration
 datasets (the benchmark config at 128², default scene and spot, seeds 103-105: fits that the
 blind benchmark's scored cases never use) as twice the largest reduction seen, floored at
-MINIMUM_SHARE; the script prints the table below from fresh fits.
+MINIMUM_SHARE; the script prints the table below from fresh fits (largest clean reductions:
+defocus 0.082, motion 0.077, pose 0.066, lens 0.040, vignetting 0.020, all others below 0.011;
+spot's texture-resolution misfit is what the blur probes pick up). The visibility fingerprint's
+largest clean share there was 0.02 (lower bounds all below -0.1).
 """
 
 from __future__ import annotations
@@ -20,25 +23,25 @@ MINIMUM_SHARE = 0.02
 # Probe (scene frozen, per-view parameters fitted on half of each held-out view's pixel blocks):
 # twice the largest held-out reduction on the clean calibration fits.
 PROBE_ALLOWANCE: dict[str, float] = {
-    "defocus_blur": 0.07,
-    "motion_blur": 0.08,
-    "pose_error": 0.18,
-    "lens_distortion": 0.12,
-    "response_curve": 0.03,
-    "exposure": 0.02,
+    "defocus_blur": 0.163,
+    "motion_blur": 0.154,
+    "pose_error": 0.132,
+    "lens_distortion": 0.079,
+    "vignetting": 0.04,
+    "exposure": 0.021,
+    "response_curve": 0.02,
     "white_balance": 0.02,
-    "vignetting": 0.02,
     "specular": 0.02,
     "shadows": 0.02,
     "interreflection": 0.02,
 }
 
-# Absorption (a short refit with the effect against a control refit without it).
+# Absorption (a short refit with the effect against a control refit without it): twice the
+# largest reduction over the control on the same calibration fits.
 ABSORPTION_ALLOWANCE: dict[str, float] = {
-    "vignetting": 0.03,
-    "lens_distortion": 0.04,
+    "lens_distortion": 0.028,
+    "vignetting": 0.02,
     "specular": 0.02,
-    "response_curve": 0.04,
 }
 
 # Visibility fingerprint (recon.diagnose.fingerprint): the share of the self-shadowing that the
