@@ -24,7 +24,7 @@ from recon.camera import Cameras
 from recon.config.run_config import EffectConfig, RunConfig
 from recon.errors import ReconError
 from recon.io.atomic import atomic_write_json
-from recon.io.datasets import write_nerf_synthetic
+from recon.io.datasets import RELIGHT_LIGHTING, write_nerf_synthetic
 from recon.io.images import save_contact_sheet, write_exr
 from recon.io.meshes import save_mesh
 from recon.mesh.mesh import Mesh
@@ -229,6 +229,11 @@ def synth_stage(
             capture.alpha,
             write_exr=capture_config.write_exr,
         )
+        if split == "relight":
+            # The relight split's light is a known capture condition (a light stage, a second
+            # lamp), not a hidden effect: it goes beside the views so that the diagnosis can
+            # relight the fitted albedo with it.
+            atomic_write_json(paths.dataset / RELIGHT_LIGHTING, lighting_to_json(split_world))
         if capture_config.write_depth_normals:
             for index in range(len(cameras)):
                 write_exr(

@@ -192,8 +192,11 @@ def load_diagnosis_data(
     device: torch.device | str = "cpu",
     band_pixels: int = DEFAULT_BAND_PIXELS,
     effects: Sequence[ModelEffect] | None = None,
+    lighting: Lighting | None = None,
 ) -> DiagnosisData:
     """The fitted scene of a run folder against one split of its dataset.
+
+    lighting: render under this light instead of the fitted one (a relight split's own light).
 
     Renders like the evaluate stage (recon.metrics.evaluate.render_fitted: trilinear texture,
     clamped at the border, black background) but keeps the render's buffers. effects: model
@@ -211,7 +214,7 @@ def load_diagnosis_data(
     if len(captures.cameras) == 0:
         raise ReconError(f"diagnose: split '{split}' of {paths.dataset} has no views")
     mesh = load_mesh(paths.fitted_mesh).to(device)
-    lighting = load_fitted_light(paths, device)
+    lighting = load_fitted_light(paths, device) if lighting is None else lighting.to(device)
     renderer = Renderer(texture_filter="linear-mipmap-linear", texture_boundary="clamp")
     parts: list[DiagnosisData] = []
     with torch.no_grad():

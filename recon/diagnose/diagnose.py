@@ -12,6 +12,7 @@ diagnosis.json (stable schema, see README "Gap diagnosis"):
 
 from __future__ import annotations
 
+import json
 import math
 import time
 from dataclasses import replace
@@ -23,7 +24,7 @@ import torch
 from recon.config.run_config import RunConfig
 from recon.diagnose.data import DiagnosisData, load_diagnosis_data
 from recon.diagnose.fingerprint import FINGERPRINT_EFFECTS, visibility_fingerprint
-from recon.diagnose.residuals import gap_summary, noise_floor, where_analysis
+from recon.diagnose.residuals import gap_summary, noise_floor, relight_gap, where_analysis
 from recon.diagnose.which import (
     CandidateResult,
     EffectProbe,
@@ -36,7 +37,7 @@ from recon.diagnose.which import (
 from recon.effects.registry import MODEL_EFFECTS, make_effect
 from recon.errors import ReconError
 from recon.io.atomic import atomic_path, atomic_write_json
-from recon.io.datasets import read_captures
+from recon.io.datasets import RELIGHT_LIGHTING, read_captures
 from recon.io.meshes import load_mesh
 from recon.io.run_folder import RunPaths
 from recon.metrics.evaluate import _plain
@@ -202,6 +203,20 @@ def fingerprint_evidence(ranking, data: DiagnosisData) -> dict:
     return record
 
 
+def _relight_gap(paths: RunPaths, device: torch.device) -> dict:
+    """The relight split's gap under its own light (gauge fixed, residuals.relight_gap), or why
+    it cannot be measured: rendered under the fitted light, a relight view would only measure
+    the change of light."""
+    light_path = paths.dataset / RELIGHT_LIGHTING
+    if not light_path.exists():
+        return {
+            "skipped": f"{light_path} not found: the relight split's light is unknown, so its "
+            "gap is not measured"
+        }
+    lighting = Lighting.from_json(json.loads(light_path.read_text()), device)
+    return relight_gap(load_diagnosis_data(paths, "relight", device, lighting=lighting))
+
+
 def _geometry_errors(mesh, reference) -> dict:
     """Chamfer-L1, normal consistency and F1@1% of a fitted mesh against the reference."""
     from recon.metrics.geometry import geometry_metrics
@@ -250,8 +265,7 @@ def diagnose_run(
     floor_rmse = floor.get("floor_rmse") or 0.0
     gap["noise_floor"] = floor
     if (paths.dataset / "transforms_relight.json").exists():
-        relight = load_diagnosis_data(paths, "relight", device)
-        gap["relight"] = gap_summary(relight)
+        gap["relight"] = _relight_gap(paths, device)
     where = where_analysis(data)
     ranking = rank_candidates(data, candidates, steps=probe_steps)
     gap["visibility_fingerprint"] = fingerprint_evidence(ranking, data)

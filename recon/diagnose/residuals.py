@@ -41,6 +41,7 @@ term) split a seeded random half of the pixels of every view.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import torch
@@ -123,6 +124,22 @@ def gap_summary(data: DiagnosisData) -> dict:
         "per_view_psnr": per_view_psnr,
         "per_view_pixels": [int(value) for value in pixels.tolist()],
     }
+
+
+def relight_gap(data: DiagnosisData) -> dict:
+    """gap_summary of a relight split rendered with its own (known) light, after the albedo x
+    light gauge is fixed: the fitted albedo is only known up to a per-channel scale that the
+    fitted light carries, so one gain per channel (least squares over the region of every
+    view) rescales the render first. Adds "gauge_gain" [3] to the summary."""
+    region = data.region.double()
+    rendered = data.rendered.double()
+    observed = data.observed.double()
+    numerator = (observed * rendered * region).sum(dim=(0, 1, 2))
+    denominator = (rendered * rendered * region).sum(dim=(0, 1, 2)).clamp_min(1e-20)
+    gain = numerator / denominator
+    summary = gap_summary(replace(data, rendered=(rendered * gain).to(data.rendered.dtype)))
+    summary["gauge_gain"] = gain.tolist()
+    return summary
 
 
 def _psnr(mse: float) -> float:

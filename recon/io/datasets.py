@@ -91,6 +91,11 @@ class CaptureSet:
 # --------------------------------------------------------------------------------------------
 
 
+# A dataset's relight split may carry its light (a known capture condition) in this file, in the
+# lighting JSON format of recon.render.shading.Lighting.from_json.
+RELIGHT_LIGHTING = "lighting_relight.json"
+
+
 def _resize(images: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
     """Resize [B, H, W, C] to [B, h, w, C]: area averaging to shrink, bilinear to enlarge.
 

@@ -84,16 +84,6 @@ def fit_stage(
 
 def load_fitted_light(paths: RunPaths, device: torch.device):
     """The fitted light as recon Lighting."""
-    from recon.render.shading import DirectionalLight, Lighting
+    from recon.render.shading import Lighting
 
-    data = json.loads(paths.fitted_light.read_text())
-    return Lighting(
-        sh_coefficients=torch.tensor(data["sh_coefficients"], device=device),
-        directional=[
-            DirectionalLight(
-                torch.tensor(light["direction_to_light"], device=device),
-                torch.tensor(light["irradiance"], device=device),
-            )
-            for light in data["directional"]
-        ],
-    )
+    return Lighting.from_json(json.loads(paths.fitted_light.read_text()), device)

@@ -90,6 +90,35 @@ class Lighting:
         sh[0] = values * math.sqrt(4 * math.pi)
         return Lighting(sh_coefficients=sh)
 
+    @staticmethod
+    def from_json(data: dict, device: torch.device | str = "cpu") -> Lighting:
+        """The lighting of a lighting JSON record (the fitted light's light.json, data_synth's
+        ground_truth/lighting.json or a dataset's lighting_relight.json): sh_coefficients
+        [9][C], directional [{direction_to_light, irradiance}], points [{position, intensity,
+        emitter_normal}] (optional). Other keys (area lights, an environment map's file) are
+        not part of recon's shading and are ignored."""
+
+        def tensor(values) -> torch.Tensor:
+            return torch.tensor(values, dtype=torch.float32, device=device)
+
+        return Lighting(
+            sh_coefficients=tensor(data["sh_coefficients"]),
+            directional=[
+                DirectionalLight(tensor(light["direction_to_light"]), tensor(light["irradiance"]))
+                for light in data.get("directional", [])
+            ],
+            points=[
+                PointLight(
+                    tensor(light["position"]),
+                    tensor(light["intensity"]),
+                    None
+                    if light.get("emitter_normal") is None
+                    else tensor(light["emitter_normal"]),
+                )
+                for light in data.get("points", [])
+            ],
+        )
+
     def to(self, device: torch.device | str) -> Lighting:
         return replace(
             self,

@@ -138,6 +138,14 @@ def test_relight_split_reuses_the_test_cameras_under_other_light(tmp_path):
         assert relit["transform_matrix"] == tested["transform_matrix"]
     test, relit = read_split(out, "test"), read_split(out, "relight")
     assert torch.equal(relit.cameras.world_to_cam, test.cameras.world_to_cam[:2])
+    # The relight light is written beside the views (a known capture condition).
+    from recon.io.datasets import RELIGHT_LIGHTING
+    from recon.render.shading import Lighting
+
+    light = Lighting.from_json(json.loads((dataset / RELIGHT_LIGHTING).read_text()))
+    assert len(light.directional) == 1
+    assert light.directional[0].irradiance.tolist() == [2.0, 1.0, 0.5]
+    assert not (dataset / "lighting.json").exists()
     assert torch.equal(relit.masks, test.masks[:2])  # same geometry, same coverage
     difference = (relit.images - test.images[:2]).abs().mean(dim=(1, 2, 3))
     assert (difference > 0.02).all(), difference

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -21,7 +22,13 @@ from recon.camera import orbit_cameras
 from recon.cli import main
 from recon.diagnose.data import DiagnosisData, build_diagnosis_data, load_diagnosis_data
 from recon.diagnose.figures import where_figures, worst_views_figure
-from recon.diagnose.residuals import DOMAINS, gap_summary, noise_floor, where_analysis
+from recon.diagnose.residuals import (
+    DOMAINS,
+    gap_summary,
+    noise_floor,
+    relight_gap,
+    where_analysis,
+)
 from recon.effects import make_effect
 from recon.effects.light_transport import view_directions
 from recon.errors import ReconError
@@ -182,6 +189,20 @@ def test_gap_summary_matches_a_hand_computation(scene):
 # --------------------------------------------------------------------------------------------
 # the noise floor
 # --------------------------------------------------------------------------------------------
+
+
+def test_relight_gap_fixes_the_albedo_light_gauge(scene):
+    # The fitted albedo is 0.8 of the truth (its light carried the rest): under the relight
+    # light the render is 0.8 of the observation, and the gauge gain takes it back.
+    darker = replace(scene.mesh, texture=scene.mesh.texture * 0.8)
+    output = Renderer(texture_filter="linear").render(darker, scene.cameras, scene.lighting)
+    observed = noisy(scene.output.color, 0.002, seed=5)
+    data = build_diagnosis_data(
+        observed, scene.output.alpha, output, scene.cameras, scene.lighting, darker
+    )
+    relit = relight_gap(data)
+    assert relit["gauge_gain"] == pytest.approx([1.25] * 3, rel=0.01)
+    assert relit["rmse"] < 0.004 < gap_summary(data)["rmse"]
 
 
 @pytest.mark.parametrize("sigma", [0.01, 0.04])
