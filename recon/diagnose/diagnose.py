@@ -31,6 +31,8 @@ from recon.diagnose.which import (
     _per_view_mse,
     block_halves,
     bootstrap_reduction,
+    conditional_probes,
+    conditioning_effect,
     rank_candidates,
     verdict_of,
 )
@@ -169,24 +171,35 @@ def absorption_probes(
     config: RunConfig,
     device: torch.device,
     steps: int = ABSORPTION_STEPS,
+    given: str | None = None,
 ) -> None:
     """For each candidate in ABSORBABLE: refit texture, light and the effect for a few steps on
     the training views, against a control refit of the same length without it; the held-out
     reduction relative to the control (bootstrapped over views) is the absorption evidence, and
-    it can make the candidate significant (recorded in place on the ranking entries)."""
-    control_mesh, control_lighting, _ = refit_with([], paths, config, device, steps)
+    it can make the candidate significant (recorded in place on the ranking entries).
+
+    given: an effect switched on in the control and in every candidate refit alike (see
+    which.conditioning_effect), so the evidence is what each candidate adds on top of it.
+    """
+    base = [given] if given else []
+    control_mesh, control_lighting, control_effects = refit_with(base, paths, config, device, steps)
     control = replace(data, mesh=control_mesh, lighting=control_lighting)
-    control_squared, _ = heldout_errors(control, [])
+    control_modules = _effects_for_heldout(base, control_effects, len(data.cameras), device)
+    control_squared, _ = heldout_errors(control, control_modules)
     for candidate in ranking:
-        if candidate.effect not in ABSORBABLE:
+        if candidate.effect not in ABSORBABLE or candidate.effect == given:
             continue
-        mesh, lighting, fitted = refit_with([candidate.effect], paths, config, device, steps)
-        modules = _effects_for_heldout([candidate.effect], fitted, len(data.cameras), device)
+        names = base + [candidate.effect]
+        mesh, lighting, fitted = refit_with(names, paths, config, device, steps)
+        modules = _effects_for_heldout(names, fitted, len(data.cameras), device)
         squared, _ = heldout_errors(replace(data, mesh=mesh, lighting=lighting), modules)
         reduction, (low, high) = bootstrap_reduction(control_squared, squared)
         candidate.absorption = reduction
         candidate.absorption_interval = (low, high)
-        candidate.absorption_parameters = fitted.modules[0].parameters_summary()
+        module = next(module for module in fitted.modules if module.name == candidate.effect)
+        candidate.absorption_parameters = module.parameters_summary()
+        if given:
+            candidate.conditional_on = given
         candidate.decide()
 
 
@@ -268,9 +281,14 @@ def diagnose_run(
         gap["relight"] = _relight_gap(paths, device)
     where = where_analysis(data)
     ranking = rank_candidates(data, candidates, steps=probe_steps)
+    # A per-view effect at the top (exposure, pose, ...) is measured first; everything else is
+    # then measured on top of it, so a pair is not hidden behind its louder half.
+    given = conditioning_effect(ranking)
+    if given:
+        conditional_probes(ranking, EffectProbe(data), given, steps=probe_steps)
     gap["visibility_fingerprint"] = fingerprint_evidence(ranking, data)
     if absorption:
-        absorption_probes(ranking, data, paths, config, device)
+        absorption_probes(ranking, data, paths, config, device, given=given)
     ranking.sort(key=CandidateResult.rank_key, reverse=True)
     timings = {"diagnose_seconds": round(time.perf_counter() - started, 2)}
     # Against the ground truth when the run has one (synthetic data only; not part of the

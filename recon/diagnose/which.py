@@ -51,6 +51,8 @@ class CandidateResult:
     absorption_interval: tuple[float, float] | None = None
     absorption_parameters: dict | None = None
     fingerprint: dict | None = None
+    # The effect its probe and absorption evidence were measured on top of (None: alone).
+    conditional_on: str | None = None
     # What made it significant: "probe", "absorption" or "fingerprint" ("" when nothing did).
     evidence: str = ""
 
@@ -85,6 +87,7 @@ class CandidateResult:
             absorption_interval=None if absorption_interval is None else tuple(absorption_interval),
             absorption_parameters=record.get("absorption_parameters"),
             fingerprint=record.get("fingerprint"),
+            conditional_on=record.get("conditional_on"),
             evidence=record.get("evidence", ""),
         )
 
@@ -115,6 +118,7 @@ class CandidateResult:
             if self.absorption_interval is None
             else list(self.absorption_interval),
             "fingerprint": self.fingerprint,
+            "conditional_on": self.conditional_on,
             "evidence": self.evidence,
         }
 
@@ -210,14 +214,7 @@ def probe_candidate(
     # 2. Probe fit on the first half, measured on the second.
     with torch.no_grad():
         before, _ = _per_view_mse(probe.base_output.color, data.observed, weight_second)
-    optimizer = torch.optim.Adam(effect.parameter_groups())
-    for _ in range(steps):
-        optimizer.zero_grad()
-        loss = loss_on(weight_first)
-        loss.backward()
-        optimizer.step()
-    with torch.no_grad():
-        after, _ = _per_view_mse(probe.render(effect), data.observed, weight_second)
+    after = fit_on_halves([effect], probe, steps)
 
     # 3. Bootstrap over views.
     reduction, (low, high) = bootstrap_reduction(before, after, seed)
@@ -231,6 +228,66 @@ def probe_candidate(
     )
     result.decide()
     return result
+
+
+def fit_on_halves(effects: list[ModelEffect], probe: EffectProbe, steps: int) -> torch.Tensor:
+    """Fit the effects' parameters on the first half of each view's pixel blocks (scene
+    frozen); per-view squared error sums [B] on the second half."""
+    data = probe.data
+    batch, height, width, _ = data.observed.shape
+    first, second = block_halves(batch, height, width, data.observed.device)
+    optimizer = torch.optim.Adam(
+        [group for effect in effects for group in effect.parameter_groups()]
+    )
+    for _ in range(steps):
+        optimizer.zero_grad()
+        squared, count = _per_view_mse(probe.render(effects), data.observed, first * data.region)
+        (squared.sum() / count.sum()).backward()
+        optimizer.step()
+    with torch.no_grad():
+        return _per_view_mse(probe.render(effects), data.observed, second * data.region)[0]
+
+
+def conditioning_effect(ranking: list[CandidateResult]) -> str | None:
+    """The effect the other evidence is conditioned on: the top candidate when its probe made it
+    significant and it changes every view differently (exposure, white balance, pose, motion
+    blur). Such an effect leaves a large per-view residual that any other probe or refit
+    partly explains; measured on top of it, the others show only what they add."""
+    top = max(ranking, key=CandidateResult.rank_key, default=None)
+    if top is None or not top.significant or top.evidence != "probe":
+        return None
+    return top.effect if MODEL_EFFECTS[top.effect].per_view else None
+
+
+def conditional_probes(
+    ranking: list[CandidateResult],
+    probe: EffectProbe,
+    given: str,
+    steps: int = PROBE_STEPS,
+    seed: int = 0,
+) -> None:
+    """Re-probe every other significant candidate jointly with `given`: its held-out reduction
+    becomes the share of the error left by `given` alone that it removes, and its significance
+    is decided again on that (recorded in place, with conditional_on)."""
+    batch = probe.data.view_count
+    device = probe.data.observed.device
+    alone = fit_on_halves(
+        [make_effect(given, view_count=batch, pinned_view=None).to(device)], probe, steps
+    )
+    for candidate in ranking:
+        if candidate.effect == given or not candidate.significant:
+            continue
+        modules = [
+            make_effect(name, view_count=batch, pinned_view=None).to(device)
+            for name in (given, candidate.effect)
+        ]
+        joint = fit_on_halves(modules, probe, steps)
+        reduction, interval = bootstrap_reduction(alone, joint, seed)
+        candidate.heldout_reduction = reduction
+        candidate.interval = interval
+        candidate.conditional_on = given
+        candidate.parameters = modules[1].parameters_summary()
+        candidate.decide()
 
 
 def bootstrap_reduction(
