@@ -1,0 +1,84 @@
+"""Which effect: the probe finds a per-view exposure change, and conditioning on it stops a
+look-alike (white balance) from riding along, while an effect that really is there on top
+(a defocus blur) survives the conditioning. (Only candidates significant on their own are
+re-probed; a second effect hidden entirely behind the first is the absorption refits' job.)"""
+
+from __future__ import annotations
+
+import torch
+
+from data_synth.shapes import torus
+from recon.camera import orbit_cameras
+from recon.diagnose.data import build_diagnosis_data
+from recon.diagnose.which import (
+    CandidateResult,
+    EffectProbe,
+    conditional_probes,
+    conditioning_effect,
+    rank_candidates,
+)
+from recon.effects import make_effect
+from recon.render.renderer import Renderer
+from recon.render.shading import Lighting
+
+SIZE = 48
+VIEWS = 16
+
+
+def observed_scene(blur: bool):
+    mesh = torus(resolution=24)
+    steps = torch.linspace(0, 1, 32)
+    u, v = torch.meshgrid(steps, steps, indexing="xy")
+    pattern = 0.5 + 0.3 * torch.sin(6.28 * 3 * u) * torch.sin(6.28 * 2 * v)
+    mesh.texture = torch.stack([pattern, 0.8 * pattern + 0.1, 0.6 * (1 - pattern) + 0.2], -1)
+    cameras = orbit_cameras(VIEWS, (SIZE, SIZE), distance=2.4, fov_x_deg=45, elevation_deg=30)
+    lighting = Lighting.constant(0.8)
+    output = Renderer(texture_filter="linear").render(mesh, cameras, lighting)
+    generator = torch.Generator().manual_seed(0)
+    gains = torch.exp(0.3 * torch.randn(VIEWS, generator=generator))
+    observed = output.color * gains[:, None, None, None]
+    if blur:
+        effect = make_effect("defocus_blur")
+        with torch.no_grad():
+            for parameter in effect.parameters():
+                parameter.fill_(3.0)
+            observed, _ = effect(observed, output.alpha, cameras, torch.arange(VIEWS))
+    observed = observed + 0.002 * torch.randn(observed.shape, generator=generator)
+    return build_diagnosis_data(observed, output.alpha, output, cameras, lighting, mesh)
+
+
+def by_name(ranking: list[CandidateResult]) -> dict[str, CandidateResult]:
+    return {candidate.effect: candidate for candidate in ranking}
+
+
+def test_conditioning_removes_a_look_alike():
+    data = observed_scene(blur=False)
+    ranking = rank_candidates(data, ["exposure", "white_balance", "defocus_blur"], steps=40)
+    assert ranking[0].effect == "exposure" and ranking[0].significant
+    assert conditioning_effect(ranking) == "exposure"
+    conditional_probes(ranking, EffectProbe(data), "exposure", steps=40)
+    results = by_name(ranking)
+    assert results["exposure"].significant and results["exposure"].conditional_on is None
+    assert not results["white_balance"].significant
+    assert results["white_balance"].heldout_reduction < 0.02
+
+
+def test_a_real_second_effect_survives_the_conditioning():
+    data = observed_scene(blur=True)
+    ranking = rank_candidates(data, ["exposure", "defocus_blur"], steps=40)
+    assert conditioning_effect(ranking) == "exposure"
+    assert by_name(ranking)["defocus_blur"].significant
+    conditional_probes(ranking, EffectProbe(data), "exposure", steps=40)
+    blur = by_name(ranking)["defocus_blur"]
+    assert blur.conditional_on == "exposure"
+    assert blur.significant, blur
+
+
+def test_only_a_per_view_probe_effect_conditions():
+    def candidate(name, evidence):
+        return CandidateResult(name, 0.0, 0.5, (0.4, 0.6), bool(evidence), evidence=evidence)
+
+    assert conditioning_effect([candidate("pose_error", "probe")]) == "pose_error"
+    assert conditioning_effect([candidate("defocus_blur", "probe")]) is None
+    assert conditioning_effect([candidate("vignetting", "absorption")]) is None
+    assert conditioning_effect([candidate("exposure", "")]) is None
