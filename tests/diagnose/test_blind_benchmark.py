@@ -27,7 +27,7 @@ def tiny_config(tmp_path) -> RunConfig:
     config["fit"] = {
         "hull_resolution": 32,
         "geometry": {"steps": 60, "resolutions": [48], "remesh_every": 30},
-        "texture": {"steps": 30, "texture_size": 64},
+        "texture": {"steps": 30, "texture_size": 128},
         "simplify": {"target_faces": 3000},
     }
     path = tmp_path / "blind.yaml"
@@ -42,11 +42,22 @@ def test_blind_exposure_is_found_and_clean_is_clean(tiny_config, tmp_path):
             BenchCase(("exposure",), seed=0), tiny_config, tmp_path, torch.device("cpu"), "none"
         ),
         run_case(BenchCase((), seed=100), tiny_config, tmp_path, torch.device("cpu"), "none"),
+        run_case(
+            BenchCase(("defocus_blur",), seed=0),
+            tiny_config,
+            tmp_path,
+            torch.device("cpu"),
+            "none",
+        ),
     ]
     summary = summarise(records)
     # A per-view exposure change cannot be absorbed by the texture: it must come out on top.
     assert records[0]["predicted_top"] == "exposure", records[0]
-    assert summary["top1_accuracy"] == 1.0
+    # A defocus blur of random plausible strength at 48 px is often within what the blur probe
+    # reaches on clean fits (their own softness); it may go unnamed but must not be blamed on
+    # another effect.
+    assert records[2]["predicted_top"] in ("defocus_blur", "none"), records[2]
+    assert summary["top1_accuracy"] >= 0.5
     assert summary["false_positive_rate"] == 0.0, records[1]
     # The truth lies outside the run folder, and nothing inside names the withheld effect
     # except the diagnosis' own output.
