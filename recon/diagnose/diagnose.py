@@ -5,7 +5,8 @@ diagnosis.json (stable schema, see README "Gap diagnosis"):
   gap:     held-out RMSE/PSNR (linear), noise floor, gap above the floor, relight error,
            visibility fingerprint, geometry error against the ground truth when there is one
   where:   per domain {score, score_in_sample, summary}
-  ranking: [{effect, score, heldout_reduction, interval, significant, parameters, absorption}]
+  ranking: [{effect, score, heldout_reduction, interval, significant, evidence, parameters,
+            absorption, absorption_interval, fingerprint, conditional_on}]
   refits:  [{effects, before, after, floor, closed_fraction, geometry_before, geometry_after}]
   verdict: the significant effects in order, or "no significant unmodelled effect"
 """
@@ -263,6 +264,10 @@ def diagnose_run(
     refit_steps: int = REFIT_STEPS,
     absorption: bool = True,
 ) -> dict:
+    """Gap, where, which (probes, conditioning on a per-view top effect, the visibility
+    fingerprint, absorption refits) and how far (refit: none, the top effect, or greedily each
+    significant one) for a fitted run; writes RUN/diagnosis.json and RUN/diagnosis/*.png and
+    returns the same dict. candidates: effect names to consider (None = all eleven)."""
     if not paths.fitted_mesh.exists():
         raise ReconError(f"diagnose: no fitted mesh at {paths.fitted_mesh} (run the fit first)")
     if refit not in ("none", "top", "greedy"):
