@@ -29,11 +29,10 @@ from recon.diagnose.residuals import gap_summary, noise_floor, relight_gap, wher
 from recon.diagnose.which import (
     CandidateResult,
     EffectProbe,
-    _per_view_mse,
-    block_halves,
     bootstrap_reduction,
     conditional_probes,
     conditioning_effect,
+    fit_on_halves,
     rank_candidates,
     verdict_of,
 )
@@ -81,24 +80,9 @@ def heldout_errors(data: DiagnosisData, effects_for_views) -> tuple[torch.Tensor
     """Per-view squared error sums and counts [B] on the second half of the pixel blocks (see
     heldout_gap). Only per-view parameters are fitted (on the first half); global effects keep
     the parameters they came with."""
-    batch, height, width, _ = data.observed.shape
-    first, second = block_halves(batch, height, width, data.observed.device)
-    probe = EffectProbe(data)
     modules = list(effects_for_views or [])
     per_view = [module for module in modules if module.per_view]
-    if per_view:
-        parameters = [group for module in per_view for group in module.parameter_groups()]
-        optimizer = torch.optim.Adam(parameters)
-        for _ in range(HELDOUT_STEPS):
-            optimizer.zero_grad()
-            squared, count = _per_view_mse(
-                probe.render(modules), data.observed, first * data.region
-            )
-            (squared.sum() / count.sum()).backward()
-            optimizer.step()
-    with torch.no_grad():
-        color = probe.render(modules) if modules else probe.base_output.color
-        return _per_view_mse(color, data.observed, second * data.region)
+    return fit_on_halves(modules, EffectProbe(data), HELDOUT_STEPS, trainable=per_view)
 
 
 def _effects_for_heldout(names: list[str], fitted: FitEffects, view_count: int, device):

@@ -104,6 +104,14 @@ def _interior(output: RenderOutput) -> torch.Tensor:
     return (eroded > 0.999) & (output.albedo.sum(-1) > 1e-4)
 
 
+def _solve(grams: torch.Tensor, moments: torch.Tensor) -> torch.Tensor:
+    """The log-share coefficient [S] of S ridge-stabilised normal equations (grams [S, 16],
+    moments [S, 4]): a mesh that shadows nothing gets a zero coefficient, not a singular system."""
+    grams = grams.view(-1, 4, 4)
+    ridge = 1e-6 * grams.diagonal(dim1=1, dim2=2).mean(-1)[:, None, None] * torch.eye(4)
+    return torch.linalg.solve(grams + ridge, moments)[:, 3]
+
+
 def visibility_fingerprint(
     data: DiagnosisData, output: RenderOutput, seed: int = 0
 ) -> VisibilityFingerprint:
@@ -128,21 +136,22 @@ def visibility_fingerprint(
     target = signatures["log_albedo"][interior].double()
     coverage = float((log_share < torch.log(torch.tensor(0.9))).double().mean())
 
-    def solve(rows_design: torch.Tensor, rows_target: torch.Tensor) -> float:
-        # Ridge-stabilised normal equations: a mesh that shadows nothing gets a zero
-        # coefficient instead of a singular system.
-        gram = rows_design.T @ rows_design
-        gram = gram + 1e-6 * torch.eye(4, dtype=gram.dtype) * gram.diagonal().mean()
-        return float(torch.linalg.solve(gram, rows_design.T @ rows_target)[3])
-
-    share = solve(design, target)
+    # Normal equations per 8 x 8 block; a bootstrap sample of blocks is then a count-weighted
+    # sum of them (the same as repeating the blocks' rows), solved for all samples at once.
     unique_blocks, inverse = torch.unique(block, return_inverse=True)
+    outer = design[:, :, None] * design[:, None, :]  # [N, 4, 4]
+    block_gram = torch.zeros(len(unique_blocks), 4, 4, dtype=torch.float64)
+    block_gram.index_add_(0, inverse, outer)
+    block_moment = torch.zeros(len(unique_blocks), 4, dtype=torch.float64)
+    block_moment.index_add_(0, inverse, design * target[:, None])
     generator = torch.Generator().manual_seed(seed)
-    draws = []
-    for _ in range(BOOTSTRAP_SAMPLES):
-        picks = torch.randint(0, len(unique_blocks), (len(unique_blocks),), generator=generator)
-        weight = torch.bincount(picks, minlength=len(unique_blocks)).double()[inverse].sqrt()
-        draws.append(solve(design * weight[:, None], target * weight))
-    values = torch.tensor(draws)
+    picks = torch.randint(
+        0, len(unique_blocks), (BOOTSTRAP_SAMPLES, len(unique_blocks)), generator=generator
+    )
+    counts = torch.zeros(BOOTSTRAP_SAMPLES, len(unique_blocks), dtype=torch.float64)
+    counts.scatter_add_(1, picks, torch.ones_like(picks, dtype=torch.float64))
+    ones = torch.ones(1, len(unique_blocks), dtype=torch.float64)
+    share = float(_solve(ones @ block_gram.flatten(1), ones @ block_moment)[0])
+    values = _solve(counts @ block_gram.flatten(1), counts @ block_moment)
     interval = (float(torch.quantile(values, 0.05)), float(torch.quantile(values, 0.95)))
     return VisibilityFingerprint(share, interval, coverage)

@@ -55,6 +55,9 @@ class CandidateResult:
     conditional_on: str | None = None
     # What made it significant: "probe", "absorption" or "fingerprint" ("" when nothing did).
     evidence: str = ""
+    # The probe's per-view held-out error sums [B] (not saved): the baseline when the others
+    # are probed on top of this effect.
+    heldout_errors: torch.Tensor | None = field(default=None, repr=False, compare=False)
 
     def decide(self) -> None:
         """Significance from the recorded evidence and the calibrated thresholds
@@ -214,7 +217,7 @@ def probe_candidate(
     # 2. Probe fit on the first half, measured on the second.
     with torch.no_grad():
         before, _ = _per_view_mse(probe.base_output.color, data.observed, weight_second)
-    after = fit_on_halves([effect], probe, steps)
+    after = fit_on_halves([effect], probe, steps)[0]
 
     # 3. Bootstrap over views.
     reduction, (low, high) = bootstrap_reduction(before, after, seed)
@@ -225,27 +228,38 @@ def probe_candidate(
         interval=(low, high),
         significant=False,
         parameters=effect.parameters_summary(),
+        heldout_errors=after,
     )
     result.decide()
     return result
 
 
-def fit_on_halves(effects: list[ModelEffect], probe: EffectProbe, steps: int) -> torch.Tensor:
-    """Fit the effects' parameters on the first half of each view's pixel blocks (scene
-    frozen); per-view squared error sums [B] on the second half."""
+def fit_on_halves(
+    effects: list[ModelEffect],
+    probe: EffectProbe,
+    steps: int,
+    trainable: list[ModelEffect] | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Fit the parameters of `trainable` (default: all the effects) on the first half of each
+    view's pixel blocks, scene frozen; per-view squared error sums and counts [B] of the scene
+    with the effects on the second half."""
     data = probe.data
     batch, height, width, _ = data.observed.shape
     first, second = block_halves(batch, height, width, data.observed.device)
-    optimizer = torch.optim.Adam(
-        [group for effect in effects for group in effect.parameter_groups()]
-    )
-    for _ in range(steps):
-        optimizer.zero_grad()
-        squared, count = _per_view_mse(probe.render(effects), data.observed, first * data.region)
-        (squared.sum() / count.sum()).backward()
-        optimizer.step()
+    trainable = effects if trainable is None else trainable
+    groups = [group for effect in trainable for group in effect.parameter_groups()]
+    if groups and steps > 0:
+        optimizer = torch.optim.Adam(groups)
+        for _ in range(steps):
+            optimizer.zero_grad()
+            squared, count = _per_view_mse(
+                probe.render(effects), data.observed, first * data.region
+            )
+            (squared.sum() / count.sum()).backward()
+            optimizer.step()
     with torch.no_grad():
-        return _per_view_mse(probe.render(effects), data.observed, second * data.region)[0]
+        color = probe.render(effects) if effects else probe.base_output.color
+        return _per_view_mse(color, data.observed, second * data.region)
 
 
 def conditioning_effect(ranking: list[CandidateResult]) -> str | None:
@@ -271,9 +285,11 @@ def conditional_probes(
     is decided again on that (recorded in place, with conditional_on)."""
     batch = probe.data.view_count
     device = probe.data.observed.device
-    alone = fit_on_halves(
-        [make_effect(given, view_count=batch, pinned_view=None).to(device)], probe, steps
-    )
+    alone = next(candidate for candidate in ranking if candidate.effect == given).heldout_errors
+    if alone is None:
+        alone = fit_on_halves(
+            [make_effect(given, view_count=batch, pinned_view=None).to(device)], probe, steps
+        )[0]
     for candidate in ranking:
         if candidate.effect == given or not candidate.significant:
             continue
@@ -281,7 +297,7 @@ def conditional_probes(
             make_effect(name, view_count=batch, pinned_view=None).to(device)
             for name in (given, candidate.effect)
         ]
-        joint = fit_on_halves(modules, probe, steps)
+        joint = fit_on_halves(modules, probe, steps)[0]
         reduction, interval = bootstrap_reduction(alone, joint, seed)
         candidate.heldout_reduction = reduction
         candidate.interval = interval

@@ -45,7 +45,7 @@ from recon.mesh.mesh import Mesh, vertex_normals
 from recon.render.interpolate import interpolate_packed
 from recon.render.rasterize import rasterize, scatter_to_image
 from recon.render.renderer import RenderOutput
-from recon.render.shading import Lighting
+from recon.render.shading import Lighting, sh_basis
 
 if TYPE_CHECKING:
     from recon.effects.forward import EffectContext
@@ -464,8 +464,6 @@ def vertex_light_visibility(
     The SH environment is sampled along `directions` Fibonacci directions (negative radiance
     clipped); each directional light adds its own direction. 1 for a convex mesh. No gradient.
     """
-    from recon.render.shading import sh_basis
-
     with torch.no_grad():
         sphere, cosine, seen = sky_visibility(verts, faces, directions, resolution)
         sphere, cosine, seen = sphere.double(), cosine.double(), seen.double()
