@@ -9,10 +9,11 @@ its null allowance, not with zero.
 The allowances were measured with ``scripts/calibrate_diagnosis.py`` on clean calibration
 datasets (the benchmark config at 128², default scene and spot, seeds 103-105: fits that the
 blind benchmark's scored cases never use) as twice the largest reduction seen, floored at
-MINIMUM_SHARE; the script prints the table below from fresh fits (largest clean reductions:
-defocus 0.082, motion 0.077, pose 0.066, lens 0.040, vignetting 0.020, all others below 0.011;
-spot's texture-resolution misfit is what the blur probes pick up). The visibility fingerprint's
-largest clean share there was 0.02 (lower bounds all below -0.1).
+MINIMUM_SHARE; the script prints the table below from fresh fits (largest clean reductions with
+the Gauss-Newton probes and frozen-geometry absorption refits: defocus 0.081, motion 0.070,
+pose 0.061, lens 0.034, vignetting 0.021, all others below 0.011; absorption: lens 0.025, the
+others below 0.004; spot's texture-resolution misfit is what the blur probes pick up). The
+visibility fingerprint's largest clean share there was 0.024.
 """
 
 from __future__ import annotations
@@ -23,11 +24,11 @@ MINIMUM_SHARE = 0.02
 # Probe (scene frozen, per-view parameters fitted on half of each held-out view's pixel blocks):
 # twice the largest held-out reduction on the clean calibration fits.
 PROBE_ALLOWANCE: dict[str, float] = {
-    "defocus_blur": 0.163,
-    "motion_blur": 0.154,
-    "pose_error": 0.132,
-    "lens_distortion": 0.079,
-    "vignetting": 0.04,
+    "defocus_blur": 0.162,
+    "motion_blur": 0.141,
+    "pose_error": 0.121,
+    "lens_distortion": 0.069,
+    "vignetting": 0.043,
     "exposure": 0.021,
     "response_curve": 0.02,
     "white_balance": 0.02,
@@ -36,12 +37,17 @@ PROBE_ALLOWANCE: dict[str, float] = {
     "interreflection": 0.02,
 }
 
+# The absorption evidence compares two refits of the same length from the same start, so its
+# null spread is far smaller than a probe's (largest clean reductions below 0.004 for vignetting
+# and specular): its floor is half the probe's.
+ABSORPTION_MINIMUM_SHARE = 0.01
+
 # Absorption (a short refit with the effect against a control refit without it): twice the
 # largest reduction over the control on the same calibration fits.
 ABSORPTION_ALLOWANCE: dict[str, float] = {
-    "lens_distortion": 0.028,
-    "vignetting": 0.02,
-    "specular": 0.02,
+    "lens_distortion": 0.049,
+    "vignetting": 0.01,
+    "specular": 0.01,
 }
 
 # Visibility fingerprint (recon.diagnose.fingerprint): the share of the self-shadowing that the
@@ -61,4 +67,4 @@ def probe_threshold(effect: str) -> float:
 
 def absorption_threshold(effect: str) -> float:
     """The reduction over the control refit the absorption lower bound must clear."""
-    return max(MINIMUM_SHARE, ABSORPTION_ALLOWANCE.get(effect, MINIMUM_SHARE))
+    return max(ABSORPTION_MINIMUM_SHARE, ABSORPTION_ALLOWANCE.get(effect, MINIMUM_SHARE))

@@ -23,20 +23,19 @@ import matplotlib.pyplot as plt
 import torch
 
 from recon.config.run_config import RunConfig
+from recon.diagnose.absorption import absorption_probes, heldout_errors, heldout_modules
 from recon.diagnose.data import DiagnosisData, load_diagnosis_data
 from recon.diagnose.fingerprint import FINGERPRINT_EFFECTS, visibility_fingerprint
 from recon.diagnose.residuals import gap_summary, noise_floor, relight_gap, where_analysis
 from recon.diagnose.which import (
     CandidateResult,
     EffectProbe,
-    bootstrap_reduction,
     conditional_probes,
     conditioning_effect,
-    fit_on_halves,
     rank_candidates,
     verdict_of,
 )
-from recon.effects.registry import MODEL_EFFECTS, make_effect
+from recon.effects.registry import MODEL_EFFECTS
 from recon.errors import ReconError
 from recon.io.atomic import atomic_path, atomic_write_json
 from recon.io.datasets import RELIGHT_LIGHTING, read_captures
@@ -53,8 +52,6 @@ from recon.render.shading import DirectionalLight, Lighting
 matplotlib.use("Agg")
 
 REFIT_STEPS = 80
-# Adam steps fitting the per-view parameters of held-out views (first half of their blocks).
-HELDOUT_STEPS = 40
 MAX_GREEDY_EFFECTS = 3
 
 
@@ -69,33 +66,11 @@ def _light_model(paths: RunPaths, device: torch.device) -> LightModel:
     return light
 
 
-def heldout_gap(data: DiagnosisData, effects_for_views) -> float:
+def heldout_gap(data: DiagnosisData, modules: list) -> float:
     """Held-out MSE on the second half of the pixel blocks, after fitting the per-view
-    parameters of the given effects on the first half (scene frozen)."""
-    squared, count = heldout_errors(data, effects_for_views)
+    parameters of the given effect modules on the first half (scene frozen)."""
+    squared, count = heldout_errors(data, modules)
     return float(squared.sum() / count.sum())
-
-
-def heldout_errors(data: DiagnosisData, effects_for_views) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per-view squared error sums and counts [B] on the second half of the pixel blocks (see
-    heldout_gap). Only per-view parameters are fitted (on the first half); global effects keep
-    the parameters they came with."""
-    modules = list(effects_for_views or [])
-    per_view = [module for module in modules if module.per_view]
-    return fit_on_halves(modules, EffectProbe(data), HELDOUT_STEPS, trainable=per_view)
-
-
-def _effects_for_heldout(names: list[str], fitted: FitEffects, view_count: int, device):
-    """Held-out modules: per-view effects start at the identity (their views are new); global
-    effects copy the refit's parameters (and are refined on the first half too)."""
-    modules = []
-    for name in names:
-        module = make_effect(name, view_count=view_count, pinned_view=None).to(device)
-        source = next((m for m in fitted.modules if m.name == name), None)
-        if source is not None and not module.per_view:
-            module.load_state_dict(source.state_dict())
-        modules.append(module)
-    return modules
 
 
 def refit_with(
@@ -141,57 +116,9 @@ def refit_with(
     return result.mesh, frozen, result.effects
 
 
-# Effects that look the same in every view and that a short refit can pull back out of the texture
-# and light: a probe on the frozen scene sees only what the fit left, the absorption probe refits
-# with each of them. (Shadows and interreflection are baked in for good under one light; their
-# evidence is the albedo fingerprint, recon.diagnose.fingerprint.)
-ABSORBABLE = ("vignetting", "lens_distortion", "specular")
-ABSORPTION_STEPS = 30
-
-
-def absorption_probes(
-    ranking,
-    data: DiagnosisData,
-    paths: RunPaths,
-    config: RunConfig,
-    device: torch.device,
-    steps: int = ABSORPTION_STEPS,
-    given: str | None = None,
-) -> None:
-    """For each candidate in ABSORBABLE: refit texture, light and the effect for a few steps on
-    the training views, against a control refit of the same length without it; the held-out
-    reduction relative to the control (bootstrapped over views) is the absorption evidence, and
-    it can make the candidate significant (recorded in place on the ranking entries).
-
-    given: an effect switched on in the control and in every candidate refit alike (see
-    which.conditioning_effect), so the evidence is what each candidate adds on top of it.
-    """
-    base = [given] if given else []
-    control_mesh, control_lighting, control_effects = refit_with(base, paths, config, device, steps)
-    control = replace(data, mesh=control_mesh, lighting=control_lighting)
-    control_modules = _effects_for_heldout(base, control_effects, len(data.cameras), device)
-    control_squared, _ = heldout_errors(control, control_modules)
-    for candidate in ranking:
-        if candidate.effect not in ABSORBABLE or candidate.effect == given:
-            continue
-        names = base + [candidate.effect]
-        mesh, lighting, fitted = refit_with(names, paths, config, device, steps)
-        modules = _effects_for_heldout(names, fitted, len(data.cameras), device)
-        squared, _ = heldout_errors(replace(data, mesh=mesh, lighting=lighting), modules)
-        reduction, (low, high) = bootstrap_reduction(control_squared, squared)
-        candidate.absorption = reduction
-        candidate.absorption_interval = (low, high)
-        module = next(module for module in fitted.modules if module.name == candidate.effect)
-        candidate.absorption_parameters = module.parameters_summary()
-        if given:
-            candidate.conditional_on = given
-        candidate.decide()
-
-
-def fingerprint_evidence(ranking, data: DiagnosisData) -> dict:
+def fingerprint_evidence(ranking, data: DiagnosisData, probe: EffectProbe) -> dict:
     """The visibility fingerprint of the fitted albedo; when significant it makes the effect it
     names (shadows or interreflection) significant. Recorded on those ranking entries."""
-    probe = EffectProbe(data)
     fingerprint = visibility_fingerprint(data, probe.base_output)
     record = fingerprint.to_json()
     for candidate in ranking:
@@ -244,7 +171,6 @@ def diagnose_run(
     device: torch.device,
     refit: str = "top",
     candidates: list[str] | None = None,
-    probe_steps: int = 60,
     refit_steps: int = REFIT_STEPS,
     absorption: bool = True,
 ) -> dict:
@@ -269,15 +195,16 @@ def diagnose_run(
     if (paths.dataset / "transforms_relight.json").exists():
         gap["relight"] = _relight_gap(paths, device)
     where = where_analysis(data)
-    ranking = rank_candidates(data, candidates, steps=probe_steps)
+    probe = EffectProbe(data)
+    ranking = rank_candidates(data, candidates, probe=probe)
     # A per-view effect at the top (exposure, pose, ...) is measured first; everything else is
     # then measured on top of it, so a pair is not hidden behind its louder half.
     given = conditioning_effect(ranking)
     if given:
-        conditional_probes(ranking, EffectProbe(data), given, steps=probe_steps)
-    gap["visibility_fingerprint"] = fingerprint_evidence(ranking, data)
+        conditional_probes(ranking, probe, given)
+    gap["visibility_fingerprint"] = fingerprint_evidence(ranking, data, probe)
     if absorption:
-        absorption_probes(ranking, data, paths, config, device, given=given)
+        absorption_probes(ranking, data, paths, device, given=given)
     ranking.sort(key=CandidateResult.rank_key, reverse=True)
     timings = {"diagnose_seconds": round(time.perf_counter() - started, 2)}
     # Against the ground truth when the run has one (synthetic data only; not part of the
@@ -298,7 +225,7 @@ def diagnose_run(
             names = chosen + [candidate.effect]
             mesh, lighting, fitted_effects = refit_with(names, paths, config, device, refit_steps)
             refit_data = replace(data, mesh=mesh, lighting=lighting)
-            modules = _effects_for_heldout(names, fitted_effects, len(data.cameras), device)
+            modules = heldout_modules(names, fitted_effects.modules, len(data.cameras), device)
             after_mse = heldout_gap(refit_data, modules)
             floor_mse = floor_rmse**2
             closed = (before_mse - after_mse) / max(before_mse - floor_mse, 1e-20)

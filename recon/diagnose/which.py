@@ -2,11 +2,12 @@
 
 For every candidate effect module (recon.effects), starting from the fitted scene (frozen):
 
-1. Score test (no fit): the gradient g of the image loss with respect to the effect's
-   parameters at zero (identity) and the first-order predicted loss reduction of a Gauss-Newton
-   step along it, (g.g)^2 / (2 g.H g) with H = J^T J estimated from one finite-difference
-   Jacobian-vector product: a Lagrange-multiplier test for an omitted variable.
-2. Probe: only the effect's parameters are fitted, on one half of each held-out view's pixels
+1. Score test (no fit): the Jacobian J of the image with respect to the effect's parameters at
+   zero (the identity) and the loss reduction a full Gauss-Newton step predicts,
+   g^T (J^T J)^-1 g with g = J^T r, relative to the loss: a Lagrange-multiplier test for an
+   omitted variable.
+2. Probe: only the effect's parameters are fitted (damped Gauss-Newton,
+   recon.diagnose.gauss_newton), on one half of each held-out view's pixels
    (a checkerboard of blocks), and the loss reduction is measured on the other half. Per-view
    effects (exposure of a view the fit never saw) get their per-view parameters from the same
    view's first half; pixel noise cannot carry over between halves, structure does.
@@ -24,6 +25,7 @@ from tqdm import tqdm
 
 from recon.diagnose.calibration import absorption_threshold, probe_threshold
 from recon.diagnose.data import DiagnosisData
+from recon.diagnose.gauss_newton import GAUSS_NEWTON_ITERATIONS, GaussNewtonProblem
 from recon.effects.base import ModelEffect
 from recon.effects.forward import (
     EffectContext,
@@ -35,7 +37,6 @@ from recon.effects.registry import MODEL_EFFECTS, make_effect
 from recon.render.renderer import Renderer
 
 BLOCK_PIXELS = 4
-PROBE_STEPS = 60
 BOOTSTRAP_SAMPLES = 400
 
 
@@ -136,8 +137,9 @@ def block_halves(batch: int, height: int, width: int, device) -> tuple[torch.Ten
 
 
 class EffectProbe:
-    """Renders the frozen fitted scene with one effect module on top, cheaply: image effects
-    reuse the cached render, shading effects its buffers; camera effects re-render."""
+    """Renders the frozen fitted scene with effect modules on top, cheaply: image effects reuse
+    the cached render, shading effects its buffers, and camera effects (pose corrections) warp
+    the cached render along the flow that the correction gives each pixel's surface point."""
 
     def __init__(self, data: DiagnosisData, renderer: Renderer | None = None) -> None:
         self.data = data
@@ -147,24 +149,71 @@ class EffectProbe:
         with torch.no_grad():
             self.base_output = self.renderer.render(data.mesh, data.cameras, data.lighting)
         self.view_indices = torch.arange(len(data.cameras), device=data.observed.device)
+        self._surface_points: torch.Tensor | None = None
+
+    def surface_points(self) -> torch.Tensor:
+        """World position of what every pixel shows [B, H * W, 3]; background pixels take the
+        view's mean object depth, so the silhouette's neighbourhood moves with the object."""
+        if self._surface_points is None:
+            cameras = self.data.cameras
+            output = self.base_output
+            batch, height, width, _ = output.depth.shape
+            mask = output.mask[..., 0] > 0.5
+            depth = output.depth[..., 0]
+            mean_depth = (depth * mask).sum((1, 2)) / mask.sum((1, 2)).clamp_min(1)
+            depth = torch.where(mask, depth, mean_depth[:, None, None])
+            rows, columns = torch.meshgrid(
+                torch.arange(height, device=depth.device) + 0.5,
+                torch.arange(width, device=depth.device) + 0.5,
+                indexing="ij",
+            )
+            intrinsics = cameras.intrinsics
+            fx, fy = intrinsics[:, 0, 0, None, None], intrinsics[:, 1, 1, None, None]
+            cx, cy = intrinsics[:, 0, 2, None, None], intrinsics[:, 1, 2, None, None]
+            camera_points = torch.stack(
+                [
+                    (columns - cx) / fx * depth,
+                    (rows - cy) / fy * depth,
+                    depth,
+                    torch.ones_like(depth),
+                ],
+                dim=-1,
+            ).view(batch, -1, 4)
+            world = camera_points @ torch.linalg.inv(cameras.world_to_cam).transpose(1, 2)
+            self._surface_points = world[..., :3]
+        return self._surface_points
+
+    def warp_to(self, cameras, color: torch.Tensor, alpha: torch.Tensor):
+        """(color, alpha) [B, H, W, C] seen from `cameras` instead of the data's cameras, to first
+        order: each pixel samples the cached render where its surface point's flow came from."""
+        batch, height, width, _ = color.shape
+        points = self.surface_points()
+        before = self.data.cameras.project_to_pixels(points)
+        after = cameras.project_to_pixels(points)
+        source = before - (after - before)  # backward warp, flow evaluated at the target pixel
+        scale = torch.tensor([width, height], dtype=source.dtype, device=source.device)
+        grid = (source / scale * 2 - 1).view(batch, height, width, 2)
+        stacked = torch.cat([color, alpha], dim=-1).permute(0, 3, 1, 2)
+        warped = torch.nn.functional.grid_sample(
+            stacked, grid, mode="bilinear", padding_mode="zeros", align_corners=False
+        ).permute(0, 2, 3, 1)
+        return warped[..., : color.shape[-1]], warped[..., color.shape[-1] :]
 
     def render(self, effect: ModelEffect | list[ModelEffect]) -> torch.Tensor:
-        """Premultiplied colour [B, H, W, 3] of the scene with the effect(s): the geometry is
-        re-rendered only when one of them moves the cameras."""
+        """Premultiplied colour [B, H, W, 3] of the scene with the effect(s)."""
         effects = effect if isinstance(effect, list) else [effect]
         output = self.base_output
         cameras = self.data.cameras
-        if any(module.stage == "camera" for module in effects):
-            cameras = apply_camera_effects(effects, cameras, self.view_indices)
-            output = self.renderer.render(self.data.mesh, cameras, self.data.lighting)
         if any(module.stage == "shading" for module in effects):
             context = EffectContext(
                 self.data.mesh, self.data.lighting, cameras, self.view_indices, self.renderer
             )
             output = apply_shading_effects(effects, output, context)
-        color, _ = apply_image_effects(
-            effects, output.color, output.alpha, self.data.cameras, self.view_indices
-        )
+        color, alpha = output.color, output.alpha
+        if any(module.stage == "camera" for module in effects):
+            moved = apply_camera_effects(effects, cameras, self.view_indices)
+            color, alpha = self.warp_to(moved, color, alpha)
+        color, _ = apply_image_effects(effects, color, alpha, self.data.cameras, self.view_indices)
         return color
 
 
@@ -175,50 +224,16 @@ def _per_view_mse(prediction: torch.Tensor, observed: torch.Tensor, weight: torc
 
 
 def probe_candidate(
-    name: str, probe: EffectProbe, steps: int = PROBE_STEPS, seed: int = 0
+    name: str, probe: EffectProbe, iterations: int = GAUSS_NEWTON_ITERATIONS, seed: int = 0
 ) -> CandidateResult:
     data = probe.data
-    device = data.observed.device
     batch, height, width, _ = data.observed.shape
-    first, second = block_halves(batch, height, width, device)
-    weight_first = first * data.region
-    weight_second = second * data.region
-    effect = make_effect(name, view_count=batch, pinned_view=None).to(device)
-
-    def loss_on(weight: torch.Tensor) -> torch.Tensor:
-        squared, count = _per_view_mse(probe.render(effect), data.observed, weight)
-        return squared.sum() / count.sum()
-
-    # 1. Score test at the identity.
-    parameters = [p for p in effect.parameters() if p.requires_grad]
-    loss_zero = loss_on(weight_first)
-    gradients = torch.autograd.grad(loss_zero, parameters, allow_unused=True)
-    gradients = [
-        torch.zeros_like(p) if g is None else g for p, g in zip(parameters, gradients, strict=True)
-    ]
-    gradient_norm_squared = sum(float((g * g).sum()) for g in gradients)
-    score = 0.0
-    if gradient_norm_squared > 0:
-        with torch.no_grad():
-            base = probe.render(effect)
-            norm = gradient_norm_squared**0.5
-            step = 1e-3 / norm
-            for parameter, gradient in zip(parameters, gradients, strict=True):
-                parameter -= step * gradient
-            moved = probe.render(effect)
-            for parameter, gradient in zip(parameters, gradients, strict=True):
-                parameter += step * gradient
-            jacobian_gradient = (moved - base) / step  # J g (sign irrelevant below)
-            count = float(weight_first.sum()) * 3
-            curvature = 2 * float(((jacobian_gradient**2) * weight_first).sum()) / count
-            if curvature > 0:
-                score = gradient_norm_squared**2 / (2 * curvature) / max(float(loss_zero), 1e-20)
-
-    # 2. Probe fit on the first half, measured on the second.
+    _, second = block_halves(batch, height, width, data.observed.device)
+    effect = probe_effect(name, batch, data.observed.device)
     with torch.no_grad():
-        before, _ = _per_view_mse(probe.base_output.color, data.observed, weight_second)
-    after = fit_on_halves([effect], probe, steps)[0]
-
+        before, _ = _per_view_mse(probe.base_output.color, data.observed, second * data.region)
+    # 1. Score test at the identity and 2. probe fit on the first half, measured on the second.
+    (after, _), score = fit_on_halves([effect], probe, iterations, with_score=True)
     # 3. Bootstrap over views.
     reduction, (low, high) = bootstrap_reduction(before, after, seed)
     result = CandidateResult(
@@ -234,32 +249,53 @@ def probe_candidate(
     return result
 
 
+def probe_effect(name: str, view_count: int, device) -> ModelEffect:
+    """A fresh module for probing held-out views (no pinned view: every held-out view is new).
+
+    The pose probe fits the rotations only. At the capture distance a small translation moves
+    the image as a rotation does, except for a change of scale, and a per-view change of scale
+    is also what a lens distortion or a blur leaves in views of a texture that absorbed it:
+    with translations free, the pose probe explains those cases better than their own probes.
+    """
+    effect = make_effect(name, view_count=view_count, pinned_view=None).to(device)
+    if name == "pose_error":
+        effect.translation.requires_grad_(False)
+    return effect
+
+
 def fit_on_halves(
     effects: list[ModelEffect],
     probe: EffectProbe,
-    steps: int,
+    iterations: int = GAUSS_NEWTON_ITERATIONS,
     trainable: list[ModelEffect] | None = None,
-) -> tuple[torch.Tensor, torch.Tensor]:
+    with_score: bool = False,
+):
     """Fit the parameters of `trainable` (default: all the effects) on the first half of each
-    view's pixel blocks, scene frozen; per-view squared error sums and counts [B] of the scene
-    with the effects on the second half."""
+    view's pixel blocks, scene frozen (Gauss-Newton, recon.diagnose.gauss_newton); per-view
+    squared error sums and counts [B] of the scene with the effects on the second half.
+
+    with_score: also return the score test at the starting parameters (the relative loss
+    reduction on the first half that the first Gauss-Newton step predicts):
+    ((sums, counts), score).
+    """
     data = probe.data
     batch, height, width, _ = data.observed.shape
     first, second = block_halves(batch, height, width, data.observed.device)
     trainable = effects if trainable is None else trainable
-    groups = [group for effect in trainable for group in effect.parameter_groups()]
-    if groups and steps > 0:
-        optimizer = torch.optim.Adam(groups)
-        for _ in range(steps):
-            optimizer.zero_grad()
-            squared, count = _per_view_mse(
-                probe.render(effects), data.observed, first * data.region
-            )
-            (squared.sum() / count.sum()).backward()
-            optimizer.step()
+    score = 0.0
+    if effects:
+        problem = GaussNewtonProblem(
+            trainable, lambda: probe.render(effects), data.observed, first * data.region
+        )
+        at_identity = all(effect.is_identity() for effect in effects)
+        score = problem.fit(
+            iterations,
+            start_image=probe.base_output.color if at_identity else None,
+        )["score"]
     with torch.no_grad():
         color = probe.render(effects) if effects else probe.base_output.color
-        return _per_view_mse(color, data.observed, second * data.region)
+        errors = _per_view_mse(color, data.observed, second * data.region)
+    return (errors, score) if with_score else errors
 
 
 def conditioning_effect(ranking: list[CandidateResult]) -> str | None:
@@ -277,7 +313,7 @@ def conditional_probes(
     ranking: list[CandidateResult],
     probe: EffectProbe,
     given: str,
-    steps: int = PROBE_STEPS,
+    iterations: int = GAUSS_NEWTON_ITERATIONS,
     seed: int = 0,
 ) -> None:
     """Re-probe every other significant candidate jointly with `given`: its held-out reduction
@@ -288,7 +324,7 @@ def conditional_probes(
     alone = next(candidate for candidate in ranking if candidate.effect == given).heldout_errors
     if alone is None:
         alone = fit_on_halves(
-            [make_effect(given, view_count=batch, pinned_view=None).to(device)], probe, steps
+            [make_effect(given, view_count=batch, pinned_view=None).to(device)], probe, iterations
         )[0]
     for candidate in ranking:
         if candidate.effect == given or not candidate.significant:
@@ -297,7 +333,7 @@ def conditional_probes(
             make_effect(name, view_count=batch, pinned_view=None).to(device)
             for name in (given, candidate.effect)
         ]
-        joint = fit_on_halves(modules, probe, steps)[0]
+        joint = fit_on_halves(modules, probe, iterations)[0]
         reduction, interval = bootstrap_reduction(alone, joint, seed)
         candidate.heldout_reduction = reduction
         candidate.interval = interval
@@ -323,16 +359,18 @@ def bootstrap_reduction(
 def rank_candidates(
     data: DiagnosisData,
     candidates: list[str] | None = None,
-    steps: int = PROBE_STEPS,
+    iterations: int = GAUSS_NEWTON_ITERATIONS,
+    probe: EffectProbe | None = None,
 ) -> list[CandidateResult]:
-    """Every candidate probed; sorted by held-out reduction (largest first)."""
-    probe = EffectProbe(data)
+    """Every candidate probed; sorted by held-out reduction (largest first). probe: an
+    EffectProbe of the same data to reuse (its render is cached)."""
+    probe = probe or EffectProbe(data)
     names = candidates or sorted(MODEL_EFFECTS)
     results = []
     bar = tqdm(names, desc="diagnose candidates", unit="effect", leave=False)
     for name in bar:
         bar.set_postfix(effect=name)
-        results.append(probe_candidate(name, probe, steps=steps))
+        results.append(probe_candidate(name, probe, iterations=iterations))
     return sorted(results, key=CandidateResult.rank_key, reverse=True)
 
 

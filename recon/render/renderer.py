@@ -72,6 +72,19 @@ class Renderer:
         topology: build_topology(mesh.faces), pass it to avoid rebuilding each call.
         vertex_normals_world: [V, 3] to override the area-weighted normals.
         """
+        buffers = self.surface_buffers(mesh, cameras, topology, vertex_normals_world)
+        return self.shade(buffers, lighting, background=background, mip_pyramid=mip_pyramid)
+
+    def surface_buffers(
+        self,
+        mesh: Mesh,
+        cameras: Cameras,
+        topology: EdgeTopology | None = None,
+        vertex_normals_world: torch.Tensor | None = None,
+    ) -> SurfaceBuffers:
+        """The light- and texture-independent part of a render (rasterise and interpolate).
+        Shading it again with another texture or light (Renderer.shade) skips the rasterizer:
+        what a fit with frozen geometry needs at every step."""
         validate_mesh_tensors(mesh.verts, mesh.faces)
         if mesh.verts.device != cameras.device:
             raise ReconError(f"mesh is on {mesh.verts.device} but cameras are on {cameras.device}")
@@ -90,7 +103,6 @@ class Renderer:
         )
         if topology is None:
             topology = build_topology(faces, mesh.verts.shape[0])
-
         normals_world = (
             vertex_normals(mesh.verts, faces)
             if vertex_normals_world is None
@@ -99,6 +111,7 @@ class Renderer:
         normals = torch.nn.functional.normalize(
             interpolate_packed(normals_world, fragments, faces), dim=-1, eps=1e-12
         )
+        uv = uv_derivatives = None
         if textured:
             if needs_derivatives:
                 uv, uv_derivatives = interpolate_packed(
@@ -107,12 +120,45 @@ class Renderer:
                 uv_derivatives = uv_derivatives.detach()
             else:
                 uv = interpolate_packed(mesh.uvs, fragments, mesh.uv_faces)
-                uv_derivatives = None
+        # Camera-space depth as a differentiable attribute (interpolated w is camera z).
+        depth = (
+            interpolate_packed(clip_pos[..., 3:4], fragments, faces)
+            if batch > 0
+            else normals.new_zeros(0, 1)
+        )
+        return SurfaceBuffers(
+            mesh, fragments, clip_pos, topology, normals, uv, uv_derivatives, depth, (height, width)
+        )
+
+    def shade(
+        self,
+        buffers: SurfaceBuffers,
+        lighting: Lighting,
+        texture: torch.Tensor | None = None,
+        background: torch.Tensor | float = 0.0,
+        mip_pyramid: list[torch.Tensor] | None = None,
+        antialias_edges: bool = True,
+    ) -> RenderOutput:
+        """Texture, shade, composite and antialias surface buffers.
+
+        texture: [h, w, C] albedo to use instead of the buffers' mesh texture (same UVs).
+        antialias_edges: False composites the hard coverage (alpha = mask): cheaper, for fits
+            whose geometry is frozen and whose loss ignores the silhouette's subpixel position.
+        """
+        mesh, fragments = buffers.mesh, buffers.fragments
+        faces = mesh.faces
+        height, width = buffers.image_size
+        batch = fragments.mask.shape[0]
+        texture = mesh.texture if texture is None else texture
+        if buffers.uv is not None and texture is not None:
+            filter_mode = self.texture_filter
+            if filter_mode == "linear-mipmap-linear" and buffers.uv_derivatives is None:
+                filter_mode = "linear"
             albedo = _texture_packed(
-                mesh.texture,
-                uv,
-                uv_derivatives,
-                self.texture_filter,
+                texture,
+                buffers.uv,
+                buffers.uv_derivatives,
+                filter_mode,
                 self.texture_boundary,
                 mip_pyramid,
             )
@@ -123,15 +169,8 @@ class Renderer:
                 (fragments.covered_index.shape[0], 3), 0.5, device=mesh.verts.device
             )
         positions = interpolate_packed(mesh.verts, fragments, faces) if lighting.points else None
-        radiance = lambertian(albedo, normals, lighting, positions)
+        radiance = lambertian(albedo, buffers.normals, lighting, positions)
         channels = radiance.shape[-1]
-
-        # Camera-space depth as a differentiable attribute (interpolated w is camera z).
-        depth = (
-            interpolate_packed(clip_pos[..., 3:4], fragments, faces)
-            if batch > 0
-            else radiance.new_zeros(0, 1)
-        )
         covered = fragments.covered_index
         radiance_image = scatter_to_image(radiance, covered, batch, height, width)
         mask = fragments.mask
@@ -139,18 +178,45 @@ class Renderer:
             background, dtype=radiance.dtype, device=radiance.device
         ).expand(channels)
         composited = radiance_image + (1 - mask) * background_color
-        antialiased = antialias(
-            torch.cat([composited, mask], dim=-1), fragments, clip_pos, faces, topology
-        )
+        if antialias_edges:
+            antialiased = antialias(
+                torch.cat([composited, mask], dim=-1),
+                fragments,
+                buffers.clip_pos,
+                faces,
+                buffers.topology,
+            )
+            color, alpha = antialiased[..., :channels], antialiased[..., channels:]
+        else:
+            color, alpha = composited, mask
         return RenderOutput(
-            color=antialiased[..., :channels],
-            alpha=antialiased[..., channels:],
-            normals=scatter_to_image(normals, covered, batch, height, width),
-            depth=scatter_to_image(depth, covered, batch, height, width),
+            color=color,
+            alpha=alpha,
+            normals=scatter_to_image(buffers.normals, covered, batch, height, width),
+            depth=scatter_to_image(buffers.depth, covered, batch, height, width),
             mask=mask,
             albedo=scatter_to_image(albedo, covered, batch, height, width),
             fragments=fragments,
         )
+
+
+@dataclass
+class SurfaceBuffers:
+    """What the rasterizer saw, packed per covered pixel (N of them): Renderer.surface_buffers.
+
+    normals: [N, 3] world shading normals; uv: [N, 2] (None untextured); uv_derivatives:
+    [N, 4] (None without mipmapping); depth: [N, 1] camera z; clip_pos: [B, V, 4].
+    """
+
+    mesh: Mesh
+    fragments: Fragments
+    clip_pos: torch.Tensor
+    topology: EdgeTopology
+    normals: torch.Tensor
+    uv: torch.Tensor | None
+    uv_derivatives: torch.Tensor | None
+    depth: torch.Tensor
+    image_size: tuple[int, int]
 
 
 def _texture_packed(

@@ -53,10 +53,10 @@ def by_name(ranking: list[CandidateResult]) -> dict[str, CandidateResult]:
 
 def test_conditioning_removes_a_look_alike():
     data = observed_scene(blur=False)
-    ranking = rank_candidates(data, ["exposure", "white_balance", "defocus_blur"], steps=40)
+    ranking = rank_candidates(data, ["exposure", "white_balance", "defocus_blur"])
     assert ranking[0].effect == "exposure" and ranking[0].significant
     assert conditioning_effect(ranking) == "exposure"
-    conditional_probes(ranking, EffectProbe(data), "exposure", steps=40)
+    conditional_probes(ranking, EffectProbe(data), "exposure")
     results = by_name(ranking)
     assert results["exposure"].significant and results["exposure"].conditional_on is None
     assert not results["white_balance"].significant
@@ -65,10 +65,10 @@ def test_conditioning_removes_a_look_alike():
 
 def test_a_real_second_effect_survives_the_conditioning():
     data = observed_scene(blur=True)
-    ranking = rank_candidates(data, ["exposure", "defocus_blur"], steps=40)
+    ranking = rank_candidates(data, ["exposure", "defocus_blur"])
     assert conditioning_effect(ranking) == "exposure"
     assert by_name(ranking)["defocus_blur"].significant
-    conditional_probes(ranking, EffectProbe(data), "exposure", steps=40)
+    conditional_probes(ranking, EffectProbe(data), "exposure")
     blur = by_name(ranking)["defocus_blur"]
     assert blur.conditional_on == "exposure"
     assert blur.significant, blur

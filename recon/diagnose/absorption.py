@@ -1,0 +1,212 @@
+"""Absorption evidence: does an effect pull back out of the texture what the fit put there?
+
+An effect that looks the same in every view (vignetting, lens distortion, a specular lobe) is
+partly absorbed by the fitted texture and light: the probe on the frozen scene sees only what
+the fit left. Refitting the texture and light together with the effect lets it take back its
+share; the held-out error of that refit, against a control refit of the same length without the
+effect, is the absorption evidence (bootstrapped over views like the probes).
+
+The refits keep the geometry frozen: the training views are rasterised once (in groups of
+VIEWS_PER_GROUP) and every step only re-textures, re-shades and applies the effects, without
+antialiasing; a step costs a few milliseconds instead of a full render and backward pass. The
+held-out evaluation renders in full (antialiased), like every other held-out number.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import torch
+
+from recon.camera.cameras import Cameras
+from recon.diagnose.data import DiagnosisData
+from recon.diagnose.which import (
+    CandidateResult,
+    EffectProbe,
+    bootstrap_reduction,
+    fit_on_halves,
+)
+from recon.effects.base import ModelEffect
+from recon.effects.forward import EffectContext, apply_image_effects, apply_shading_effects
+from recon.effects.registry import make_effect
+from recon.io.datasets import CaptureSet, read_captures
+from recon.io.run_folder import RunPaths
+from recon.mesh.mesh import Mesh
+from recon.optimize.scene_model import LightModel, image_loss
+from recon.render.renderer import Renderer, SurfaceBuffers
+from recon.render.shading import DirectionalLight, Lighting
+from recon.render.texture import build_mip_pyramid
+
+# Effects that look the same in every view and that a short refit can pull back out of the
+# texture and light. (Shadows and interreflection are baked in for good under one light; their
+# evidence is the albedo fingerprint, recon.diagnose.fingerprint.)
+ABSORBABLE = ("vignetting", "lens_distortion", "specular")
+ABSORPTION_STEPS = 24
+VIEWS_PER_GROUP = 8
+TEXTURE_LEARNING_RATE = 0.03
+LIGHT_LEARNING_RATE = 0.01
+SMOOTHNESS_WEIGHT = 0.01
+
+
+@dataclass
+class FrozenTrainingViews:
+    """The training views rasterised once with the fitted geometry, in groups of views.
+
+    groups: (surface buffers, view indices [b], observed [b, H, W, 3]) per group.
+    """
+
+    mesh: Mesh
+    lighting: Lighting
+    cameras: Cameras
+    groups: list[tuple[SurfaceBuffers, torch.Tensor, torch.Tensor]]
+    view_count: int
+
+    @classmethod
+    def build(
+        cls, captures: CaptureSet, mesh: Mesh, lighting: Lighting, renderer: Renderer
+    ) -> FrozenTrainingViews:
+        """captures: the training split; mesh, lighting: the fitted scene (one device)."""
+        device = mesh.verts.device
+        cameras = captures.cameras.to(device)
+        view_count = len(cameras)
+        groups = []
+        with torch.no_grad():
+            for start in range(0, view_count, VIEWS_PER_GROUP):
+                views = torch.arange(start, min(start + VIEWS_PER_GROUP, view_count))
+                buffers = renderer.surface_buffers(mesh, cameras[views.to(device)])
+                groups.append((buffers, views.to(device), captures.images[views].to(device)))
+        return cls(mesh, lighting, cameras, groups, view_count)
+
+
+def _light_model(lighting: Lighting) -> LightModel:
+    light = LightModel(with_sun=bool(lighting.directional))
+    with torch.no_grad():
+        light.sh.copy_(lighting.sh_coefficients)
+        if lighting.directional:
+            light.sun_direction.copy_(lighting.directional[0].direction_to_light)
+            light.sun_log_irradiance.copy_(lighting.directional[0].irradiance.clamp_min(1e-6).log())
+    return light.to(lighting.sh_coefficients.device)
+
+
+def frozen_refit(
+    frozen: FrozenTrainingViews,
+    names: list[str],
+    renderer: Renderer,
+    steps: int = ABSORPTION_STEPS,
+) -> tuple[Mesh, Lighting, list[ModelEffect]]:
+    """Refit texture, light and the named effects (from the identity) on the training views with
+    the geometry frozen; one group of views per step. Returns the re-textured mesh, the light
+    (detached) and the fitted effect modules."""
+    device = frozen.mesh.verts.device
+    modules = [make_effect(name, view_count=frozen.view_count).to(device) for name in names]
+    texture = torch.nn.Parameter(frozen.mesh.texture.clone())
+    light = _light_model(frozen.lighting)
+    groups = [{"params": [texture], "lr": TEXTURE_LEARNING_RATE}]
+    groups.append({"params": list(light.parameters()), "lr": LIGHT_LEARNING_RATE})
+    groups += [group for module in modules for group in module.parameter_groups()]
+    optimizer = torch.optim.Adam(groups)
+    for step in range(steps):
+        buffers, views, observed = frozen.groups[step % len(frozen.groups)]
+        lighting = light.lighting()
+        output = renderer.shade(
+            buffers,
+            lighting,
+            texture=texture,
+            mip_pyramid=build_mip_pyramid(texture)
+            if renderer.texture_filter == "linear-mipmap-linear"
+            else None,
+            antialias_edges=False,
+        )
+        cameras = frozen.cameras[views]
+        context = EffectContext(frozen.mesh, lighting, cameras, views, renderer)
+        output = apply_shading_effects(modules, output, context)
+        color, _ = apply_image_effects(modules, output.color, output.alpha, cameras, views)
+        # Total variation keeps texels that few views see from speckling, as in the fit.
+        smoothness = (texture[1:] - texture[:-1]).abs().mean() + (
+            texture[:, 1:] - texture[:, :-1]
+        ).abs().mean()
+        loss = image_loss(color, observed) + SMOOTHNESS_WEIGHT * smoothness
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    lighting = light.lighting()
+    frozen_lighting = Lighting(
+        sh_coefficients=lighting.sh_coefficients.detach(),
+        directional=[
+            DirectionalLight(sun.direction_to_light.detach(), sun.irradiance.detach())
+            for sun in lighting.directional
+        ],
+    )
+    mesh = replace(frozen.mesh, texture=texture.detach())
+    return mesh, frozen_lighting, modules
+
+
+def heldout_modules(names: list[str], fitted: list[ModelEffect], view_count: int, device):
+    """Modules for held-out views: per-view effects start at the identity (their views are new;
+    fit_on_halves fits them on each view's first half), global effects copy the refit's
+    parameters."""
+    modules = []
+    for name in names:
+        module = make_effect(name, view_count=view_count, pinned_view=None).to(device)
+        source = next((m for m in fitted if m.name == name), None)
+        if source is not None and not module.per_view:
+            module.load_state_dict(source.state_dict())
+        modules.append(module)
+    return modules
+
+
+def heldout_errors(
+    data: DiagnosisData, modules: list[ModelEffect]
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-view held-out squared error sums and counts [B] on the second half of the pixel
+    blocks; the per-view modules are fitted on the first half, the global ones keep their
+    parameters."""
+    per_view = [module for module in modules if module.per_view]
+    return fit_on_halves(modules, EffectProbe(data), trainable=per_view)
+
+
+def absorption_probes(
+    ranking: list[CandidateResult],
+    data: DiagnosisData,
+    paths: RunPaths,
+    device: torch.device,
+    steps: int = ABSORPTION_STEPS,
+    given: str | None = None,
+) -> None:
+    """For each candidate in ABSORBABLE: a frozen-geometry refit of texture, light and the
+    effect, against a control refit without it; the held-out reduction relative to the control
+    (bootstrapped over views) is the absorption evidence, recorded in place (and it can make the
+    candidate significant).
+
+    given: an effect switched on in the control and in every candidate refit alike (see
+    which.conditioning_effect), so the evidence is what each candidate adds on top of it.
+    """
+    # Bilinear without mipmaps: the training views sample the texture near 1:1, and the
+    # refits only compare with each other (the held-out evaluation renders in full).
+    renderer = Renderer(texture_filter="linear", texture_boundary="clamp")
+    captures = read_captures(paths.dataset, "train")
+    frozen = FrozenTrainingViews.build(
+        captures, data.mesh.to(device), data.lighting.to(device), renderer
+    )
+    base = [given] if given else []
+    torch.manual_seed(0)
+
+    def evaluate(names: list[str]) -> tuple[torch.Tensor, list[ModelEffect]]:
+        mesh, lighting, fitted = frozen_refit(frozen, names, renderer, steps)
+        modules = heldout_modules(names, fitted, data.view_count, data.observed.device)
+        refitted = replace(data, mesh=mesh.to("cpu"), lighting=lighting.to("cpu"))
+        return heldout_errors(refitted, modules)[0], fitted
+
+    control, _ = evaluate(base)
+    for candidate in ranking:
+        if candidate.effect not in ABSORBABLE or candidate.effect == given:
+            continue
+        squared, fitted = evaluate(base + [candidate.effect])
+        reduction, (low, high) = bootstrap_reduction(control, squared)
+        candidate.absorption = reduction
+        candidate.absorption_interval = (low, high)
+        module = next(module for module in fitted if module.name == candidate.effect)
+        candidate.absorption_parameters = module.parameters_summary()
+        if given:
+            candidate.conditional_on = given
+        candidate.decide()
