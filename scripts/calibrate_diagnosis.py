@@ -27,7 +27,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from recon.config import load_config
     from recon.config.run_config import RunConfig
-    from recon.diagnose.calibration import MINIMUM_SHARE
+    from recon.diagnose.calibration import ABSORPTION_MINIMUM_SHARE, MINIMUM_SHARE
     from recon.diagnose.diagnose import diagnose_run
     from recon.io.run_folder import open_run_folder
 
@@ -56,8 +56,8 @@ def main(argv: list[str] | None = None) -> int:
                 absorption[name] = max(absorption.get(name, 0.0), item["absorption"])
         shares.append(result["gap"]["visibility_fingerprint"]["share"])
 
-    def allowance(values: dict) -> dict:
-        return {name: round(max(MINIMUM_SHARE, 2 * value), 3) for name, value in values.items()}
+    def allowance(values: dict, floor: float = MINIMUM_SHARE) -> dict:
+        return {name: round(max(floor, 2 * value), 3) for name, value in values.items()}
 
     print(
         json.dumps(
@@ -66,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
                 "probe_largest": probe,
                 "probe_allowance": allowance(probe),
                 "absorption_largest": absorption,
-                "absorption_allowance": allowance(absorption),
+                "absorption_allowance": allowance(absorption, ABSORPTION_MINIMUM_SHARE),
                 "visibility_share_largest": max(shares),
             },
             indent=2,

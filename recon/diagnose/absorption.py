@@ -6,9 +6,12 @@ the fit left. Refitting the texture and light together with the effect lets it t
 share; the held-out error of that refit, against a control refit of the same length without the
 effect, is the absorption evidence (bootstrapped over views like the probes).
 
-The refits keep the geometry frozen: the training views are rasterised once (in groups of
-VIEWS_PER_GROUP) and every step only re-textures, re-shades and applies the effects, without
-antialiasing; a step costs a few milliseconds instead of a full render and backward pass. The
+Vignetting and specular refits keep the geometry frozen: the training views are rasterised once
+(in groups of VIEWS_PER_GROUP) and every step only re-textures, re-shades and applies the
+effects, without antialiasing; a step costs a few milliseconds instead of a full render and
+backward pass. A lens distortion that the fit absorbed bent the geometry as well, and only
+moving the vertices bends it back (with frozen geometry its evidence was a third as large): its
+refits are the full warm-started refit (recon.diagnose.refit) at GEOMETRY_RESOLUTION. The
 held-out evaluation renders in full (antialiased), like every other held-out number.
 """
 
@@ -19,7 +22,9 @@ from dataclasses import dataclass, replace
 import torch
 
 from recon.camera.cameras import Cameras
+from recon.config.run_config import RunConfig
 from recon.diagnose.data import DiagnosisData
+from recon.diagnose.refit import detached, light_model, refit_with
 from recon.diagnose.which import (
     CandidateResult,
     EffectProbe,
@@ -32,9 +37,8 @@ from recon.effects.registry import make_effect
 from recon.io.datasets import CaptureSet, read_captures
 from recon.io.run_folder import RunPaths
 from recon.mesh.mesh import Mesh
-from recon.optimize.scene_model import LightModel, image_loss
 from recon.render.renderer import Renderer, SurfaceBuffers
-from recon.render.shading import DirectionalLight, Lighting
+from recon.render.shading import Lighting
 from recon.render.texture import build_mip_pyramid
 
 # Effects that look the same in every view and that a short refit can pull back out of the
@@ -42,6 +46,10 @@ from recon.render.texture import build_mip_pyramid
 # evidence is the albedo fingerprint, recon.diagnose.fingerprint.)
 ABSORBABLE = ("vignetting", "lens_distortion", "specular")
 ABSORPTION_STEPS = 24
+# Absorbed effects that bent the geometry too: their refits move the vertices, in fewer pixels.
+GEOMETRY_ABSORBABLE = ("lens_distortion",)
+GEOMETRY_STEPS = 30
+GEOMETRY_RESOLUTION = 64
 VIEWS_PER_GROUP = 8
 TEXTURE_LEARNING_RATE = 0.03
 LIGHT_LEARNING_RATE = 0.01
@@ -78,16 +86,6 @@ class FrozenTrainingViews:
         return cls(mesh, lighting, cameras, groups, view_count)
 
 
-def _light_model(lighting: Lighting) -> LightModel:
-    light = LightModel(with_sun=bool(lighting.directional))
-    with torch.no_grad():
-        light.sh.copy_(lighting.sh_coefficients)
-        if lighting.directional:
-            light.sun_direction.copy_(lighting.directional[0].direction_to_light)
-            light.sun_log_irradiance.copy_(lighting.directional[0].irradiance.clamp_min(1e-6).log())
-    return light.to(lighting.sh_coefficients.device)
-
-
 def frozen_refit(
     frozen: FrozenTrainingViews,
     names: list[str],
@@ -100,7 +98,7 @@ def frozen_refit(
     device = frozen.mesh.verts.device
     modules = [make_effect(name, view_count=frozen.view_count).to(device) for name in names]
     texture = torch.nn.Parameter(frozen.mesh.texture.clone())
-    light = _light_model(frozen.lighting)
+    light = light_model(frozen.lighting)
     groups = [{"params": [texture], "lr": TEXTURE_LEARNING_RATE}]
     groups.append({"params": list(light.parameters()), "lr": LIGHT_LEARNING_RATE})
     groups += [group for module in modules for group in module.parameter_groups()]
@@ -125,20 +123,14 @@ def frozen_refit(
         smoothness = (texture[1:] - texture[:-1]).abs().mean() + (
             texture[:, 1:] - texture[:, :-1]
         ).abs().mean()
-        loss = image_loss(color, observed) + SMOOTHNESS_WEIGHT * smoothness
+        # Squared error, like the held-out evaluation: an L1 loss keeps Adam's texel steps at
+        # full size to the end, and that jitter would swamp a small absorbed effect.
+        loss = ((color - observed) ** 2).mean() + SMOOTHNESS_WEIGHT * smoothness
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
-    lighting = light.lighting()
-    frozen_lighting = Lighting(
-        sh_coefficients=lighting.sh_coefficients.detach(),
-        directional=[
-            DirectionalLight(sun.direction_to_light.detach(), sun.irradiance.detach())
-            for sun in lighting.directional
-        ],
-    )
     mesh = replace(frozen.mesh, texture=texture.detach())
-    return mesh, frozen_lighting, modules
+    return mesh, detached(light.lighting()), modules
 
 
 def heldout_modules(names: list[str], fitted: list[ModelEffect], view_count: int, device):
@@ -169,14 +161,14 @@ def absorption_probes(
     ranking: list[CandidateResult],
     data: DiagnosisData,
     paths: RunPaths,
+    config: RunConfig,
     device: torch.device,
-    steps: int = ABSORPTION_STEPS,
     given: str | None = None,
 ) -> None:
-    """For each candidate in ABSORBABLE: a frozen-geometry refit of texture, light and the
-    effect, against a control refit without it; the held-out reduction relative to the control
-    (bootstrapped over views) is the absorption evidence, recorded in place (and it can make the
-    candidate significant).
+    """For each candidate in ABSORBABLE: a short refit of texture, light and the effect (and the
+    vertex positions for GEOMETRY_ABSORBABLE), against a control refit of the same kind without
+    it; the held-out reduction relative to the control (bootstrapped over views) is the
+    absorption evidence, recorded in place (and it can make the candidate significant).
 
     given: an effect switched on in the control and in every candidate refit alike (see
     which.conditioning_effect), so the evidence is what each candidate adds on top of it.
@@ -184,25 +176,39 @@ def absorption_probes(
     # Bilinear without mipmaps: the training views sample the texture near 1:1, and the
     # refits only compare with each other (the held-out evaluation renders in full).
     renderer = Renderer(texture_filter="linear", texture_boundary="clamp")
-    captures = read_captures(paths.dataset, "train")
-    frozen = FrozenTrainingViews.build(
-        captures, data.mesh.to(device), data.lighting.to(device), renderer
-    )
+    frozen: FrozenTrainingViews | None = None
     base = [given] if given else []
-    torch.manual_seed(0)
 
-    def evaluate(names: list[str]) -> tuple[torch.Tensor, list[ModelEffect]]:
-        mesh, lighting, fitted = frozen_refit(frozen, names, renderer, steps)
+    def evaluate(names: list[str], moving: bool) -> tuple[torch.Tensor, list[ModelEffect]]:
+        nonlocal frozen
+        torch.manual_seed(0)
+        if moving:
+            mesh, lighting, fitted_effects = refit_with(
+                names, paths, config, device, GEOMETRY_STEPS, resolution=GEOMETRY_RESOLUTION
+            )
+            fitted = fitted_effects.modules
+        else:
+            if frozen is None:
+                frozen = FrozenTrainingViews.build(
+                    read_captures(paths.dataset, "train"),
+                    data.mesh.to(device),
+                    data.lighting.to(device),
+                    renderer,
+                )
+            mesh, lighting, fitted = frozen_refit(frozen, names, renderer, ABSORPTION_STEPS)
         modules = heldout_modules(names, fitted, data.view_count, data.observed.device)
         refitted = replace(data, mesh=mesh.to("cpu"), lighting=lighting.to("cpu"))
         return heldout_errors(refitted, modules)[0], fitted
 
-    control, _ = evaluate(base)
+    controls: dict[bool, torch.Tensor] = {}
     for candidate in ranking:
         if candidate.effect not in ABSORBABLE or candidate.effect == given:
             continue
-        squared, fitted = evaluate(base + [candidate.effect])
-        reduction, (low, high) = bootstrap_reduction(control, squared)
+        moving = candidate.effect in GEOMETRY_ABSORBABLE
+        if moving not in controls:
+            controls[moving] = evaluate(base, moving)[0]
+        squared, fitted = evaluate(base + [candidate.effect], moving)
+        reduction, (low, high) = bootstrap_reduction(controls[moving], squared)
         candidate.absorption = reduction
         candidate.absorption_interval = (low, high)
         module = next(module for module in fitted if module.name == candidate.effect)

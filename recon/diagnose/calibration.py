@@ -11,8 +11,8 @@ datasets (the benchmark config at 128², default scene and spot, seeds 103-105: 
 blind benchmark's scored cases never use) as twice the largest reduction seen, floored at
 MINIMUM_SHARE; the script prints the table below from fresh fits (largest clean reductions with
 the Gauss-Newton probes and frozen-geometry absorption refits: defocus 0.081, motion 0.070,
-pose 0.061, lens 0.034, vignetting 0.021, all others below 0.011; absorption: lens 0.025, the
-others below 0.004; spot's texture-resolution misfit is what the blur probes pick up). The
+pose 0.061, lens 0.034, vignetting 0.021, all others below 0.011; absorption: lens 0.041,
+vignetting 0.009, specular 0.004; spot's texture-resolution misfit is what the blur probes pick up). The
 visibility fingerprint's largest clean share there was 0.024.
 """
 
@@ -38,15 +38,15 @@ PROBE_ALLOWANCE: dict[str, float] = {
 }
 
 # The absorption evidence compares two refits of the same length from the same start, so its
-# null spread is far smaller than a probe's (largest clean reductions below 0.004 for vignetting
-# and specular): its floor is half the probe's.
+# null spread is far smaller than a probe's (largest clean reductions 0.009 for vignetting and
+# 0.004 for specular): its floor is half the probe's.
 ABSORPTION_MINIMUM_SHARE = 0.01
 
 # Absorption (a short refit with the effect against a control refit without it): twice the
 # largest reduction over the control on the same calibration fits.
 ABSORPTION_ALLOWANCE: dict[str, float] = {
-    "lens_distortion": 0.049,
-    "vignetting": 0.01,
+    "lens_distortion": 0.083,
+    "vignetting": 0.018,
     "specular": 0.01,
 }
 

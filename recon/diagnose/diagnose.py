@@ -26,6 +26,7 @@ from recon.config.run_config import RunConfig
 from recon.diagnose.absorption import absorption_probes, heldout_errors, heldout_modules
 from recon.diagnose.data import DiagnosisData, load_diagnosis_data
 from recon.diagnose.fingerprint import FINGERPRINT_EFFECTS, visibility_fingerprint
+from recon.diagnose.refit import REFIT_STEPS, refit_with
 from recon.diagnose.residuals import gap_summary, noise_floor, relight_gap, where_analysis
 from recon.diagnose.which import (
     CandidateResult,
@@ -38,32 +39,15 @@ from recon.diagnose.which import (
 from recon.effects.registry import MODEL_EFFECTS
 from recon.errors import ReconError
 from recon.io.atomic import atomic_path, atomic_write_json
-from recon.io.datasets import RELIGHT_LIGHTING, read_captures
+from recon.io.datasets import RELIGHT_LIGHTING
 from recon.io.meshes import load_mesh
 from recon.io.run_folder import RunPaths
 from recon.metrics.evaluate import _plain
-from recon.optimize.checkpoint import History
-from recon.optimize.fit import load_fitted_light
-from recon.optimize.geometry_stage import GeometryResult
-from recon.optimize.scene_model import FitEffects, LightModel
-from recon.optimize.texture_stage import run_texture_stage
-from recon.render.shading import DirectionalLight, Lighting
+from recon.render.shading import Lighting
 
 matplotlib.use("Agg")
 
-REFIT_STEPS = 80
 MAX_GREEDY_EFFECTS = 3
-
-
-def _light_model(paths: RunPaths, device: torch.device) -> LightModel:
-    lighting = load_fitted_light(paths, device)
-    light = LightModel(with_sun=bool(lighting.directional)).to(device)
-    with torch.no_grad():
-        light.sh.copy_(lighting.sh_coefficients)
-        if lighting.directional:
-            light.sun_direction.copy_(lighting.directional[0].direction_to_light)
-            light.sun_log_irradiance.copy_(lighting.directional[0].irradiance.clamp_min(1e-6).log())
-    return light
 
 
 def heldout_gap(data: DiagnosisData, modules: list) -> float:
@@ -71,49 +55,6 @@ def heldout_gap(data: DiagnosisData, modules: list) -> float:
     parameters of the given effect modules on the first half (scene frozen)."""
     squared, count = heldout_errors(data, modules)
     return float(squared.sum() / count.sum())
-
-
-def refit_with(
-    names: list[str],
-    paths: RunPaths,
-    config: RunConfig,
-    device: torch.device,
-    steps: int = REFIT_STEPS,
-):
-    """Warm start from the fitted mesh + light; optimise texture, light, positions and the
-    effects on the training views. Returns (mesh, lighting, FitEffects)."""
-    captures = read_captures(paths.dataset, "train")
-    mesh = load_mesh(paths.fitted_mesh).to(device)
-    light = _light_model(paths, device)
-    fit_config = replace(
-        config.fit, texture=replace(config.fit.texture, steps=steps, learning_rate=0.002)
-    )
-    effects = FitEffects(names, len(captures.cameras), device)
-    for module in effects.modules:
-        module.lock_fraction = 0.0
-    geometry = GeometryResult(mesh.verts, mesh.faces, torch.zeros_like(mesh.verts), light)
-    scratch = paths.root / "diagnosis" / "refit"
-    result = run_texture_stage(
-        captures,
-        geometry,
-        fit_config,
-        device,
-        config.seed,
-        scratch / f"{'+'.join(names)}.pt",
-        History(scratch / "history.jsonl"),
-        initial=mesh,
-        effects=effects,
-    )
-    # Detached: the held-out probes run their own optimisations on top of this frozen scene.
-    lighting = result.light.lighting()
-    frozen = Lighting(
-        sh_coefficients=lighting.sh_coefficients.detach(),
-        directional=[
-            DirectionalLight(light.direction_to_light.detach(), light.irradiance.detach())
-            for light in lighting.directional
-        ],
-    )
-    return result.mesh, frozen, result.effects
 
 
 def fingerprint_evidence(ranking, data: DiagnosisData, probe: EffectProbe) -> dict:
@@ -204,7 +145,7 @@ def diagnose_run(
         conditional_probes(ranking, probe, given)
     gap["visibility_fingerprint"] = fingerprint_evidence(ranking, data, probe)
     if absorption:
-        absorption_probes(ranking, data, paths, device, given=given)
+        absorption_probes(ranking, data, paths, config, device, given=given)
     ranking.sort(key=CandidateResult.rank_key, reverse=True)
     timings = {"diagnose_seconds": round(time.perf_counter() - started, 2)}
     # Against the ground truth when the run has one (synthetic data only; not part of the

@@ -95,13 +95,27 @@ class CandidateResult:
             evidence=record.get("evidence", ""),
         )
 
+    def excess(self) -> float:
+        """How far the residual evidence clears its own null: the larger of the probe's and the
+        absorption's interval lower bound minus its allowance (recon.diagnose.calibration).
+        Comparing raw reductions would favour the flexible probes (pose, blur), whose null
+        allowance is several times another's."""
+        excess = self.interval[0] - probe_threshold(self.effect)
+        if self.absorption_interval is not None:
+            excess = max(excess, self.absorption_interval[0] - absorption_threshold(self.effect))
+        return excess
+
     def rank_key(self) -> tuple:
-        """Significant first; then held-out evidence (probe or absorption reduction) before the
-        albedo fingerprint alone, whose effect shows in no held-out residual."""
-        reduction = max(self.heldout_reduction, self.absorption or 0.0)
+        """Significant first; then held-out evidence (probe or absorption) before the albedo
+        fingerprint alone, whose effect shows in no held-out residual; then by how far the
+        evidence clears its null (the fingerprint: by its share)."""
         by_residual = self.evidence in ("probe", "absorption")
         strength = (self.fingerprint or {}).get("share", 0.0)
-        return (self.significant, by_residual, reduction if by_residual else strength)
+        return (
+            self.significant,
+            by_residual,
+            strength if self.evidence == "fingerprint" else self.excess(),
+        )
 
     def to_json(self) -> dict:
         return {
@@ -323,16 +337,11 @@ def conditional_probes(
     device = probe.data.observed.device
     alone = next(candidate for candidate in ranking if candidate.effect == given).heldout_errors
     if alone is None:
-        alone = fit_on_halves(
-            [make_effect(given, view_count=batch, pinned_view=None).to(device)], probe, iterations
-        )[0]
+        alone = fit_on_halves([probe_effect(given, batch, device)], probe, iterations)[0]
     for candidate in ranking:
         if candidate.effect == given or not candidate.significant:
             continue
-        modules = [
-            make_effect(name, view_count=batch, pinned_view=None).to(device)
-            for name in (given, candidate.effect)
-        ]
+        modules = [probe_effect(name, batch, device) for name in (given, candidate.effect)]
         joint = fit_on_halves(modules, probe, iterations)[0]
         reduction, interval = bootstrap_reduction(alone, joint, seed)
         candidate.heldout_reduction = reduction
@@ -362,7 +371,7 @@ def rank_candidates(
     iterations: int = GAUSS_NEWTON_ITERATIONS,
     probe: EffectProbe | None = None,
 ) -> list[CandidateResult]:
-    """Every candidate probed; sorted by held-out reduction (largest first). probe: an
+    """Every candidate probed; sorted by CandidateResult.rank_key (best first). probe: an
     EffectProbe of the same data to reuse (its render is cached)."""
     probe = probe or EffectProbe(data)
     names = candidates or sorted(MODEL_EFFECTS)

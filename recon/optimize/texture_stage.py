@@ -93,10 +93,12 @@ def run_texture_stage(
     resume: bool = False,
     initial: Mesh | None = None,
     effects: FitEffects | None = None,
+    resolution: int | None = None,
 ) -> TextureResult:
     """initial: an already textured mesh to start from (skips simplify + unwrap; a warm-started
     refit). effects: effect modules to keep optimising (default: the geometry stage's, else
-    those config.effects names)."""
+    those config.effects names). resolution: the longer image side to fit at (default: the
+    captures' own)."""
     settings = config.texture
     generator = torch.Generator().manual_seed(seed + 1)
     checkpoint = load_checkpoint(checkpoint_path) if resume else None
@@ -120,7 +122,8 @@ def run_texture_stage(
     if effects is None:
         effects = geometry.effects or FitEffects(config.effects, len(captures.cameras), device)
     light = geometry.light
-    pyramid = TrainingPyramid.build(captures, [max(captures.cameras.image_size)], device)
+    resolution = resolution or max(captures.cameras.image_size)
+    pyramid = TrainingPyramid.build(captures, [resolution], device)
     cameras, images, masks = pyramid.levels[-1]
     renderer = Renderer(texture_filter="linear-mipmap-linear", texture_boundary="clamp")
     topology = build_topology(mesh.faces, mesh.verts.shape[0])

@@ -15,8 +15,10 @@ from recon.diagnose.which import (
     EffectProbe,
     conditional_probes,
     conditioning_effect,
+    probe_effect,
     rank_candidates,
 )
+from recon.effects.forward import apply_camera_effects
 from recon.effects import make_effect
 from recon.render.renderer import Renderer
 from recon.render.shading import Lighting
@@ -72,6 +74,25 @@ def test_a_real_second_effect_survives_the_conditioning():
     blur = by_name(ranking)["defocus_blur"]
     assert blur.conditional_on == "exposure"
     assert blur.significant, blur
+
+
+def test_the_pose_probe_warp_follows_a_re_render():
+    # The pose probe warps the cached render along each pixel's flow instead of rasterising
+    # again: exact at zero, and close to a real re-render for a small correction.
+    data = observed_scene(blur=False)
+    probe = EffectProbe(data)
+    pose = probe_effect("pose_error", VIEWS, torch.device("cpu"))
+    torch.testing.assert_close(probe.render(pose), probe.base_output.color, atol=1e-5, rtol=0)
+    with torch.no_grad():
+        pose.rotation.copy_(torch.tensor([0.004, 0.012, -0.006]).expand(VIEWS, 3))
+    warped = probe.render(pose)
+    moved = apply_camera_effects([pose], data.cameras, torch.arange(VIEWS))
+    with torch.no_grad():
+        rendered = probe.renderer.render(data.mesh, moved, data.lighting).color
+    change = (rendered - probe.base_output.color).abs().mean()
+    error = (rendered - warped).abs().mean()
+    assert change > 0.005
+    assert error < 0.35 * change, (float(error), float(change))
 
 
 def test_only_a_per_view_probe_effect_conditions():

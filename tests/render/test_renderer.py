@@ -62,6 +62,30 @@ def test_textured_mesh_uses_its_own_uv_index_buffer(device):
         assert albedo[16, 21, 2] > 0.9 and albedo[16, 21, 0] < 0.1  # right: blue
 
 
+def test_shading_cached_surface_buffers_equals_a_full_render(device):
+    # A frozen-geometry fit re-shades the same buffers with a new texture at every step.
+    from data_synth.shapes import torus
+
+    mesh = torus(resolution=16).to(device)
+    generator = torch.Generator().manual_seed(0)
+    mesh.texture = torch.rand(16, 16, 3, generator=generator).to(device)
+    other = torch.rand(16, 16, 3, generator=generator).to(device)
+    cameras = orbit_cameras(2, (24, 24), distance=2.4, device=device)
+    lighting = Lighting.constant(0.8, device=device)
+    renderer = Renderer(texture_filter="linear-mipmap-linear", texture_boundary="clamp")
+    buffers = renderer.surface_buffers(mesh, cameras)
+    shaded = renderer.shade(buffers, lighting)
+    full = renderer.render(mesh, cameras, lighting)
+    torch.testing.assert_close(shaded.color, full.color)
+    torch.testing.assert_close(shaded.alpha, full.alpha)
+    retextured = renderer.shade(buffers, lighting, texture=other)
+    mesh.texture = other
+    torch.testing.assert_close(retextured.color, renderer.render(mesh, cameras, lighting).color)
+    assert not torch.allclose(retextured.color, shaded.color)
+    hard = renderer.shade(buffers, lighting, antialias_edges=False)
+    assert torch.equal(hard.alpha, hard.mask)
+
+
 def test_render_rejects_bad_meshes():
     mesh = _sphere("cpu")
     cameras = orbit_cameras(1, (8, 8))

@@ -1,0 +1,85 @@
+"""The warm-started refit: the fitted scene optimised again with effect modules switched on.
+
+Used by the "how far" step (the top or each significant effect, at full resolution) and by the
+lens-distortion absorption evidence (a short refit at low resolution: a distortion that the fit
+absorbed bent the geometry, and only a refit that moves the vertices can bend it back).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import torch
+
+from recon.config.run_config import RunConfig
+from recon.io.datasets import read_captures
+from recon.io.meshes import load_mesh
+from recon.io.run_folder import RunPaths
+from recon.optimize.checkpoint import History
+from recon.optimize.fit import load_fitted_light
+from recon.optimize.geometry_stage import GeometryResult
+from recon.optimize.scene_model import FitEffects, LightModel
+from recon.optimize.texture_stage import run_texture_stage
+from recon.render.shading import DirectionalLight, Lighting
+
+REFIT_STEPS = 80
+
+
+def light_model(lighting: Lighting) -> LightModel:
+    """A trainable LightModel holding `lighting` (SH plus at most one sun)."""
+    light = LightModel(with_sun=bool(lighting.directional))
+    with torch.no_grad():
+        light.sh.copy_(lighting.sh_coefficients)
+        if lighting.directional:
+            light.sun_direction.copy_(lighting.directional[0].direction_to_light)
+            light.sun_log_irradiance.copy_(lighting.directional[0].irradiance.clamp_min(1e-6).log())
+    return light.to(lighting.sh_coefficients.device)
+
+
+def detached(lighting: Lighting) -> Lighting:
+    """The same light without autograd history."""
+    return Lighting(
+        sh_coefficients=lighting.sh_coefficients.detach(),
+        directional=[
+            DirectionalLight(sun.direction_to_light.detach(), sun.irradiance.detach())
+            for sun in lighting.directional
+        ],
+    )
+
+
+def refit_with(
+    names: list[str],
+    paths: RunPaths,
+    config: RunConfig,
+    device: torch.device,
+    steps: int = REFIT_STEPS,
+    resolution: int | None = None,
+):
+    """Warm start from the fitted mesh + light; optimise texture, light, positions and the
+    effects on the training views (at `resolution`, default the captures'). Returns (mesh,
+    lighting, FitEffects)."""
+    captures = read_captures(paths.dataset, "train")
+    mesh = load_mesh(paths.fitted_mesh).to(device)
+    light = light_model(load_fitted_light(paths, device))
+    fit_config = replace(
+        config.fit, texture=replace(config.fit.texture, steps=steps, learning_rate=0.002)
+    )
+    effects = FitEffects(names, len(captures.cameras), device)
+    for module in effects.modules:
+        module.lock_fraction = 0.0
+    geometry = GeometryResult(mesh.verts, mesh.faces, torch.zeros_like(mesh.verts), light)
+    scratch = paths.root / "diagnosis" / "refit"
+    result = run_texture_stage(
+        captures,
+        geometry,
+        fit_config,
+        device,
+        config.seed,
+        scratch / f"{'+'.join(names)}.pt",
+        History(scratch / "history.jsonl"),
+        initial=mesh,
+        effects=effects,
+        resolution=resolution,
+    )
+    # Detached: the held-out probes run their own optimisations on top of this frozen scene.
+    return result.mesh, detached(result.light.lighting()), result.effects

@@ -1,0 +1,91 @@
+"""Absorption evidence: a frozen-geometry refit with vignetting takes back from the texture the
+darkening that a fit without it baked in, and finds nothing to take back on clean data."""
+
+from __future__ import annotations
+
+import torch
+
+from data_synth.shapes import torus
+from recon.camera import orbit_cameras
+from recon.diagnose.absorption import (
+    FrozenTrainingViews,
+    bootstrap_reduction,
+    frozen_refit,
+    heldout_errors,
+    heldout_modules,
+)
+from recon.diagnose.data import build_diagnosis_data
+from recon.effects import make_effect
+from recon.io.datasets import CaptureSet
+from recon.render.renderer import Renderer
+from recon.render.shading import Lighting
+
+SIZE, TRAIN, TEST = 40, 12, 6
+
+
+def scene_and_views(corner_darkening: float):
+    mesh = torus(resolution=24)
+    steps = torch.linspace(0, 1, 32)
+    u, v = torch.meshgrid(steps, steps, indexing="xy")
+    pattern = 0.5 + 0.25 * torch.sin(6.28 * 2 * u) * torch.sin(6.28 * 3 * v)
+    mesh.texture = torch.stack([pattern, 0.7 * pattern + 0.2, 0.5 * (1 - pattern) + 0.2], -1)
+    lighting = Lighting.constant(0.9)
+    renderer = Renderer(texture_filter="linear-mipmap-linear", texture_boundary="clamp")
+    cameras = orbit_cameras(
+        TRAIN + TEST, (SIZE, SIZE), distance=2.0, fov_x_deg=60, elevation_deg=35
+    )
+    output = renderer.render(mesh, cameras, lighting)
+    vignetting = make_effect("vignetting")
+    vignetting.set_polynomial(-corner_darkening)
+    with torch.no_grad():
+        observed, _ = vignetting(output.color, output.alpha, cameras, None)
+    # What a fit without the effect keeps: the texture darkened by the average falloff.
+    mesh.texture = mesh.texture * (1 - 0.3 * corner_darkening)
+    train = CaptureSet(
+        cameras[:TRAIN],
+        observed[:TRAIN],
+        output.alpha[:TRAIN],
+        [str(i) for i in range(TRAIN)],
+        "train",
+    )
+    with torch.no_grad():
+        fitted = renderer.render(mesh, cameras[TRAIN:], lighting)
+    test = build_diagnosis_data(
+        observed[TRAIN:], output.alpha[TRAIN:], fitted, cameras[TRAIN:], lighting, mesh
+    )
+    return FrozenTrainingViews.build(train, mesh, lighting, Renderer(texture_filter="linear")), test
+
+
+def absorption_reduction(corner_darkening: float) -> tuple[float, tuple[float, float]]:
+    torch.manual_seed(0)
+    frozen, test = scene_and_views(corner_darkening)
+    renderer = Renderer(texture_filter="linear")
+    errors = []
+    for names in ([], ["vignetting"]):
+        mesh, lighting, fitted = frozen_refit(frozen, names, renderer, steps=60)
+        modules = heldout_modules(names, fitted, test.view_count, "cpu")
+        errors.append(heldout_errors(replace_scene(test, mesh, lighting), modules)[0])
+    return bootstrap_reduction(errors[0], errors[1])
+
+
+def replace_scene(data, mesh, lighting):
+    from dataclasses import replace
+
+    return replace(data, mesh=mesh, lighting=lighting)
+
+
+def test_vignetting_pulled_back_out_of_the_texture():
+    reduction, (low, _) = absorption_reduction(0.4)
+    assert low > 0.08, reduction
+
+
+def test_clean_views_leave_nothing_to_absorb():
+    reduction, (_, high) = absorption_reduction(0.0)
+    assert abs(reduction) < 0.04 and high < 0.06, reduction
+
+
+def test_frozen_buffers_cover_every_training_view_once():
+    frozen, _ = scene_and_views(0.0)
+    views = torch.cat([group[1] for group in frozen.groups])
+    assert torch.equal(views, torch.arange(TRAIN))
+    assert all(group[2].shape[0] == group[1].shape[0] for group in frozen.groups)
