@@ -11,7 +11,7 @@ datasets (the benchmark config at 128², default scene and spot, seeds 103-105: 
 blind benchmark's scored cases never use) as twice the largest reduction seen, floored at
 MINIMUM_SHARE; the script prints the table below from fresh fits (largest clean reductions with
 the Gauss-Newton probes and frozen-geometry absorption refits: defocus 0.081, motion 0.070,
-pose 0.061, lens 0.034, vignetting 0.021, all others below 0.011; absorption: lens 0.041,
+pose 0.061, lens 0.034, vignetting 0.021, all others below 0.011; absorption: lens 0.059,
 vignetting 0.009, specular 0.004; spot's texture-resolution misfit is what the blur probes pick up). The
 visibility fingerprint's largest clean share there was 0.024.
 """
@@ -45,7 +45,7 @@ ABSORPTION_MINIMUM_SHARE = 0.01
 # Absorption (a short refit with the effect against a control refit without it): twice the
 # largest reduction over the control on the same calibration fits.
 ABSORPTION_ALLOWANCE: dict[str, float] = {
-    "lens_distortion": 0.083,
+    "lens_distortion": 0.118,
     "vignetting": 0.018,
     "specular": 0.01,
 }

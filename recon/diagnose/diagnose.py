@@ -138,14 +138,19 @@ def diagnose_run(
     where = where_analysis(data)
     probe = EffectProbe(data)
     ranking = rank_candidates(data, candidates, probe=probe)
+    gap["visibility_fingerprint"] = fingerprint_evidence(ranking, data, probe)
+    if absorption:
+        absorption_probes(ranking, data, paths, config, device)
+    ranking.sort(key=CandidateResult.rank_key, reverse=True)
     # A per-view effect at the top (exposure, pose, ...) is measured first; everything else is
-    # then measured on top of it, so a pair is not hidden behind its louder half.
+    # then measured again on top of it, so a pair is not hidden behind its louder half. (The
+    # absorption evidence is gathered before this choice: a lens distortion that the fit bent
+    # into the geometry looks like per-view misalignment to the probes alone.)
     given = conditioning_effect(ranking)
     if given:
         conditional_probes(ranking, probe, given)
-    gap["visibility_fingerprint"] = fingerprint_evidence(ranking, data, probe)
-    if absorption:
-        absorption_probes(ranking, data, paths, config, device, given=given)
+        if absorption:
+            absorption_probes(ranking, data, paths, config, device, given=given)
     ranking.sort(key=CandidateResult.rank_key, reverse=True)
     timings = {"diagnose_seconds": round(time.perf_counter() - started, 2)}
     # Against the ground truth when the run has one (synthetic data only; not part of the

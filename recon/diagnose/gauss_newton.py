@@ -152,6 +152,22 @@ class GaussNewtonProblem:
         damped = matrix + torch.diag(diagonal * (damping + RIDGE))
         return torch.linalg.lstsq(damped, vector[:, None]).solution[:, 0]
 
+    def _predicted(self, matrix: torch.Tensor, vector: torch.Tensor, loss: float) -> float:
+        return float(vector @ self.solve(matrix, vector, 0.0)) / max(loss, 1e-20)
+
+    def score(self, start_image: torch.Tensor | None = None) -> float:
+        """The score test at the current parameters: the relative loss reduction a full
+        Gauss-Newton step predicts, g^T (J^T J)^-1 g / loss with g = J^T r (nothing moves)."""
+        if not self.columns:
+            return 0.0
+        if start_image is None:
+            with torch.no_grad():
+                start_image = self.render()
+        matrix, vector = self.normal_equations(
+            self.jacobian(start_image), self.observed - start_image
+        )
+        return self._predicted(matrix, vector, self.loss(start_image))
+
     # -- the solver --------------------------------------------------------------------------
     def fit(
         self,
@@ -177,8 +193,7 @@ class GaussNewtonProblem:
         initial_loss = loss
         jacobian = self.jacobian(base)
         matrix, vector = self.normal_equations(jacobian, self.observed - base)
-        predicted = float(vector @ self.solve(matrix, vector, 0.0))
-        score = predicted / max(initial_loss, 1e-20)
+        score = self._predicted(matrix, vector, initial_loss)
         damping = INITIAL_DAMPING
         for iteration in range(iterations):
             delta = self.solve(matrix, vector, damping)

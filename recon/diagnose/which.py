@@ -277,6 +277,23 @@ def probe_effect(name: str, view_count: int, device) -> ModelEffect:
     return effect
 
 
+# Where a probe starts instead of the identity, for parameters whose image changes to second
+# order at zero: the motion blur's covariance is quadratic in its line vector there, so the
+# first Gauss-Newton step from zero overshoots (a half-pixel-squared horizontal line instead).
+PROBE_STARTS: dict[str, tuple[str, float]] = {"motion_blur": ("line", 0.5)}
+
+
+def _move_to_start(effect: ModelEffect) -> bool:
+    """Move an effect still at the identity to its PROBE_STARTS point; whether it moved."""
+    start = PROBE_STARTS.get(effect.name)
+    if start is None or not effect.is_identity():
+        return False
+    name, value = start
+    with torch.no_grad():
+        getattr(effect, name)[..., 0] = value
+    return True
+
+
 def fit_on_halves(
     effects: list[ModelEffect],
     probe: EffectProbe,
@@ -288,9 +305,9 @@ def fit_on_halves(
     view's pixel blocks, scene frozen (Gauss-Newton, recon.diagnose.gauss_newton); per-view
     squared error sums and counts [B] of the scene with the effects on the second half.
 
-    with_score: also return the score test at the starting parameters (the relative loss
-    reduction on the first half that the first Gauss-Newton step predicts):
-    ((sums, counts), score).
+    with_score: also return the score test at the parameters the effects come with (the
+    identity for a probe): the relative loss reduction on the first half that a full
+    Gauss-Newton step predicts, ((sums, counts), score).
     """
     data = probe.data
     batch, height, width, _ = data.observed.shape
@@ -302,10 +319,13 @@ def fit_on_halves(
             trainable, lambda: probe.render(effects), data.observed, first * data.region
         )
         at_identity = all(effect.is_identity() for effect in effects)
-        score = problem.fit(
-            iterations,
-            start_image=probe.base_output.color if at_identity else None,
-        )["score"]
+        start_image = probe.base_output.color if at_identity else None
+        if with_score:
+            score = problem.score(start_image)
+        moved = [_move_to_start(effect) for effect in trainable]
+        if any(moved):
+            start_image = None
+        problem.fit(iterations, start_image=start_image)
     with torch.no_grad():
         color = probe.render(effects) if effects else probe.base_output.color
         errors = _per_view_mse(color, data.observed, second * data.region)
