@@ -165,9 +165,12 @@ def _diagnose(arguments) -> int:
         flag = f"significant ({candidate['evidence']})" if candidate["significant"] else ""
         absorption = candidate.get("absorption")
         absorbed = "" if absorption is None else f" absorption {absorption:6.3f}"
+        relight = candidate.get("relight_reduction")
+        relit = "" if relight is None else f" relight {relight:6.3f}"
         print(
             f"{candidate['effect']:16} held-out reduction {candidate['heldout_reduction']:7.3f} "
-            f"[{candidate['interval'][0]:.3f}, {candidate['interval'][1]:.3f}]{absorbed} {flag}"
+            f"[{candidate['interval'][0]:.3f}, {candidate['interval'][1]:.3f}]{absorbed}{relit} "
+            f"{flag}"
         )
     fingerprint = result["gap"].get("visibility_fingerprint")
     if fingerprint:

@@ -10,7 +10,7 @@ The allowances were measured with ``scripts/calibrate_diagnosis.py`` on clean ca
 datasets (the benchmark config at 128², default scene and spot, seeds 103-105: fits that the
 blind benchmark's scored cases never use) as twice the largest reduction seen, floored at
 MINIMUM_SHARE; the script prints the table below from fresh fits (largest clean reductions with
-the Gauss-Newton probes and frozen-geometry absorption refits: defocus 0.081, motion 0.070,
+the Gauss-Newton probes and the absorption refits of this session: defocus 0.081, motion 0.080,
 pose 0.061, lens 0.034, vignetting 0.021, all others below 0.011; absorption: lens 0.059,
 vignetting 0.009, specular 0.004; spot's texture-resolution misfit is what the blur probes pick up). The
 visibility fingerprint's largest clean share there was 0.024.
@@ -25,7 +25,7 @@ MINIMUM_SHARE = 0.02
 # twice the largest held-out reduction on the clean calibration fits.
 PROBE_ALLOWANCE: dict[str, float] = {
     "defocus_blur": 0.162,
-    "motion_blur": 0.141,
+    "motion_blur": 0.161,
     "pose_error": 0.121,
     "lens_distortion": 0.069,
     "vignetting": 0.043,
@@ -49,6 +49,10 @@ ABSORPTION_ALLOWANCE: dict[str, float] = {
     "vignetting": 0.018,
     "specular": 0.01,
 }
+
+# Relight response probe (recon.diagnose.relight_probe): twice the largest reduction on the
+# clean calibration fits, floored at MINIMUM_SHARE.
+RELIGHT_ALLOWANCE = 0.02
 
 # Visibility fingerprint (recon.diagnose.fingerprint): the share of the self-shadowing that the
 # fitted mesh and light predict which the fit baked into its albedo. Clean fits stay below

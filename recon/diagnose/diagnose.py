@@ -27,6 +27,7 @@ from recon.diagnose.absorption import absorption_probes, heldout_errors, heldout
 from recon.diagnose.data import DiagnosisData, load_diagnosis_data
 from recon.diagnose.fingerprint import FINGERPRINT_EFFECTS, visibility_fingerprint
 from recon.diagnose.refit import REFIT_STEPS, refit_with
+from recon.diagnose.relight_probe import relight_response_probe
 from recon.diagnose.residuals import gap_summary, noise_floor, relight_gap, where_analysis
 from recon.diagnose.which import (
     CandidateResult,
@@ -69,18 +70,32 @@ def fingerprint_evidence(ranking, data: DiagnosisData, probe: EffectProbe) -> di
     return record
 
 
-def _relight_gap(paths: RunPaths, device: torch.device) -> dict:
+def _relight(paths: RunPaths, device: torch.device) -> tuple[dict, tuple | None]:
     """The relight split's gap under its own light (gauge fixed, residuals.relight_gap), or why
-    it cannot be measured: rendered under the fitted light, a relight view would only measure
-    the change of light."""
+    it cannot be measured (rendered under the fitted light, a relight view would only measure
+    the change of light); and the relight views rendered under both lights (relight data,
+    colour under the fitted light) for the response probe, or None."""
     light_path = paths.dataset / RELIGHT_LIGHTING
     if not light_path.exists():
         return {
             "skipped": f"{light_path} not found: the relight split's light is unknown, so its "
             "gap is not measured"
-        }
+        }, None
     lighting = Lighting.from_json(json.loads(light_path.read_text()), device)
-    return relight_gap(load_diagnosis_data(paths, "relight", device, lighting=lighting))
+    relight = load_diagnosis_data(paths, "relight", device, lighting=lighting)
+    under_fitted = load_diagnosis_data(paths, "relight", device).rendered
+    return relight_gap(relight), (relight, under_fitted)
+
+
+def relight_evidence(ranking: list[CandidateResult], relight_views: tuple) -> None:
+    """The relight split's response-curve probe, recorded on the response_curve entry."""
+    record = relight_response_probe(*relight_views)
+    for candidate in ranking:
+        if candidate.effect == "response_curve":
+            candidate.relight_reduction = record["reduction"]
+            candidate.relight_interval = tuple(record["interval"])
+            candidate.relight_parameters = record["parameters"]
+            candidate.decide()
 
 
 def _geometry_errors(mesh, reference) -> dict:
@@ -133,12 +148,15 @@ def diagnose_run(
     floor = noise_floor(data)
     floor_rmse = floor.get("floor_rmse") or 0.0
     gap["noise_floor"] = floor
+    relight_views = None
     if (paths.dataset / "transforms_relight.json").exists():
-        gap["relight"] = _relight_gap(paths, device)
+        gap["relight"], relight_views = _relight(paths, device)
     where = where_analysis(data)
     probe = EffectProbe(data)
     ranking = rank_candidates(data, candidates, probe=probe)
     gap["visibility_fingerprint"] = fingerprint_evidence(ranking, data, probe)
+    if relight_views is not None:
+        relight_evidence(ranking, relight_views)
     if absorption:
         absorption_probes(ranking, data, paths, config, device)
     ranking.sort(key=CandidateResult.rank_key, reverse=True)

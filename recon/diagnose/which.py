@@ -23,7 +23,11 @@ from dataclasses import dataclass, field
 import torch
 from tqdm import tqdm
 
-from recon.diagnose.calibration import absorption_threshold, probe_threshold
+from recon.diagnose.calibration import (
+    RELIGHT_ALLOWANCE,
+    absorption_threshold,
+    probe_threshold,
+)
 from recon.diagnose.data import DiagnosisData
 from recon.diagnose.gauss_newton import GAUSS_NEWTON_ITERATIONS, GaussNewtonProblem
 from recon.effects.base import ModelEffect
@@ -52,6 +56,10 @@ class CandidateResult:
     absorption_interval: tuple[float, float] | None = None
     absorption_parameters: dict | None = None
     fingerprint: dict | None = None
+    # The relight split's evidence (the response curve only, recon.diagnose.relight_probe).
+    relight_reduction: float | None = None
+    relight_interval: tuple[float, float] | None = None
+    relight_parameters: dict | None = None
     # The effect its probe and absorption evidence were measured on top of (None: alone).
     conditional_on: str | None = None
     # What made it significant: "probe", "absorption" or "fingerprint" ("" when nothing did).
@@ -63,7 +71,7 @@ class CandidateResult:
     def decide(self) -> None:
         """Significance from the recorded evidence and the calibrated thresholds
         (recon.diagnose.calibration): the probe's held-out reduction, else the absorption
-        refit's, else the visibility fingerprint naming this effect."""
+        refit's, else the relight split's, else the visibility fingerprint naming this effect."""
         evidence = ""
         if self.interval[0] > probe_threshold(self.effect):
             evidence = "probe"
@@ -71,6 +79,8 @@ class CandidateResult:
             0
         ] > absorption_threshold(self.effect):
             evidence = "absorption"
+        elif self.relight_interval is not None and self.relight_interval[0] > RELIGHT_ALLOWANCE:
+            evidence = "relight"
         elif self.fingerprint is not None and self.fingerprint.get("names") == self.effect:
             evidence = "fingerprint"
         self.evidence = evidence
@@ -80,6 +90,7 @@ class CandidateResult:
     def from_json(cls, record: dict) -> CandidateResult:
         """The inverse of to_json (for re-deciding a stored diagnosis)."""
         absorption_interval = record.get("absorption_interval")
+        relight_interval = record.get("relight_interval")
         return cls(
             effect=record["effect"],
             score=record["score"],
@@ -91,6 +102,9 @@ class CandidateResult:
             absorption_interval=None if absorption_interval is None else tuple(absorption_interval),
             absorption_parameters=record.get("absorption_parameters"),
             fingerprint=record.get("fingerprint"),
+            relight_reduction=record.get("relight_reduction"),
+            relight_interval=None if relight_interval is None else tuple(relight_interval),
+            relight_parameters=record.get("relight_parameters"),
             conditional_on=record.get("conditional_on"),
             evidence=record.get("evidence", ""),
         )
@@ -103,19 +117,28 @@ class CandidateResult:
         excess = self.interval[0] - probe_threshold(self.effect)
         if self.absorption_interval is not None:
             excess = max(excess, self.absorption_interval[0] - absorption_threshold(self.effect))
+        if self.relight_interval is not None:
+            excess = max(excess, self.relight_interval[0] - RELIGHT_ALLOWANCE)
         return excess
 
     def rank_key(self) -> tuple:
         """Significant first; then held-out evidence (probe or absorption) before the albedo
         fingerprint alone, whose effect shows in no held-out residual; then by how far the
         evidence clears its null (the fingerprint: by its share)."""
-        by_residual = self.evidence in ("probe", "absorption")
+        by_residual = self.evidence in ("probe", "absorption", "relight")
         strength = (self.fingerprint or {}).get("share", 0.0)
         return (
             self.significant,
             by_residual,
             strength if self.evidence == "fingerprint" else self.excess(),
         )
+
+    def _deciding_parameters(self) -> dict:
+        if self.evidence == "absorption" and self.absorption_parameters is not None:
+            return self.absorption_parameters
+        if self.evidence == "relight" and self.relight_parameters is not None:
+            return self.relight_parameters
+        return self.parameters
 
     def to_json(self) -> dict:
         return {
@@ -126,9 +149,7 @@ class CandidateResult:
             "significant": self.significant,
             # The parameters of the evidence that decided (the absorption refit's when that
             # made it significant), and the probe's own.
-            "parameters": self.absorption_parameters
-            if self.evidence == "absorption" and self.absorption_parameters is not None
-            else self.parameters,
+            "parameters": self._deciding_parameters(),
             "probe_parameters": self.parameters,
             "absorption_parameters": self.absorption_parameters,
             "absorption": self.absorption,
@@ -136,6 +157,11 @@ class CandidateResult:
             if self.absorption_interval is None
             else list(self.absorption_interval),
             "fingerprint": self.fingerprint,
+            "relight_reduction": self.relight_reduction,
+            "relight_interval": None
+            if self.relight_interval is None
+            else list(self.relight_interval),
+            "relight_parameters": self.relight_parameters,
             "conditional_on": self.conditional_on,
             "evidence": self.evidence,
         }

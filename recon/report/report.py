@@ -171,11 +171,20 @@ def report_stage(config: RunConfig, paths: RunPaths, device: torch.device) -> di
 
 def _ranking_table(diagnosis: dict) -> tuple[list[str], list[list[str]]]:
     """The diagnosis ranking as (header, rows) of text cells."""
-    header = ["effect", "evidence", "held-out reduction", "interval", "absorption", "significant"]
+    header = [
+        "effect",
+        "evidence",
+        "held-out reduction",
+        "interval",
+        "absorption",
+        "relight",
+        "significant",
+    ]
     rows = []
     for item in diagnosis["ranking"]:
         low, high = item["interval"]
         absorption = item.get("absorption")
+        relight = item.get("relight_reduction")
         rows.append(
             [
                 item["effect"],
@@ -183,6 +192,7 @@ def _ranking_table(diagnosis: dict) -> tuple[list[str], list[list[str]]]:
                 f"{item['heldout_reduction']:.3f}",
                 f"[{low:.3f}, {high:.3f}]",
                 "" if absorption is None else f"{absorption:.3f}",
+                "" if relight is None else f"{relight:.3f}",
                 "yes" if item["significant"] else "",
             ]
         )

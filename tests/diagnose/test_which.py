@@ -18,8 +18,8 @@ from recon.diagnose.which import (
     probe_effect,
     rank_candidates,
 )
-from recon.effects.forward import apply_camera_effects
 from recon.effects import make_effect
+from recon.effects.forward import apply_camera_effects
 from recon.render.renderer import Renderer
 from recon.render.shading import Lighting
 

@@ -49,7 +49,7 @@ def test_report_carries_the_diagnosis(tmp_path):
     report_stage(RunConfig(), paths, torch.device("cpu"))
     markdown = paths.report_markdown.read_text()
     assert "Verdict: significant unmodelled effects: vignetting" in markdown
-    assert "| vignetting | absorption | 0.035 | [0.012, 0.060] | 0.104 | yes |" in markdown
+    assert "| vignetting | absorption | 0.035 | [0.012, 0.060] | 0.104 |  | yes |" in markdown
     assert "| pose_error |  | 0.050 | [-0.010, 0.090] |  |  |" in markdown
     assert "| vignetting | 0.0304 | 0.0251 | 0.0077 | 23 % |" in markdown
     page = paths.report_html.read_text()

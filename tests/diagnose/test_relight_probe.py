@@ -1,0 +1,69 @@
+"""The relight split's response-curve probe: a power-law tone curve that the albedo absorbed under
+the first light shows under the second, the probe recovers its exponent, and a linear camera
+leaves nothing to find."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import torch
+
+from data_synth.shapes import torus
+from recon.camera import orbit_cameras
+from recon.diagnose.data import build_diagnosis_data
+from recon.diagnose.relight_probe import relight_response_probe
+from recon.render.renderer import Renderer
+from recon.render.shading import DirectionalLight, Lighting
+
+VIEWS, SIZE = 6, 40
+
+
+def lit_by(direction: list[float]) -> Lighting:
+    ambient = Lighting.constant(0.3)
+    sun = DirectionalLight(
+        torch.nn.functional.normalize(torch.tensor(direction), dim=0), torch.full((3,), 1.5)
+    )
+    return Lighting(sh_coefficients=ambient.sh_coefficients, directional=[sun])
+
+
+def relight_case(gamma: float, noise: float = 0.002):
+    mesh = torus(resolution=24)
+    steps = torch.linspace(0, 1, 32)
+    u, v = torch.meshgrid(steps, steps, indexing="xy")
+    pattern = 0.45 + 0.25 * torch.sin(6.28 * 2 * u) * torch.sin(6.28 * 3 * v)
+    mesh.texture = torch.stack([pattern, 0.8 * pattern + 0.1, 0.6 * pattern + 0.2], -1)
+    cameras = orbit_cameras(VIEWS, (SIZE, SIZE), distance=2.2, fov_x_deg=50, elevation_deg=30)
+    renderer = Renderer(texture_filter="linear")
+    first, second = lit_by([0.5, 0.8, 0.4]), lit_by([-0.7, 0.5, -0.3])
+    under_first = renderer.render(mesh, cameras, first)
+    under_second = renderer.render(mesh, cameras, second)
+    # The camera's curve, applied to what it saw; the fit kept f(a s1) as its radiance.
+    fitted_first = under_first.color.clamp_min(0).pow(gamma)
+    ratio = under_second.color / under_first.color.clamp_min(1e-3)
+    fitted_second = torch.where(under_first.color > 1e-3, fitted_first * ratio, under_second.color)
+    generator = torch.Generator().manual_seed(0)
+    observed = under_second.color.clamp_min(0).pow(gamma) * under_second.alpha
+    observed = observed + noise * torch.randn(observed.shape, generator=generator)
+    relight = build_diagnosis_data(
+        observed,
+        under_second.alpha,
+        replace(under_second, color=fitted_second),
+        cameras,
+        second,
+        mesh,
+    )
+    return relight, fitted_first
+
+
+def test_a_tone_curve_shows_under_the_second_light():
+    relight, under_fitted = relight_case(gamma=0.6)
+    record = relight_response_probe(relight, under_fitted)
+    assert record["interval"][0] > 0.3, record
+    assert abs(record["parameters"]["gamma"] - 0.6) < 0.05, record
+
+
+def test_a_linear_camera_leaves_nothing():
+    relight, under_fitted = relight_case(gamma=1.0)
+    record = relight_response_probe(relight, under_fitted)
+    assert abs(record["reduction"]) < 0.02, record
+    assert abs(record["parameters"]["gamma"] - 1.0) < 0.05, record
