@@ -103,3 +103,22 @@ def test_only_a_per_view_probe_effect_conditions():
     assert conditioning_effect([candidate("defocus_blur", "probe")]) is None
     assert conditioning_effect([candidate("vignetting", "absorption")]) is None
     assert conditioning_effect([candidate("exposure", "")]) is None
+
+
+def test_relight_evidence_decides_and_survives_a_round_trip():
+    from recon.diagnose.calibration import RELIGHT_ALLOWANCE
+
+    quiet = CandidateResult("response_curve", 0.0, 0.001, (-0.01, 0.01), False)
+    quiet.relight_interval = (RELIGHT_ALLOWANCE + 0.1, RELIGHT_ALLOWANCE + 0.3)
+    quiet.relight_parameters = {"gamma": 0.7, "effective_gamma": 0.7}
+    quiet.decide()
+    assert quiet.significant and quiet.evidence == "relight"
+    record = quiet.to_json()
+    assert record["parameters"] == {"gamma": 0.7, "effective_gamma": 0.7}
+    again = CandidateResult.from_json(record)
+    again.decide()
+    assert again.evidence == "relight" and again.excess() > 0.09
+    below = CandidateResult("response_curve", 0.0, 0.001, (-0.01, 0.01), False)
+    below.relight_interval = (RELIGHT_ALLOWANCE - 0.01, 0.2)
+    below.decide()
+    assert not below.significant
