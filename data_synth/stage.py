@@ -11,7 +11,8 @@ linear radiance, then 8-bit quantisation when the PNG is written.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
@@ -21,7 +22,7 @@ from data_synth.effects.base import LIGHT_TRANSPORT, AppliedEffect, Capture
 from data_synth.rigs import make_cameras
 from data_synth.scene import WorldLighting, build_lighting, build_mesh, lighting_to_json
 from recon.camera import Cameras
-from recon.config.run_config import EffectConfig, RunConfig
+from recon.config.run_config import EffectConfig, LightingConfig, RunConfig
 from recon.errors import ReconError
 from recon.io.atomic import atomic_write_json
 from recon.io.datasets import RELIGHT_LIGHTING, write_nerf_synthetic
@@ -90,6 +91,29 @@ def render_views_own(
 
 def _light_transport_names(effects: list[EffectConfig]) -> list[EffectConfig]:
     return [effect for effect in effects if effect.name in LIGHT_TRANSPORT]
+
+
+def relit_effects(effects: list[EffectConfig], lighting: LightingConfig) -> list[EffectConfig]:
+    """The effects for a relight split: the shadows effect's disk sun (which replaces the scene's
+    directional lights) moves to the relight light's first sun, with its irradiance, keeping its
+    own angular size. A shadows world is about how the sun casts shadows; under a second light
+    the sun is that light's, which the diagnosis knows (lighting_relight.json). Without a sun in
+    the relight light the effect is left as it is."""
+    if not lighting.suns:
+        return list(effects)
+    sun = lighting.suns[0]
+    x, y, z = (float(value) for value in sun.direction)
+    length = math.sqrt(x * x + y * y + z * z)
+    relit = []
+    for effect in effects:
+        if effect.name == "shadows":
+            parameters = dict(effect.parameters)
+            parameters["elevation_deg"] = math.degrees(math.asin(max(-1.0, min(1.0, y / length))))
+            parameters["azimuth_deg"] = math.degrees(math.atan2(x, z))
+            parameters["irradiance"] = sum(float(value) for value in sun.irradiance) / 3.0
+            effect = replace(effect, parameters=parameters)
+        relit.append(effect)
+    return relit
 
 
 def render_split(
@@ -211,8 +235,13 @@ def synth_stage(
             split_world = world
         if split == "test":
             test_cameras = cameras
+        split_effects = (
+            relit_effects(effects, capture_config.relight.lighting)
+            if split == "relight"
+            else effects
+        )
         rendered = render_split(
-            mesh, cameras, split_world, config, effects, f"synth {split}", device
+            mesh, cameras, split_world, config, split_effects, f"synth {split}", device
         )
         capture = Capture(rendered.colors, rendered.alphas, cameras)
         applied: list[AppliedEffect] = []

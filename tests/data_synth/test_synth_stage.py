@@ -478,3 +478,26 @@ def test_bench_synth_quick_mode_runs(tmp_path, capsys):
     if "skipped" not in mitsuba:
         assert mitsuba["render_s_per_view"] > 0 and mitsuba["sample"]["mitsuba_render_s"] > 0
         assert mitsuba["full_run"]["views"] == 2
+
+
+def test_a_relight_split_moves_the_shadows_sun_to_its_own_light():
+    # The shadows effect replaces the scene's suns by its disk sun; under the relight split's
+    # light that sun must be the relight light's (the one lighting_relight.json tells the
+    # diagnosis), or the "relight" views would be lit as the training views were.
+    from data_synth.effects.light_transport import Shadows
+    from data_synth.stage import relit_effects
+    from recon.config.run_config import EffectConfig, LightingConfig, SunConfig
+
+    shadows = EffectConfig(
+        "shadows", {"elevation_deg": 40.0, "azimuth_deg": 10.0, "angular_diameter_deg": 6.0}
+    )
+    exposure = EffectConfig("exposure", {"spread": 0.2})
+    lighting = LightingConfig(suns=[SunConfig(direction=[-0.7, 0.5, -0.3], irradiance=[3.0] * 3)])
+    relit = relit_effects([shadows, exposure], lighting)
+    assert relit[1] == exposure
+    assert relit[0].parameters["angular_diameter_deg"] == 6.0
+    assert relit[0].parameters["irradiance"] == 3.0
+    direction = torch.tensor(Shadows(relit[0].parameters).direction_to_light())
+    expected = torch.nn.functional.normalize(torch.tensor([-0.7, 0.5, -0.3]), dim=0)
+    torch.testing.assert_close(direction, expected, atol=1e-6, rtol=0)
+    assert relit_effects([shadows], LightingConfig(suns=[]))[0] == shadows
