@@ -40,7 +40,7 @@ def main(argv: list[str] | None = None) -> int:
         "same; only the decision depends on the thresholds)",
     )
     arguments = parser.parse_args(argv)
-    probe, absorption, shares = {}, {}, []
+    probe, absorption, relight, shares = {}, {}, {}, []
     for run in arguments.runs:
         paths = open_run_folder(Path(run))
         stored = paths.root / "diagnosis.json"
@@ -54,6 +54,8 @@ def main(argv: list[str] | None = None) -> int:
             probe[name] = max(probe.get(name, 0.0), item["heldout_reduction"])
             if item["absorption"] is not None:
                 absorption[name] = max(absorption.get(name, 0.0), item["absorption"])
+            if item.get("relight_reduction") is not None:
+                relight[name] = max(relight.get(name, 0.0), item["relight_reduction"])
         shares.append(result["gap"]["visibility_fingerprint"]["share"])
 
     def allowance(values: dict, floor: float = MINIMUM_SHARE) -> dict:
@@ -67,6 +69,8 @@ def main(argv: list[str] | None = None) -> int:
                 "probe_allowance": allowance(probe),
                 "absorption_largest": absorption,
                 "absorption_allowance": allowance(absorption, ABSORPTION_MINIMUM_SHARE),
+                "relight_largest": relight,
+                "relight_allowance": allowance(relight),
                 "visibility_share_largest": max(shares),
             },
             indent=2,

@@ -157,6 +157,12 @@ def heldout_errors(
     return fit_on_halves(modules, EffectProbe(data), trainable=per_view)
 
 
+def _had_evidence(candidate: CandidateResult) -> bool:
+    """Whether an earlier absorption pass left a positive lower bound."""
+    interval = candidate.absorption_interval
+    return interval is not None and interval[0] > 0
+
+
 def absorption_probes(
     ranking: list[CandidateResult],
     data: DiagnosisData,
@@ -171,7 +177,9 @@ def absorption_probes(
     absorption evidence, recorded in place (and it can make the candidate significant).
 
     given: an effect switched on in the control and in every candidate refit alike (see
-    which.conditioning_effect), so the evidence is what each candidate adds on top of it.
+    which.conditioning_effect), so the evidence is what each candidate adds on top of it. With
+    a given effect, the geometry refits run only for candidates whose earlier (unconditional)
+    absorption evidence had a positive lower bound.
     """
     # Bilinear without mipmaps: the training views sample the texture near 1:1, and the
     # refits only compare with each other (the held-out evaluation renders in full).
@@ -205,6 +213,10 @@ def absorption_probes(
         if candidate.effect not in ABSORBABLE or candidate.effect == given:
             continue
         moving = candidate.effect in GEOMETRY_ABSORBABLE
+        if moving and given and not _had_evidence(candidate):
+            # Two full refits again on top of the given effect only where the first pass saw
+            # some sign of the effect: otherwise its unconditional evidence stands.
+            continue
         if moving not in controls:
             controls[moving] = evaluate(base, moving)[0]
         squared, fitted = evaluate(base + [candidate.effect], moving)

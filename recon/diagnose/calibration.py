@@ -51,8 +51,8 @@ ABSORPTION_ALLOWANCE: dict[str, float] = {
 }
 
 # Relight response probe (recon.diagnose.relight_probe): twice the largest reduction on the
-# clean calibration fits, floored at MINIMUM_SHARE.
-RELIGHT_ALLOWANCE = 0.02
+# clean calibration fits (0.044, spot; the torus stays below 0.012), floored at MINIMUM_SHARE.
+RELIGHT_ALLOWANCE = 0.088
 
 # Visibility fingerprint (recon.diagnose.fingerprint): the share of the self-shadowing that the
 # fitted mesh and light predict which the fit baked into its albedo. Clean fits stay below

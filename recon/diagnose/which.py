@@ -134,9 +134,13 @@ class CandidateResult:
         )
 
     def _deciding_parameters(self) -> dict:
+        """The parameters of the evidence that decided; with none deciding, the relight
+        split's when it has them (the one estimate of a response curve the albedo cannot
+        absorb), else the probe's."""
         if self.evidence == "absorption" and self.absorption_parameters is not None:
             return self.absorption_parameters
-        if self.evidence == "relight" and self.relight_parameters is not None:
+        relight_decides = self.evidence in ("relight", "")
+        if relight_decides and self.relight_parameters is not None:
             return self.relight_parameters
         return self.parameters
 
