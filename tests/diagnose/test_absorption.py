@@ -4,8 +4,8 @@ darkening that a fit without it baked in, and finds nothing to take back on clea
 from __future__ import annotations
 
 import torch
+from diagnose_scenes import patterned_torus
 
-from data_synth.shapes import torus
 from recon.camera import orbit_cameras
 from recon.diagnose.absorption import (
     FrozenTrainingViews,
@@ -24,11 +24,7 @@ SIZE, TRAIN, TEST = 40, 12, 6
 
 
 def scene_and_views(corner_darkening: float):
-    mesh = torus(resolution=24)
-    steps = torch.linspace(0, 1, 32)
-    u, v = torch.meshgrid(steps, steps, indexing="xy")
-    pattern = 0.5 + 0.25 * torch.sin(6.28 * 2 * u) * torch.sin(6.28 * 3 * v)
-    mesh.texture = torch.stack([pattern, 0.7 * pattern + 0.2, 0.5 * (1 - pattern) + 0.2], -1)
+    mesh = patterned_torus((2, 3), 0.25, lambda p: [p, 0.7 * p + 0.2, 0.5 * (1 - p) + 0.2])
     lighting = Lighting.constant(0.9)
     renderer = Renderer(texture_filter="linear-mipmap-linear", texture_boundary="clamp")
     cameras = orbit_cameras(

@@ -7,8 +7,8 @@ from __future__ import annotations
 from dataclasses import replace
 
 import torch
+from diagnose_scenes import patterned_torus
 
-from data_synth.shapes import torus
 from recon.camera import orbit_cameras
 from recon.diagnose.data import build_diagnosis_data
 from recon.diagnose.relight_probe import relight_response_probe
@@ -27,11 +27,7 @@ def lit_by(direction: list[float]) -> Lighting:
 
 
 def relight_case(gamma: float, noise: float = 0.002):
-    mesh = torus(resolution=24)
-    steps = torch.linspace(0, 1, 32)
-    u, v = torch.meshgrid(steps, steps, indexing="xy")
-    pattern = 0.45 + 0.25 * torch.sin(6.28 * 2 * u) * torch.sin(6.28 * 3 * v)
-    mesh.texture = torch.stack([pattern, 0.8 * pattern + 0.1, 0.6 * pattern + 0.2], -1)
+    mesh = patterned_torus((2, 3), 0.25, lambda p: [p, 0.8 * p + 0.1, 0.6 * p + 0.2], base=0.45)
     cameras = orbit_cameras(VIEWS, (SIZE, SIZE), distance=2.2, fov_x_deg=50, elevation_deg=30)
     renderer = Renderer(texture_filter="linear")
     first, second = lit_by([0.5, 0.8, 0.4]), lit_by([-0.7, 0.5, -0.3])

@@ -6,8 +6,8 @@ re-probed; a second effect hidden entirely behind the first is the absorption re
 from __future__ import annotations
 
 import torch
+from diagnose_scenes import patterned_torus
 
-from data_synth.shapes import torus
 from recon.camera import orbit_cameras
 from recon.diagnose.data import build_diagnosis_data
 from recon.diagnose.which import (
@@ -28,11 +28,7 @@ VIEWS = 16
 
 
 def observed_scene(blur: bool):
-    mesh = torus(resolution=24)
-    steps = torch.linspace(0, 1, 32)
-    u, v = torch.meshgrid(steps, steps, indexing="xy")
-    pattern = 0.5 + 0.3 * torch.sin(6.28 * 3 * u) * torch.sin(6.28 * 2 * v)
-    mesh.texture = torch.stack([pattern, 0.8 * pattern + 0.1, 0.6 * (1 - pattern) + 0.2], -1)
+    mesh = patterned_torus((3, 2), 0.3, lambda p: [p, 0.8 * p + 0.1, 0.6 * (1 - p) + 0.2])
     cameras = orbit_cameras(VIEWS, (SIZE, SIZE), distance=2.4, fov_x_deg=45, elevation_deg=30)
     lighting = Lighting.constant(0.8)
     output = Renderer(texture_filter="linear").render(mesh, cameras, lighting)
