@@ -24,7 +24,7 @@ import torch
 from recon.camera.cameras import Cameras
 from recon.config.run_config import RunConfig
 from recon.diagnose.data import DiagnosisData
-from recon.diagnose.refit import detached, light_model, refit_with
+from recon.diagnose.refit import refit_with
 from recon.diagnose.which import (
     CandidateResult,
     EffectProbe,
@@ -37,6 +37,7 @@ from recon.effects.registry import make_effect
 from recon.io.datasets import CaptureSet, read_captures
 from recon.io.run_folder import RunPaths
 from recon.mesh.mesh import Mesh
+from recon.optimize.scene_model import LightModel, texture_total_variation
 from recon.render.renderer import Renderer, SurfaceBuffers
 from recon.render.shading import Lighting
 from recon.render.texture import build_mip_pyramid
@@ -98,7 +99,7 @@ def frozen_refit(
     device = frozen.mesh.verts.device
     modules = [make_effect(name, view_count=frozen.view_count).to(device) for name in names]
     texture = torch.nn.Parameter(frozen.mesh.texture.clone())
-    light = light_model(frozen.lighting)
+    light = LightModel.from_lighting(frozen.lighting)
     groups = [{"params": [texture], "lr": TEXTURE_LEARNING_RATE}]
     groups.append({"params": list(light.parameters()), "lr": LIGHT_LEARNING_RATE})
     groups += [group for module in modules for group in module.parameter_groups()]
@@ -119,10 +120,7 @@ def frozen_refit(
         context = EffectContext(frozen.mesh, lighting, cameras, views, renderer)
         output = apply_shading_effects(modules, output, context)
         color, _ = apply_image_effects(modules, output.color, output.alpha, cameras, views)
-        # Total variation keeps texels that few views see from speckling, as in the fit.
-        smoothness = (texture[1:] - texture[:-1]).abs().mean() + (
-            texture[:, 1:] - texture[:, :-1]
-        ).abs().mean()
+        smoothness = texture_total_variation(texture)  # as in the fit
         # Squared error, like the held-out evaluation: an L1 loss keeps Adam's texel steps at
         # full size to the end, and that jitter would swamp a small absorbed effect.
         loss = ((color - observed) ** 2).mean() + SMOOTHNESS_WEIGHT * smoothness
@@ -130,7 +128,7 @@ def frozen_refit(
         loss.backward()
         optimizer.step()
     mesh = replace(frozen.mesh, texture=texture.detach())
-    return mesh, detached(light.lighting()), modules
+    return mesh, light.lighting().detached(), modules
 
 
 def heldout_modules(names: list[str], fitted: list[ModelEffect], view_count: int, device):
@@ -189,7 +187,6 @@ def absorption_probes(
 
     def evaluate(names: list[str], moving: bool) -> tuple[torch.Tensor, list[ModelEffect]]:
         nonlocal frozen
-        torch.manual_seed(0)
         if moving:
             mesh, lighting, fitted_effects = refit_with(
                 names, paths, config, device, GEOMETRY_STEPS, resolution=GEOMETRY_RESOLUTION

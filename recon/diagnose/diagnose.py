@@ -44,6 +44,8 @@ from recon.io.datasets import RELIGHT_LIGHTING
 from recon.io.meshes import load_mesh
 from recon.io.run_folder import RunPaths
 from recon.metrics.evaluate import _plain
+from recon.optimize.fit import load_fitted_light
+from recon.render.renderer import Renderer
 from recon.render.shading import Lighting
 
 matplotlib.use("Agg")
@@ -83,15 +85,20 @@ def _relight(paths: RunPaths, device: torch.device) -> tuple[dict, tuple | None]
         }, None
     lighting = Lighting.from_json(json.loads(light_path.read_text()), device)
     relight = load_diagnosis_data(paths, "relight", device, lighting=lighting)
-    under_fitted = load_diagnosis_data(paths, "relight", device).rendered
+    # The same views under the fitted light, rendered as load_diagnosis_data renders.
+    renderer = Renderer(texture_filter="linear-mipmap-linear", texture_boundary="clamp")
+    with torch.no_grad():
+        fitted_light = load_fitted_light(paths, relight.mesh.verts.device)
+        under_fitted = renderer.render(relight.mesh, relight.cameras, fitted_light).color
     return relight_gap(relight), (relight, under_fitted)
 
 
 def relight_evidence(ranking: list[CandidateResult], relight_views: tuple) -> None:
-    """The relight split's response-curve probe, recorded on the response_curve entry."""
-    record = relight_response_probe(*relight_views)
+    """The relight split's response-curve probe, recorded on the response_curve entry (when the
+    response curve is a candidate)."""
     for candidate in ranking:
         if candidate.effect == "response_curve":
+            record = relight_response_probe(*relight_views)
             candidate.relight_reduction = record["reduction"]
             candidate.relight_interval = tuple(record["interval"])
             candidate.relight_parameters = record["parameters"]

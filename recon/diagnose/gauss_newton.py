@@ -6,8 +6,7 @@ For so few unknowns a Gauss-Newton step is cheaper and surer than many first-ord
 Jacobian of the rendered image takes one extra render per parameter *column*, because a per-view
 column moves its parameter in every view at once and each view's image depends on its own
 parameters only. The normal matrix is then block-diagonal over views plus a dense global part,
-and a handful of damped steps converge where Adam needed 60 (the probe of a pose correction,
-which re-rasterises the scene, went from 60 forward+backward renders to about 10 forward ones).
+and a handful of damped steps converge where Adam needed 60 forward+backward renders.
 
 The same Jacobian at zero gives the score test of the diagnosis brief: the loss reduction a full
 Gauss-Newton step predicts, g^T (J^T J)^-1 g, before any parameter has moved.
@@ -133,17 +132,14 @@ class GaussNewtonProblem:
         is_per_view = torch.tensor([c.per_view for c in self.columns])
         local = torch.nonzero(is_per_view).flatten()
         shared = torch.nonzero(~is_per_view).flatten()
-        matrix = torch.zeros(self.unknowns, self.unknowns, dtype=torch.float64)
-        vector = torch.zeros(self.unknowns, dtype=torch.float64)
+        # Unknowns: each view's per-view block (view-major), then the global ones.
+        local_block = products[local][:, local].permute(2, 0, 1)  # [B, Kp, Kp]
+        cross = products[local][:, shared].permute(2, 0, 1).reshape(views * per_view, len(shared))
+        matrix = torch.block_diag(*local_block, products[shared][:, shared].sum(-1))
         offset = views * per_view
-        for view in range(views):
-            rows = slice(view * per_view, (view + 1) * per_view)
-            matrix[rows, rows] = products[local][:, local][:, :, view]
-            matrix[rows, offset:] = products[local][:, shared][:, :, view]
-            matrix[offset:, rows] = products[shared][:, local][:, :, view]
-            vector[rows] = right[local][:, view]
-        matrix[offset:, offset:] = products[shared][:, shared].sum(-1)
-        vector[offset:] = right[shared].sum(-1)
+        matrix[:offset, offset:] = cross
+        matrix[offset:, :offset] = cross.T
+        vector = torch.cat([right[local].T.reshape(-1), right[shared].sum(-1)])
         return matrix, vector
 
     @staticmethod
@@ -170,17 +166,11 @@ class GaussNewtonProblem:
 
     # -- the solver --------------------------------------------------------------------------
     def fit(
-        self,
-        iterations: int = GAUSS_NEWTON_ITERATIONS,
-        refresh_jacobian: bool = True,
-        start_image: torch.Tensor | None = None,
+        self, iterations: int = GAUSS_NEWTON_ITERATIONS, start_image: torch.Tensor | None = None
     ) -> dict:
-        """Damped Gauss-Newton from the current parameters; returns {'score': the relative loss
-        reduction the first full step predicts, 'initial_loss', 'final_loss'}.
-
-        refresh_jacobian: recompute J at every accepted step (False: keep the first one, for
-        effects whose every render re-rasterises the scene).
-        start_image: render() at the current parameters when the caller has it already.
+        """Damped Gauss-Newton from the current parameters, the Jacobian recomputed after every
+        accepted step; returns {'score': the score test at the start (see score), 'initial_loss',
+        'final_loss'}. start_image: render() at the current parameters when the caller has it.
         """
         if not self.columns or iterations <= 0:
             loss = self.loss()
@@ -205,8 +195,7 @@ class GaussNewtonProblem:
                 loss, base = candidate_loss, candidate
                 damping *= DAMPING_DOWN
                 if iteration + 1 < iterations:
-                    if refresh_jacobian:
-                        jacobian = self.jacobian(base)
+                    jacobian = self.jacobian(base)
                     matrix, vector = self.normal_equations(jacobian, self.observed - base)
             else:
                 self._add(-delta)

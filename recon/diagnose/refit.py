@@ -20,31 +20,8 @@ from recon.optimize.fit import load_fitted_light
 from recon.optimize.geometry_stage import GeometryResult
 from recon.optimize.scene_model import FitEffects, LightModel
 from recon.optimize.texture_stage import run_texture_stage
-from recon.render.shading import DirectionalLight, Lighting
 
 REFIT_STEPS = 80
-
-
-def light_model(lighting: Lighting) -> LightModel:
-    """A trainable LightModel holding `lighting` (SH plus at most one sun)."""
-    light = LightModel(with_sun=bool(lighting.directional))
-    with torch.no_grad():
-        light.sh.copy_(lighting.sh_coefficients)
-        if lighting.directional:
-            light.sun_direction.copy_(lighting.directional[0].direction_to_light)
-            light.sun_log_irradiance.copy_(lighting.directional[0].irradiance.clamp_min(1e-6).log())
-    return light.to(lighting.sh_coefficients.device)
-
-
-def detached(lighting: Lighting) -> Lighting:
-    """The same light without autograd history."""
-    return Lighting(
-        sh_coefficients=lighting.sh_coefficients.detach(),
-        directional=[
-            DirectionalLight(sun.direction_to_light.detach(), sun.irradiance.detach())
-            for sun in lighting.directional
-        ],
-    )
 
 
 def refit_with(
@@ -60,7 +37,7 @@ def refit_with(
     lighting, FitEffects)."""
     captures = read_captures(paths.dataset, "train")
     mesh = load_mesh(paths.fitted_mesh).to(device)
-    light = light_model(load_fitted_light(paths, device))
+    light = LightModel.from_lighting(load_fitted_light(paths, device))
     fit_config = replace(
         config.fit, texture=replace(config.fit.texture, steps=steps, learning_rate=0.002)
     )
@@ -82,4 +59,4 @@ def refit_with(
         resolution=resolution,
     )
     # Detached: the held-out probes run their own optimisations on top of this frozen scene.
-    return result.mesh, detached(result.light.lighting()), result.effects
+    return result.mesh, result.light.lighting().detached(), result.effects

@@ -62,7 +62,8 @@ class CandidateResult:
     relight_parameters: dict | None = None
     # The effect its probe and absorption evidence were measured on top of (None: alone).
     conditional_on: str | None = None
-    # What made it significant: "probe", "absorption" or "fingerprint" ("" when nothing did).
+    # What made it significant: "probe", "absorption", "relight" or "fingerprint" ("" when
+    # nothing did).
     evidence: str = ""
     # The probe's per-view held-out error sums [B] (not saved): the baseline when the others
     # are probed on top of this effect.
@@ -313,15 +314,11 @@ def probe_effect(name: str, view_count: int, device) -> ModelEffect:
 PROBE_STARTS: dict[str, tuple[str, float]] = {"motion_blur": ("line", 0.5)}
 
 
-def _move_to_start(effect: ModelEffect) -> bool:
-    """Move an effect still at the identity to its PROBE_STARTS point; whether it moved."""
-    start = PROBE_STARTS.get(effect.name)
-    if start is None or not effect.is_identity():
-        return False
-    name, value = start
+def _move_to_start(effect: ModelEffect) -> None:
+    """Move an effect to its PROBE_STARTS point."""
+    name, value = PROBE_STARTS[effect.name]
     with torch.no_grad():
         getattr(effect, name)[..., 0] = value
-    return True
 
 
 def fit_on_halves(
@@ -350,12 +347,16 @@ def fit_on_halves(
         )
         at_identity = all(effect.is_identity() for effect in effects)
         start_image = probe.base_output.color if at_identity else None
-        if with_score:
-            score = problem.score(start_image)
-        moved = [_move_to_start(effect) for effect in trainable]
-        if any(moved):
-            start_image = None
-        problem.fit(iterations, start_image=start_image)
+        starting = [e for e in trainable if e.name in PROBE_STARTS and e.is_identity()]
+        if starting:
+            # The score test belongs to the identity, not to the probe's starting point.
+            if with_score:
+                score = problem.score(start_image)
+            for effect in starting:
+                _move_to_start(effect)
+            problem.fit(iterations)
+        else:
+            score = problem.fit(iterations, start_image=start_image)["score"]
     with torch.no_grad():
         color = probe.render(effects) if effects else probe.base_output.color
         errors = _per_view_mse(color, data.observed, second * data.region)

@@ -64,6 +64,18 @@ class LightModel(torch.nn.Module):
         self.sun_direction = torch.nn.Parameter(torch.tensor([0.3, 0.8, 0.4]))
         self.sun_log_irradiance = torch.nn.Parameter(torch.full((3,), math.log(0.3)))
 
+    @classmethod
+    def from_lighting(cls, lighting: Lighting) -> LightModel:
+        """A trainable model holding `lighting` (SH plus at most one sun), on its device."""
+        light = cls(with_sun=bool(lighting.directional))
+        with torch.no_grad():
+            light.sh.copy_(lighting.sh_coefficients)
+            if lighting.directional:
+                sun = lighting.directional[0]
+                light.sun_direction.copy_(sun.direction_to_light)
+                light.sun_log_irradiance.copy_(sun.irradiance.clamp_min(1e-6).log())
+        return light.to(lighting.sh_coefficients.device)
+
     def lighting(self) -> Lighting:
         directional = []
         if self.with_sun:
@@ -130,6 +142,14 @@ class TrainingPyramid:
     def level_for(self, progress: float) -> int:
         """Equal shares of the steps per level."""
         return min(len(self.levels) - 1, int(progress * len(self.levels)))
+
+
+def texture_total_variation(texture: torch.Tensor) -> torch.Tensor:
+    """Mean absolute difference of neighbouring texels [h, w, C] (keeps texels that few views
+    see from speckling)."""
+    return (texture[1:] - texture[:-1]).abs().mean() + (
+        texture[:, 1:] - texture[:, :-1]
+    ).abs().mean()
 
 
 def image_loss(prediction: torch.Tensor, target: torch.Tensor, kind: str = "l1") -> torch.Tensor:

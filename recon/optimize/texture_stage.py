@@ -32,6 +32,7 @@ from recon.optimize.scene_model import (
     image_loss,
     sample_views,
     step_record,
+    texture_total_variation,
 )
 from recon.render.antialias import build_topology
 from recon.render.renderer import Renderer
@@ -191,9 +192,7 @@ def run_texture_stage(
         color_loss = image_loss(output.color, images[views])
         mask_loss = (output.alpha - masks[views]).abs().mean()
         # Total variation inside the charts keeps texels that few views see from speckling.
-        smoothness = (texture[1:] - texture[:-1]).abs().mean() + (
-            texture[:, 1:] - texture[:, :-1]
-        ).abs().mean()
+        smoothness = texture_total_variation(texture)
         loss = (
             color_loss + settings.mask_weight * mask_loss + settings.smoothness_weight * smoothness
         )

@@ -120,18 +120,26 @@ class Lighting:
         )
 
     def to(self, device: torch.device | str) -> Lighting:
+        return self._map(lambda tensor: tensor.to(device))
+
+    def detached(self) -> Lighting:
+        """The same light without autograd history."""
+        return self._map(torch.Tensor.detach)
+
+    def _map(self, function) -> Lighting:
+        """A copy with `function` applied to every tensor."""
         return replace(
             self,
-            sh_coefficients=self.sh_coefficients.to(device),
+            sh_coefficients=function(self.sh_coefficients),
             directional=[
-                DirectionalLight(d.direction_to_light.to(device), d.irradiance.to(device))
+                DirectionalLight(function(d.direction_to_light), function(d.irradiance))
                 for d in self.directional
             ],
             points=[
                 PointLight(
-                    p.position.to(device),
-                    p.intensity.to(device),
-                    None if p.emitter_normal is None else p.emitter_normal.to(device),
+                    function(p.position),
+                    function(p.intensity),
+                    None if p.emitter_normal is None else function(p.emitter_normal),
                 )
                 for p in self.points
             ],

@@ -20,12 +20,20 @@ def calibrate():
     return module
 
 
-def _run(folder: Path, pose: float, vignetting_absorption: float, share: float) -> Path:
+def _run(
+    folder: Path, pose: float, vignetting_absorption: float, share: float, relight: float
+) -> Path:
     folder.mkdir(parents=True)
     (folder / "config.resolved.yaml").write_text("name: clean\n")
     ranking = [
         {"effect": "pose_error", "heldout_reduction": pose, "absorption": None},
         {"effect": "vignetting", "heldout_reduction": 0.001, "absorption": vignetting_absorption},
+        {
+            "effect": "response_curve",
+            "heldout_reduction": 0.0,
+            "absorption": None,
+            "relight_reduction": relight,
+        },
     ]
     diagnosis = {"ranking": ranking, "gap": {"visibility_fingerprint": {"share": share}}}
     (folder / "diagnosis.json").write_text(json.dumps(diagnosis))
@@ -34,8 +42,8 @@ def _run(folder: Path, pose: float, vignetting_absorption: float, share: float) 
 
 def test_allowances_from_stored_diagnoses(calibrate, tmp_path, capsys):
     runs = [
-        _run(tmp_path / "a", pose=0.05, vignetting_absorption=0.004, share=0.03),
-        _run(tmp_path / "b", pose=0.08, vignetting_absorption=0.012, share=-0.02),
+        _run(tmp_path / "a", pose=0.05, vignetting_absorption=0.004, share=0.03, relight=0.03),
+        _run(tmp_path / "b", pose=0.08, vignetting_absorption=0.012, share=-0.02, relight=0.001),
     ]
     assert calibrate.main([str(run) for run in runs] + ["--stored"]) == 0
     printed = json.loads(capsys.readouterr().out)
@@ -44,4 +52,5 @@ def test_allowances_from_stored_diagnoses(calibrate, tmp_path, capsys):
     # Below the floor: MINIMUM_SHARE.
     assert printed["probe_allowance"]["vignetting"] == pytest.approx(0.02)
     assert printed["absorption_allowance"]["vignetting"] == pytest.approx(0.024)
+    assert printed["relight_allowance"]["response_curve"] == pytest.approx(0.06)
     assert printed["visibility_share_largest"] == pytest.approx(0.03)

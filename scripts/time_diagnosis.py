@@ -1,0 +1,73 @@
+"""The diagnosis' cost against the fit's, measured back to back in one process.
+
+For each benchmark case folder (a run with synthesised data, e.g. from
+``scripts/bench_diagnose.py --fits-only``): copy its config and dataset to OUT, run the fit
+stage, then ``diagnose_run`` with the top-effect refit, and print JSON with the three times and
+their ratios. Measuring both in the same process, one after the other, keeps the ratio free of
+the machine's drift between a benchmark's fit and its diagnosis.
+
+    python scripts/time_diagnosis.py RUN [RUN ...] [--out /tmp/time_diagnosis] [--threads 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import time
+from pathlib import Path
+
+
+def main(argv: list[str] | None = None) -> int:
+    import torch
+
+    from recon.config import load_config
+    from recon.config.run_config import RunConfig
+    from recon.diagnose.diagnose import diagnose_run
+    from recon.io.run_folder import open_run_folder
+    from recon.pipeline import run_stages
+
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("runs", nargs="+", help="run folders with a synthesised dataset")
+    parser.add_argument("--out", default="/tmp/time_diagnosis")
+    parser.add_argument("--threads", type=int, default=2)
+    arguments = parser.parse_args(argv)
+    torch.set_num_threads(arguments.threads)
+    results = []
+    for run in arguments.runs:
+        source = Path(run)
+        target = Path(arguments.out) / source.parent.name / source.name
+        if target.exists():
+            shutil.rmtree(target)
+        target.mkdir(parents=True)
+        shutil.copytree(source / "dataset", target / "dataset")
+        for name in ("config.resolved.yaml", "env.json", "ground_truth"):
+            if (source / name).is_dir():
+                shutil.copytree(source / name, target / name)
+            elif (source / name).exists():
+                shutil.copy2(source / name, target / name)
+        paths = open_run_folder(target)
+        config = load_config(paths.resolved_config, RunConfig)
+        started = time.perf_counter()
+        run_stages(config, paths, torch.device("cpu"), ["fit"], None)
+        fit_seconds = time.perf_counter() - started
+        diagnosis = diagnose_run(paths, config, torch.device("cpu"), refit="top")
+        timings = diagnosis["timings"]
+        results.append(
+            {
+                "run": str(source),
+                "fit_seconds": round(fit_seconds, 1),
+                "diagnose_seconds": timings["diagnose_seconds"],
+                "refit_seconds": timings.get("refit_seconds"),
+                "diagnosis_share_of_fit": round(timings["diagnose_seconds"] / fit_seconds, 3),
+                "refit_share_of_fit": round(timings.get("refit_seconds", 0.0) / fit_seconds, 3),
+                "verdict": diagnosis["verdict"],
+            }
+        )
+    print(json.dumps(results, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
