@@ -167,7 +167,7 @@ def score_case(
 def parameter_errors(diagnosis: dict, truth: dict) -> dict:
     """Recovered vs true parameters where the two are comparable: exposure ratios (relative,
     both normalised by their geometric mean: the fit absorbed the overall scale), the vignetting
-    corner falloff (relative) and the response curve's effective exponent (absolute).
+    corner falloff and the falloff half-way to the corner (relative) and the response curve's effective exponent (absolute).
 
     Parameters come from the first refit that switched the effect on (fitted with the scene on
     the training views, compared with the truth of those views) and otherwise from the probe
@@ -201,6 +201,12 @@ def parameter_errors(diagnosis: dict, truth: dict) -> dict:
     model_falloff = model_vignetting.get("corner_falloff")
     if true_falloff and model_falloff:
         errors["vignetting_corner_falloff"] = abs(model_falloff - true_falloff) / true_falloff
+    # The corners lie outside the object's pixels (an extrapolation of the fitted polynomial);
+    # half-way out is inside them in every view.
+    true_half = _mean(true_vignetting.get("half_radius_falloff"))
+    model_half = model_vignetting.get("half_radius_falloff")
+    if true_half and model_half:
+        errors["vignetting_half_radius_falloff"] = abs(model_half - true_half) / true_half
     model_response, true_response = pair("response_curve")
     true_gamma = true_response.get("effective_exponent")
     model_gamma = model_response.get("effective_gamma")
@@ -249,6 +255,7 @@ def _parameter_errors(records: list[dict]) -> dict[str, list[float]]:
         "exposure_ratio_median": "exposure",
         "exposure_ratio_max": "exposure",
         "vignetting_corner_falloff": "vignetting",
+        "vignetting_half_radius_falloff": "vignetting",
         "response_gamma_absolute": "response_curve",
     }
     collected: dict[str, list[float]] = {}

@@ -27,7 +27,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from recon.config import load_config
     from recon.config.run_config import RunConfig
-    from recon.diagnose.calibration import ABSORPTION_MINIMUM_SHARE, MINIMUM_SHARE
+    from recon.diagnose.calibration import MINIMUM_SHARE, absorption_minimum_share
     from recon.diagnose.diagnose import diagnose_run
     from recon.io.run_folder import open_run_folder
 
@@ -58,8 +58,8 @@ def main(argv: list[str] | None = None) -> int:
                 relight[name] = max(relight.get(name, 0.0), item["relight_reduction"])
         shares.append(result["gap"]["visibility_fingerprint"]["share"])
 
-    def allowance(values: dict, floor: float = MINIMUM_SHARE) -> dict:
-        return {name: round(max(floor, 2 * value), 3) for name, value in values.items()}
+    def allowance(values: dict, floor=lambda name: MINIMUM_SHARE) -> dict:
+        return {name: round(max(floor(name), 2 * value), 3) for name, value in values.items()}
 
     print(
         json.dumps(
@@ -68,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
                 "probe_largest": probe,
                 "probe_allowance": allowance(probe),
                 "absorption_largest": absorption,
-                "absorption_allowance": allowance(absorption, ABSORPTION_MINIMUM_SHARE),
+                "absorption_allowance": allowance(absorption, absorption_minimum_share),
                 "relight_largest": relight,
                 "relight_allowance": allowance(relight),
                 "visibility_share_largest": max(shares),

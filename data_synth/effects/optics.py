@@ -453,6 +453,27 @@ def barrel_distance_for_strength(strength: float, barrel_radius: float) -> float
     return 0.5 * (low + high)
 
 
+HALF_RADIUS_SAMPLES = 64
+
+
+def half_radius_falloff(
+    effect: Vignetting, cameras: Cameras, height: int, width: int, like: torch.Tensor
+) -> torch.Tensor:
+    """Per-view falloff [B] at half the half image diagonal from the image centre (mean over a
+    circle, over the centre value). A centred object covers this radius in every view, unlike
+    the corners, so a model fitted to the object's pixels can be scored here."""
+    angles = torch.arange(HALF_RADIUS_SAMPLES, dtype=like.dtype, device=like.device)
+    angles = angles * (2.0 * math.pi / HALF_RADIUS_SAMPLES)
+    radius = 0.25 * math.hypot(height, width)
+    u = 0.5 * width + radius * torch.cos(angles)
+    v = 0.5 * height + radius * torch.sin(angles)
+    natural, mechanical = effect.falloff(cameras, u, v)
+    centre = torch.tensor([0.5 * width], dtype=like.dtype, device=like.device)
+    middle = torch.tensor([0.5 * height], dtype=like.dtype, device=like.device)
+    natural_centre, mechanical_centre = effect.falloff(cameras, centre, middle)
+    return (natural * mechanical).mean(dim=1) / (natural_centre * mechanical_centre)[:, 0]
+
+
 class Vignetting(WorldEffect):
     """Optical vignetting: the natural cos^p falloff of the real field angle times an
     off-centre mechanical (barrel) vignetting.
@@ -549,10 +570,12 @@ class Vignetting(WorldEffect):
         total = (natural_corners * mechanical_corners).mean(dim=1) / (
             natural_centre * mechanical_centre
         )[:, 0]
+        half_radius = half_radius_falloff(self, capture.cameras, height, width, like)
         return AppliedEffect(
             self.name,
             {
                 "corner_falloff": to_list(total),
+                "half_radius_falloff": to_list(half_radius),
                 "natural_corner_falloff": to_list(
                     natural_corners.mean(dim=1) / natural_centre[:, 0]
                 ),

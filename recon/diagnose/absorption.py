@@ -6,13 +6,15 @@ the fit left. Refitting the texture and light together with the effect lets it t
 share; the held-out error of that refit, against a control refit of the same length without the
 effect, is the absorption evidence (bootstrapped over views like the probes).
 
-Vignetting and specular refits keep the geometry frozen: the training views are rasterised once
-(in groups of VIEWS_PER_GROUP) and every step only re-textures, re-shades and applies the
-effects, without antialiasing; a step costs a few milliseconds instead of a full render and
-backward pass. A lens distortion that the fit absorbed bent the geometry as well, and only
-moving the vertices bends it back (with frozen geometry its evidence was a third as large): its
-refits are the full warm-started refit (recon.diagnose.refit) at GEOMETRY_RESOLUTION. The
-held-out evaluation renders in full (antialiased), like every other held-out number.
+Specular refits keep the geometry frozen: the training views are rasterised once (in groups
+of VIEWS_PER_GROUP) and every step only re-textures, re-shades and applies the effects, without
+antialiasing; a step costs a few milliseconds instead of a full render and backward pass. A lens
+distortion that the fit absorbed bent the geometry as well, and only moving the vertices bends
+it back (with frozen geometry its evidence was a third as large): its refits are the full
+warm-started refit (recon.diagnose.refit) at GEOMETRY_RESOLUTION. Vignetting needs no refit at
+all: a falloff is a gain per pixel, so texture cell gains and the falloff are fitted in closed
+form (recon.diagnose.radial_absorption). The held-out evaluation renders in full (antialiased),
+like every other held-out number.
 """
 
 from __future__ import annotations
@@ -23,7 +25,8 @@ import torch
 
 from recon.camera.cameras import Cameras
 from recon.config.run_config import RunConfig
-from recon.diagnose.data import DiagnosisData
+from recon.diagnose.data import DiagnosisData, load_diagnosis_data
+from recon.diagnose.radial_absorption import radial_absorption
 from recon.diagnose.refit import refit_with
 from recon.diagnose.which import (
     CandidateResult,
@@ -209,6 +212,14 @@ def absorption_probes(
     for candidate in ranking:
         if candidate.effect not in ABSORBABLE or candidate.effect == given:
             continue
+        if candidate.effect == "vignetting":
+            if not given:
+                # Its regression holds a gain per view already (a per-view photometric effect
+                # on top changes nothing): computed once, unconditionally.
+                training = load_diagnosis_data(paths, "train", device)
+                control, squared, module = radial_absorption(training, data)
+                _record(candidate, control, squared, module, given)
+            continue
         moving = candidate.effect in GEOMETRY_ABSORBABLE
         if moving and given and not _had_evidence(candidate):
             # Two full refits again on top of the given effect only where the first pass saw
@@ -217,11 +228,23 @@ def absorption_probes(
         if moving not in controls:
             controls[moving] = evaluate(base, moving)[0]
         squared, fitted = evaluate(base + [candidate.effect], moving)
-        reduction, (low, high) = bootstrap_reduction(controls[moving], squared)
-        candidate.absorption = reduction
-        candidate.absorption_interval = (low, high)
         module = next(module for module in fitted if module.name == candidate.effect)
-        candidate.absorption_parameters = module.parameters_summary()
-        if given:
-            candidate.conditional_on = given
-        candidate.decide()
+        _record(candidate, controls[moving], squared, module, given)
+
+
+def _record(
+    candidate: CandidateResult,
+    control: torch.Tensor,
+    squared: torch.Tensor,
+    module: ModelEffect,
+    given: str | None,
+) -> None:
+    """Absorption evidence from per-view held-out error sums [B] without and with the effect:
+    the reduction with its bootstrap interval, the effect's parameters, and the decision."""
+    reduction, (low, high) = bootstrap_reduction(control, squared)
+    candidate.absorption = reduction
+    candidate.absorption_interval = (low, high)
+    candidate.absorption_parameters = module.parameters_summary()
+    if given:
+        candidate.conditional_on = given
+    candidate.decide()

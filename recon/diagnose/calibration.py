@@ -12,7 +12,7 @@ blind benchmark's scored cases never use) as twice the largest reduction seen, f
 MINIMUM_SHARE; the script prints the table below from fresh fits (largest clean reductions with
 the Gauss-Newton probes and the absorption refits of this session: defocus 0.081, motion 0.080,
 pose 0.061, lens 0.034, vignetting 0.021, all others below 0.011; absorption: lens 0.059,
-vignetting 0.009, specular 0.004; spot's texture-resolution misfit is what the blur probes pick up). The
+specular 0.004, vignetting 0 (regression); spot's texture-resolution misfit is what the blur probes pick up). The
 visibility fingerprint's largest clean share there was 0.024.
 """
 
@@ -38,15 +38,26 @@ PROBE_ALLOWANCE: dict[str, float] = {
 }
 
 # The absorption evidence compares two refits of the same length from the same start, so its
-# null spread is far smaller than a probe's (largest clean reductions 0.009 for vignetting and
-# 0.004 for specular): its floor is half the probe's.
+# null spread is far smaller than a probe's (largest clean reduction 0.004 for specular): its
+# floor is half the probe's.
 ABSORPTION_MINIMUM_SHARE = 0.01
 
-# Absorption (a short refit with the effect against a control refit without it): twice the
-# largest reduction over the control on the same calibration fits.
+
+# Vignetting's absorption evidence is a closed-form regression on interior pixels
+# (recon.diagnose.radial_absorption), a share of a smaller error than the refits': on the clean
+# calibration fits its reduction is 0 (the fitted falloff brightens or is flat), and on the
+# other effects' datasets its lower bound stays below 0.0003. Its floor is half the refits'.
+def absorption_minimum_share(effect: str) -> float:
+    """The floor of an effect's absorption allowance (by the kind of its evidence)."""
+    return 0.005 if effect == "vignetting" else ABSORPTION_MINIMUM_SHARE
+
+
+# Absorption (a short refit with the effect against a control refit without it; vignetting's
+# regression against the same without the falloff): twice the largest reduction over the
+# control on the same calibration fits, floored at absorption_minimum_share.
 ABSORPTION_ALLOWANCE: dict[str, float] = {
     "lens_distortion": 0.118,
-    "vignetting": 0.018,
+    "vignetting": 0.005,
     "specular": 0.01,
 }
 
@@ -71,4 +82,4 @@ def probe_threshold(effect: str) -> float:
 
 def absorption_threshold(effect: str) -> float:
     """The reduction over the control refit the absorption lower bound must clear."""
-    return max(ABSORPTION_MINIMUM_SHARE, ABSORPTION_ALLOWANCE.get(effect, MINIMUM_SHARE))
+    return max(absorption_minimum_share(effect), ABSORPTION_ALLOWANCE.get(effect, MINIMUM_SHARE))

@@ -53,6 +53,19 @@ matplotlib.use("Agg")
 MAX_GREEDY_EFFECTS = 3
 
 
+class _Lap:
+    """Seconds since the previous lap, recorded under a stage name (the timings' breakdown)."""
+
+    def __init__(self, record: dict[str, float]) -> None:
+        self.record = record
+        self.last = time.perf_counter()
+
+    def __call__(self, name: str) -> None:
+        now = time.perf_counter()
+        self.record[name] = round(now - self.last, 2)
+        self.last = now
+
+
 def heldout_gap(data: DiagnosisData, modules: list) -> float:
     """Held-out MSE on the second half of the pixel blocks, after fitting the per-view
     parameters of the given effect modules on the first half (scene frozen)."""
@@ -149,23 +162,32 @@ def diagnose_run(
     if unknown:
         raise ReconError(f"--effects: unknown {unknown}; known: {', '.join(sorted(MODEL_EFFECTS))}")
     started = time.perf_counter()
+    stage_seconds: dict[str, float] = {}
+    lap = _Lap(stage_seconds)
     split = "test" if (paths.dataset / "transforms_test.json").exists() else "val"
     data = load_diagnosis_data(paths, split, device)
     gap = gap_summary(data)
     floor = noise_floor(data)
     floor_rmse = floor.get("floor_rmse") or 0.0
     gap["noise_floor"] = floor
+    lap("gap")
     relight_views = None
     if (paths.dataset / "transforms_relight.json").exists():
         gap["relight"], relight_views = _relight(paths, device)
+    lap("relight_gap")
     where = where_analysis(data)
+    lap("where")
     probe = EffectProbe(data)
     ranking = rank_candidates(data, candidates, probe=probe)
+    lap("probes")
     gap["visibility_fingerprint"] = fingerprint_evidence(ranking, data, probe)
+    lap("fingerprint")
     if relight_views is not None:
         relight_evidence(ranking, relight_views)
+    lap("relight_probe")
     if absorption:
         absorption_probes(ranking, data, paths, config, device)
+    lap("absorption")
     ranking.sort(key=CandidateResult.rank_key, reverse=True)
     # A per-view effect at the top (exposure, pose, ...) is measured first; everything else is
     # then measured again on top of it, so a pair is not hidden behind its louder half. (The
@@ -174,10 +196,12 @@ def diagnose_run(
     given = conditioning_effect(ranking)
     if given:
         conditional_probes(ranking, probe, given)
+        lap("conditional_probes")
         if absorption:
             absorption_probes(ranking, data, paths, config, device, given=given)
+        lap("conditional_absorption")
     ranking.sort(key=CandidateResult.rank_key, reverse=True)
-    timings = {"diagnose_seconds": round(time.perf_counter() - started, 2)}
+    timings = {"diagnose_seconds": round(time.perf_counter() - started, 2), "stages": stage_seconds}
     # Against the ground truth when the run has one (synthetic data only; not part of the
     # diagnosis method, so outside its timing).
     reference = load_mesh(paths.reference_mesh) if paths.reference_mesh.exists() else None

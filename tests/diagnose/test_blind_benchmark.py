@@ -81,7 +81,10 @@ def test_parameter_errors_compare_like_with_like():
         "realised": {
             "train": [{"name": "exposure", "parameters": {"ratios": true_train}}],
             "test": [
-                {"name": "vignetting", "parameters": {"corner_falloff": [0.6, 0.6]}},
+                {
+                    "name": "vignetting",
+                    "parameters": {"corner_falloff": [0.6, 0.6], "half_radius_falloff": [0.9, 0.9]},
+                },
                 {"name": "response_curve", "parameters": {"effective_exponent": 0.8}},
             ],
         }
@@ -93,7 +96,10 @@ def test_parameter_errors_compare_like_with_like():
     diagnosis = {
         "ranking": [
             {"effect": "exposure", "parameters": {"ratios": [9.0, 9.0, 9.0, 9.0]}},
-            {"effect": "vignetting", "parameters": {"corner_falloff": 0.63}},
+            {
+                "effect": "vignetting",
+                "parameters": {"corner_falloff": 0.63, "half_radius_falloff": 0.891},
+            },
             {"effect": "response_curve", "parameters": {"effective_gamma": 0.85}},
         ],
         "refits": [{"effects": ["exposure"], "parameters": {"exposure": {"ratios": refit_ratios}}}],
@@ -103,4 +109,5 @@ def test_parameter_errors_compare_like_with_like():
     assert errors["exposure_ratio_max"] == pytest.approx(1.1**0.75 - 1, rel=1e-6)
     assert errors["exposure_ratio_median"] == pytest.approx(1 - 1.1**-0.25, rel=1e-6)
     assert errors["vignetting_corner_falloff"] == pytest.approx(0.05)
+    assert errors["vignetting_half_radius_falloff"] == pytest.approx(0.01)
     assert errors["response_gamma_absolute"] == pytest.approx(0.05)

@@ -109,6 +109,12 @@ def test_vignetting_natural_falloff_is_cos4_of_the_field_angle() -> None:
         assert abs(float(capture.images[view, -1, -1, 2]) - expected_corner) < 1e-5
         assert abs(applied.parameters["corner_falloff"][view] - expected_corner) < 1e-5
     assert abs(applied.parameters["mechanical_corner_falloff"][0] - 1.0) < 1e-9
+    # Half the half diagonal from the centre: one field angle all round the circle.
+    half_radius = 0.25 * math.hypot(32, 48)
+    # The principal point is the image centre and fx == fy here, so tan = radius / fx.
+    expected_half = math.cos(math.atan(half_radius / fx)) ** 4
+    assert abs(fx - fy) < 1e-9
+    assert abs(applied.parameters["half_radius_falloff"][1] - expected_half) < 1e-6
 
 
 def test_vignetting_corners_darken_by_the_analytic_cos4_times_mechanical_ratio() -> None:
