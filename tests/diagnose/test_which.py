@@ -118,3 +118,18 @@ def test_relight_evidence_decides_and_survives_a_round_trip():
     below.relight_interval = (RELIGHT_ALLOWANCE - 0.01, 0.2)
     below.decide()
     assert not below.significant
+
+
+def test_vignetting_regression_evidence_has_its_own_floor():
+    """The closed-form vignetting evidence is a share of interior-pixel error: its floor is half
+    the refits', and an interval between the two floors decides vignetting only."""
+    from recon.diagnose.calibration import ABSORPTION_MINIMUM_SHARE, absorption_threshold
+
+    assert absorption_threshold("vignetting") < ABSORPTION_MINIMUM_SHARE
+    assert absorption_threshold("specular") >= ABSORPTION_MINIMUM_SHARE
+    between = (0.5 * (absorption_threshold("vignetting") + ABSORPTION_MINIMUM_SHARE), 0.02)
+    for name, expected in (("vignetting", True), ("specular", False)):
+        candidate = CandidateResult(name, 0.0, 0.001, (-0.01, 0.01), False)
+        candidate.absorption_interval = between
+        candidate.decide()
+        assert candidate.significant is expected
