@@ -85,3 +85,27 @@ def test_frozen_buffers_cover_every_training_view_once():
     views = torch.cat([group[1] for group in frozen.groups])
     assert torch.equal(views, torch.arange(TRAIN))
     assert all(group[2].shape[0] == group[1].shape[0] for group in frozen.groups)
+
+
+def test_geometry_refits_run_only_where_the_probe_sees_a_residual(monkeypatch):
+    """The lens-distortion refits (the dearest step) are skipped when the frozen-scene probe's
+    held-out reduction is under MINIMUM_SHARE, and run when it is above."""
+    import pytest
+
+    import recon.diagnose.absorption as absorption
+    from recon.diagnose.calibration import MINIMUM_SHARE
+    from recon.diagnose.which import CandidateResult
+
+    class RefitCalled(Exception):
+        pass
+
+    def refit_with(*arguments, **options):
+        raise RefitCalled
+
+    monkeypatch.setattr(absorption, "refit_with", refit_with)
+    quiet = CandidateResult("lens_distortion", 0.0, 0.5 * MINIMUM_SHARE, (0.0, 0.02), False)
+    absorption.absorption_probes([quiet], None, None, None, torch.device("cpu"))
+    assert quiet.absorption is None and quiet.absorption_interval is None
+    loud = CandidateResult("lens_distortion", 0.0, 2 * MINIMUM_SHARE, (0.0, 0.08), False)
+    with pytest.raises(RefitCalled):
+        absorption.absorption_probes([loud], None, None, None, torch.device("cpu"))
