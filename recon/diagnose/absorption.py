@@ -225,8 +225,8 @@ def absorption_probes(
         if moving and candidate.heldout_reduction < MINIMUM_SHARE:
             # The two refits that move the geometry are the diagnosis' dearest step: they run
             # only where the frozen-scene probe sees a distortion-shaped residual worth naming.
-            # (On the benchmark's datasets the refits' evidence stayed below 0.05 wherever the
-            # probe's was under this, against an allowance of 0.118.)
+            # (On the benchmark's datasets the refits' lower bound stayed at or below 0.04
+            # wherever the probe's reduction was under this, against an allowance of 0.118.)
             continue
         if moving and given and not _had_evidence(candidate):
             # Two full refits again on top of the given effect only where the first pass saw
