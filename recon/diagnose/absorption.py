@@ -180,7 +180,7 @@ def absorption_probes(
 
     given: an effect switched on in the control and in every candidate refit alike (see
     which.conditioning_effect), so the evidence is what each candidate adds on top of it. With
-    a given effect, the geometry refits run only for candidates whose earlier (unconditional)
+    a given effect, the refits run only for candidates whose earlier (unconditional)
     absorption evidence had a positive lower bound.
     """
     # Bilinear without mipmaps: the training views sample the texture near 1:1, and the
@@ -228,9 +228,9 @@ def absorption_probes(
             # (On the benchmark's datasets the refits' lower bound stayed at or below 0.04
             # wherever the probe's reduction was under this, against an allowance of 0.118.)
             continue
-        if moving and given and not _had_evidence(candidate):
-            # Two full refits again on top of the given effect only where the first pass saw
-            # some sign of the effect: otherwise its unconditional evidence stands.
+        if given and not _had_evidence(candidate):
+            # The refits again on top of the given effect only where the first pass saw some
+            # sign of the effect: otherwise its unconditional evidence stands.
             continue
         if moving not in controls:
             controls[moving] = evaluate(base, moving)[0]

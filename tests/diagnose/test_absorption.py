@@ -109,3 +109,36 @@ def test_geometry_refits_run_only_where_the_probe_sees_a_residual(monkeypatch):
     loud = CandidateResult("lens_distortion", 0.0, 2 * MINIMUM_SHARE, (0.0, 0.08), False)
     with pytest.raises(RefitCalled):
         absorption.absorption_probes([loud], None, None, None, torch.device("cpu"))
+
+
+def test_refits_on_top_of_a_given_effect_only_follow_earlier_evidence(monkeypatch):
+    """On top of a per-view effect, a candidate whose unconditional absorption lower bound was
+    not positive keeps that evidence (no refit); one whose bound was positive is refitted."""
+    import pytest
+
+    import recon.diagnose.absorption as absorption
+    from recon.diagnose.which import CandidateResult
+
+    class RefitCalled(Exception):
+        pass
+
+    def frozen_build(*arguments, **options):
+        raise RefitCalled
+
+    from types import SimpleNamespace
+
+    monkeypatch.setattr(absorption.FrozenTrainingViews, "build", frozen_build)
+    monkeypatch.setattr(absorption, "read_captures", lambda *arguments: None)
+    movable = SimpleNamespace(to=lambda device: None)
+    data = SimpleNamespace(mesh=movable, lighting=movable)
+    paths = SimpleNamespace(dataset=None)
+    quiet = CandidateResult("specular", 0.0, 0.001, (0.0, 0.01), False)
+    quiet.absorption_interval = (-0.01, 0.02)
+    absorption.absorption_probes([quiet], None, None, None, torch.device("cpu"), given="exposure")
+    assert quiet.absorption_interval == (-0.01, 0.02) and quiet.conditional_on is None
+    loud = CandidateResult("specular", 0.0, 0.001, (0.0, 0.01), False)
+    loud.absorption_interval = (0.01, 0.05)
+    with pytest.raises(RefitCalled):
+        absorption.absorption_probes(
+            [loud], data, paths, None, torch.device("cpu"), given="exposure"
+        )
