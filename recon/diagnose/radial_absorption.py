@@ -84,7 +84,7 @@ class InteriorPixels:
         cell = uv[..., 1] * CELLS_PER_SIDE + uv[..., 0]
         view = torch.arange(batch, device=keep.device)[:, None, None].expand(batch, height, width)
         first, _ = block_halves(batch, height, width, keep.device)
-        channel = torch.arange(channels, device=keep.device)
+        channel = torch.arange(channels, device=keep.device).expand(batch, height, width, -1)[keep]
 
         def per_channel(values: torch.Tensor) -> torch.Tensor:
             return values[..., None].expand(batch, height, width, channels)[keep]
@@ -97,10 +97,8 @@ class InteriorPixels:
             rendered=rendered,
             observed=observed,
             radius=per_channel(radius).double(),
-            cell=per_channel(cell) * channels
-            + channel.expand(batch, height, width, channels)[keep],
-            view=per_channel(view) * channels
-            + channel.expand(batch, height, width, channels)[keep],
+            cell=per_channel(cell) * channels + channel,
+            view=per_channel(view) * channels + channel,
             first_half=per_channel(first[..., 0] > 0),
             view_count=batch,
         )
@@ -111,21 +109,18 @@ class InteriorPixels:
         return torch.stack([squared, squared * (squared - 0.75)], dim=1)
 
 
-def _group_mean(
-    values: torch.Tensor, groups: torch.Tensor, weight: torch.Tensor, count: int
-) -> torch.Tensor:
-    """Weighted mean of values [N, K] per group [N] -> [count, K] (0 for empty groups)."""
-    total = torch.zeros(count, values.shape[1], dtype=values.dtype, device=values.device)
-    total.index_add_(0, groups, values * weight[:, None])
-    mass = torch.zeros(count, dtype=values.dtype, device=values.device)
-    mass.index_add_(0, groups, weight)
-    return total / mass.clamp_min(1e-30)[:, None]
-
-
 def _group_sum(values: torch.Tensor, groups: torch.Tensor, count: int) -> torch.Tensor:
     """Sum of values [N, ...] per group [N] -> [count, ...]."""
     total = torch.zeros(count, *values.shape[1:], dtype=values.dtype, device=values.device)
     return total.index_add_(0, groups, values)
+
+
+def _group_mean(
+    values: torch.Tensor, groups: torch.Tensor, weight: torch.Tensor, count: int
+) -> torch.Tensor:
+    """Weighted mean of values [N] per group [N] -> [count] (0 for empty groups)."""
+    mass = _group_sum(weight, groups, count)
+    return _group_sum(values * weight, groups, count) / mass.clamp_min(1e-30)
 
 
 @dataclass
@@ -189,11 +184,11 @@ def heldout_errors(pixels: InteriorPixels, fit: GainFit) -> torch.Tensor:
     view_count = pixels.view_count * 3
     fitting = seen & pixels.first_half
     view_gain = _group_mean(
-        (pixels.log_ratio - prediction)[fitting, None],
+        (pixels.log_ratio - prediction)[fitting],
         pixels.view[fitting],
         pixels.weight[fitting],
         view_count,
-    )[:, 0]
+    )
     scored = seen & ~pixels.first_half
     predicted = pixels.rendered * (prediction + view_gain[pixels.view]).exp()
     squared = (pixels.observed - predicted) ** 2
