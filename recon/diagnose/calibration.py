@@ -61,9 +61,11 @@ ABSORPTION_ALLOWANCE: dict[str, float] = {
     "specular": 0.01,
 }
 
-# Relight response probe (recon.diagnose.relight_probe): twice the largest reduction on the
-# clean calibration fits (0.044, spot; the torus stays below 0.012), floored at MINIMUM_SHARE.
-RELIGHT_ALLOWANCE = 0.088
+# Relight response probe (recon.diagnose.relight_probe, with the fitted light's balance error
+# divided out): twice the largest reduction on the clean calibration fits (0.030, spot; the
+# torus 0.029). On the benchmark's response-curve datasets, pairs included, its lower bound is
+# 0.10 or more.
+RELIGHT_ALLOWANCE = 0.059
 
 # Visibility fingerprint (recon.diagnose.fingerprint): the share of the self-shadowing that the
 # fitted mesh and light predict which the fit baked into its albedo. Clean fits stay below

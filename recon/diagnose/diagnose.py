@@ -89,7 +89,7 @@ def _relight(paths: RunPaths, device: torch.device) -> tuple[dict, tuple | None]
     """The relight split's gap under its own light (gauge fixed, residuals.relight_gap), or why
     it cannot be measured (rendered under the fitted light, a relight view would only measure
     the change of light); and the relight views rendered under both lights (relight data,
-    colour under the fitted light) for the response probe, or None."""
+    colour under the fitted light, the fitted light) for the response probe, or None."""
     light_path = paths.dataset / RELIGHT_LIGHTING
     if not light_path.exists():
         return {
@@ -103,7 +103,7 @@ def _relight(paths: RunPaths, device: torch.device) -> tuple[dict, tuple | None]
     with torch.no_grad():
         fitted_light = load_fitted_light(paths, relight.mesh.verts.device)
         under_fitted = renderer.render(relight.mesh, relight.cameras, fitted_light).color
-    return relight_gap(relight), (relight, under_fitted)
+    return relight_gap(relight), (relight, under_fitted, fitted_light)
 
 
 def relight_evidence(ranking: list[CandidateResult], relight_views: tuple) -> None:

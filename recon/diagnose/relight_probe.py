@@ -13,16 +13,36 @@ the ResponseCurve module's exponent (its LUT stays at zero) and one gain per vie
 (the albedo x light gauge, and any per-view exposure or white balance), on one half of each
 relight view's pixel blocks, and measures the held-out reduction on the other half against the
 same fit with gamma held at 1, bootstrapped over 16-pixel tiles of all views.
+
+Two things besides a tone curve bend the ratio between the two renders, and both are left out:
+
+- The fitted light's own error. Where the fit got the first light's balance wrong (too weak a
+  sun and too much ambient, say), the albedo absorbed S_true1 / S_fit1 = 1 + (dA + dB c) / S_fit1
+  (c the sun's cosine), a function of the normal, and it shows under the second light as a
+  ratio that also grows with the shading (clean spot fits read it as an exponent of 1.08-1.11).
+  The test's two fits (gamma free and gamma at 1) both divide that factor out with dA and dB
+  fitted: whatever function of the first light's shading the albedo absorbed, a tone curve
+  also makes the ratio depend on the *second* light's shading s2, and that is what the test
+  credits. (The reported exponent comes from a third fit without the factor; see below.)
+- Cast shadows. A shadow the model lacks moves with the light, and its edge changes the ratio
+  as well as any curve. Pixels where the fitted mesh blocks more than SHADOWED_SHARE of either
+  light (recon.effects.light_transport.vertex_light_visibility, worst vertex of the pixel's
+  triangle) are left out.
 """
 
 from __future__ import annotations
+
+import math
+from dataclasses import replace
 
 import torch
 
 from recon.diagnose.data import DiagnosisData
 from recon.diagnose.gauss_newton import GaussNewtonProblem
 from recon.diagnose.which import block_halves, bootstrap_reduction
+from recon.effects.light_transport import dominant_light, vertex_light_visibility
 from recon.effects.photometric import ResponseCurve
+from recon.render.shading import Lighting, lambertian
 
 # Below this rendered value (linear) the shading ratio is not defined: the prediction keeps R2.
 DARK = 1e-3
@@ -31,21 +51,29 @@ ITERATIONS = 6
 # is one number for every view, and a relight split has few views (8 in the benchmark), whose
 # own misfit would widen a per-view interval far beyond what the curve changes.
 TILE_PIXELS = 16
+# A pixel whose fitted surface loses more than this share of either light to the mesh itself
+# is left out (see the module docstring).
+SHADOWED_SHARE = 0.1
 
 
 class RelightResponse(torch.nn.Module):
-    """g_vc R1 (R2 / R1)^gamma for B relight views: the ResponseCurve's exponent and a gain per
-    view and channel (both the identity at zero). Duck-types what GaussNewtonProblem reads."""
+    """g_vc R1 (R2 / R1)^gamma / (1 + t . b(n)) for B relight views: the ResponseCurve's
+    exponent, a gain per view and channel, and the first light's error t (all the identity at
+    zero).
+    light_basis: [B, H, W, K] the first light's error shapes over its shading (light_error_basis).
+    Duck-types what GaussNewtonProblem reads."""
 
     name = "relight_response"
     per_view = True
     learning_rate = 0.02
     learning_rate_scales: dict[str, float] = {}
 
-    def __init__(self, view_count: int, fit_gamma: bool = True) -> None:
+    def __init__(self, light_basis: torch.Tensor, fit_gamma: bool = True) -> None:
         super().__init__()
-        self.view_count = view_count
-        self.log_gain = torch.nn.Parameter(torch.zeros(view_count, 3))
+        self.view_count = light_basis.shape[0]
+        self.log_gain = torch.nn.Parameter(torch.zeros(self.view_count, 3))
+        self.light_basis = light_basis
+        self.light_error = torch.nn.Parameter(torch.zeros(light_basis.shape[-1]))
         self.response = ResponseCurve()
         self.response.lut.requires_grad_(False)
         self.response.log_gamma.requires_grad_(fit_gamma)
@@ -59,7 +87,10 @@ class RelightResponse(torch.nn.Module):
             lit, under_relight / under_fitted.clamp_min(DARK), torch.ones_like(under_fitted)
         )
         curved = torch.where(lit, under_fitted * ratio.pow(gamma), under_relight)
-        return curved * self.log_gain.exp()[:, None, None, :]
+        # The fitted albedo holds S_true1 / S_fit1 = 1 + t . b: divided out (kept positive).
+        light_error = (self.light_basis.to(curved) * self.light_error.to(curved)).sum(-1)
+        absorbed = (1 + light_error[..., None]).clamp_min(0.1)
+        return curved * self.log_gain.exp()[:, None, None, :] / absorbed
 
 
 def _fit(
@@ -86,19 +117,68 @@ def _fit(
     return tiles.flatten()
 
 
+def light_error_basis(normals: torch.Tensor, lighting: Lighting) -> torch.Tensor:
+    """[B, H, W, 2] the shapes of an error in `lighting`'s balance: its ambient level and its
+    dominant light's strength (recon.effects.light_transport.dominant_light: the brightest sun's
+    clamped cosine, or the SH linear band's cosine), each over the light's luminance irradiance
+    E(n). normals: [B, H, W, 3] (0 on background, where the basis is 0).
+
+    Only the light's own components: a new direction (a free linear band, say) would contain the
+    second light's shading too, and with it most of what a curve changes."""
+    lighting = lighting.detached()
+    weights = torch.tensor([0.2126, 0.7152, 0.0722], dtype=normals.dtype, device=normals.device)
+    # E(n): the lambertian shading of a white albedo, times pi.
+    irradiance = (lambertian(torch.ones_like(normals), normals, lighting) * math.pi * weights).sum(
+        -1
+    )
+    direction, _ = dominant_light(lighting)
+    cosine = (normals * direction.to(normals)).sum(-1)
+    if lighting.directional:
+        cosine = cosine.clamp_min(0.0)
+    covered = normals.abs().sum(-1) > 0
+    # Normals that only a weak ambient reaches would blow the ratio up; a tenth of the mean
+    # irradiance bounds it.
+    floor = 0.1 * irradiance[covered].mean() if bool(covered.any()) else torch.ones(())
+    scale = torch.where(covered, 1.0 / irradiance.clamp_min(floor), torch.zeros_like(irradiance))
+    return torch.stack([torch.ones_like(cosine), cosine], dim=-1) * scale[..., None]
+
+
+def unshadowed(relight: DiagnosisData, fitted_lighting: Lighting) -> torch.Tensor:
+    """[B, H, W, 1] 1 where the fitted mesh blocks at most SHADOWED_SHARE of the fitted light
+    and of the relight split's light at every vertex of the pixel's triangle (background: 1)."""
+    mesh = relight.mesh
+    visible = torch.minimum(
+        vertex_light_visibility(mesh.verts, mesh.faces, fitted_lighting),
+        vertex_light_visibility(mesh.verts, mesh.faces, relight.lighting),
+    )
+    triangle = relight.triangle_id
+    corners = visible[mesh.faces[triangle.clamp(min=0)]].min(dim=-1).values  # [B, H, W]
+    keep = (triangle < 0) | (corners >= 1 - SHADOWED_SHARE)
+    return keep.to(relight.region)[..., None]
+
+
 def relight_response_probe(
-    relight: DiagnosisData, under_fitted: torch.Tensor, seed: int = 0
+    relight: DiagnosisData, under_fitted: torch.Tensor, fitted_lighting: Lighting, seed: int = 0
 ) -> dict:
     """relight: the relight split rendered under its own light (rendered = R2); under_fitted:
-    the same views rendered under the fitted light (R1) [B, H, W, 3]. Returns {"reduction",
+    the same views rendered under the fitted light (R1) [B, H, W, 3]; fitted_lighting: the
+    fit's light (its error shapes, and the cast shadows of both lights). Returns {"reduction",
     "interval", "parameters": {"gamma", "effective_gamma"}}."""
     batch, height, width, _ = relight.observed.shape
     first, second = block_halves(batch, height, width, relight.observed.device)
-    baseline = _fit(RelightResponse(batch, fit_gamma=False), under_fitted, relight, first, second)
-    module = RelightResponse(batch)
-    curved = _fit(module, under_fitted, relight, first, second)
+    relight = replace(relight, region=relight.region * unshadowed(relight, fitted_lighting))
+    light_basis = light_error_basis(relight.normals, fitted_lighting)
+    baseline = _fit(
+        RelightResponse(light_basis, fit_gamma=False), under_fitted, relight, first, second
+    )
+    curved = _fit(RelightResponse(light_basis), under_fitted, relight, first, second)
     reduction, interval = bootstrap_reduction(baseline, curved, seed)
-    gamma = float(module.response.log_gamma.detach().exp())
+    # The exponent itself comes from the fit without the light-error factor: a power law of the
+    # ratio s2 / s1 is in part a function of s1, so with the factor free the exponent is pinned
+    # by s2 alone and comes out low even on clean fits (0.89-0.94 on the calibration fits).
+    estimate = RelightResponse(light_basis[..., :0])
+    _fit(estimate, under_fitted, relight, first, second)
+    gamma = float(estimate.response.log_gamma.detach().exp())
     return {
         "reduction": reduction,
         "interval": list(interval),

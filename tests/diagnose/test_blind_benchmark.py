@@ -102,7 +102,16 @@ def test_parameter_errors_compare_like_with_like():
             },
             {"effect": "response_curve", "parameters": {"effective_gamma": 0.85}},
         ],
-        "refits": [{"effects": ["exposure"], "parameters": {"exposure": {"ratios": refit_ratios}}}],
+        "refits": [
+            {
+                "effects": ["exposure", "response_curve"],
+                # Under one light the refit cannot pin a curve: its exponent is not scored.
+                "parameters": {
+                    "exposure": {"ratios": refit_ratios},
+                    "response_curve": {"effective_gamma": 1.0},
+                },
+            }
+        ],
     }
     errors = parameter_errors(diagnosis, truth)
     # Normalised by the geometric mean, the 10 % view error spreads to ~2.4 % on the others.

@@ -11,7 +11,7 @@ from diagnose_scenes import patterned_torus
 
 from recon.camera import orbit_cameras
 from recon.diagnose.data import build_diagnosis_data
-from recon.diagnose.relight_probe import relight_response_probe
+from recon.diagnose.relight_probe import relight_response_probe, unshadowed
 from recon.render.renderer import Renderer
 from recon.render.shading import DirectionalLight, Lighting
 
@@ -48,18 +48,61 @@ def relight_case(gamma: float, noise: float = 0.002):
         second,
         mesh,
     )
-    return relight, fitted_first
+    return relight, fitted_first, first
 
 
 def test_a_tone_curve_shows_under_the_second_light():
-    relight, under_fitted = relight_case(gamma=0.6)
-    record = relight_response_probe(relight, under_fitted)
+    relight, under_fitted, fitted_light = relight_case(gamma=0.6)
+    record = relight_response_probe(relight, under_fitted, fitted_light)
     assert record["interval"][0] > 0.3, record
     assert abs(record["parameters"]["gamma"] - 0.6) < 0.05, record
 
 
 def test_a_linear_camera_leaves_nothing():
-    relight, under_fitted = relight_case(gamma=1.0)
-    record = relight_response_probe(relight, under_fitted)
+    relight, under_fitted, fitted_light = relight_case(gamma=1.0)
+    record = relight_response_probe(relight, under_fitted, fitted_light)
     assert abs(record["reduction"]) < 0.02, record
     assert abs(record["parameters"]["gamma"] - 1.0) < 0.05, record
+
+
+def test_a_wrong_sun_to_ambient_balance_is_not_a_tone_curve():
+    """The fit lit the first views with too weak a sun and too much ambient; its albedo absorbed
+    the difference (a function of the normal). A linear camera: nothing to find."""
+    mesh = patterned_torus((2, 3), 0.25, lambda p: [p, 0.8 * p + 0.1, 0.6 * p + 0.2], base=0.45)
+    cameras = orbit_cameras(VIEWS, (SIZE, SIZE), distance=2.2, fov_x_deg=50, elevation_deg=30)
+    renderer = Renderer(texture_filter="linear")
+    true_first, second = lit_by([0.5, 0.8, 0.4]), lit_by([-0.7, 0.5, -0.3])
+    sun = true_first.directional[0]
+    fitted_first = Lighting(
+        sh_coefficients=Lighting.constant(0.45).sh_coefficients,
+        directional=[DirectionalLight(sun.direction_to_light, 0.6 * sun.irradiance)],
+    )
+    under_true = renderer.render(mesh, cameras, true_first).color
+    under_fitted = renderer.render(mesh, cameras, fitted_first).color
+    under_second = renderer.render(mesh, cameras, second)
+    # The fitted albedo is the true one times S_true1 / S_fit1, so the fitted scene renders the
+    # first views exactly and the second ones off by that factor.
+    absorbed = torch.where(under_fitted > 1e-3, under_true / under_fitted.clamp_min(1e-3), 1.0)
+    generator = torch.Generator().manual_seed(0)
+    observed = under_second.color + 0.002 * torch.randn(
+        under_second.color.shape, generator=generator
+    )
+    relight = build_diagnosis_data(
+        observed * under_second.alpha,
+        under_second.alpha,
+        replace(under_second, color=under_second.color * absorbed),
+        cameras,
+        second,
+        mesh,
+    )
+    record = relight_response_probe(relight, under_true, fitted_first)
+    assert record["interval"][0] < 0.01, record
+
+
+def test_cast_shadow_pixels_are_left_out():
+    relight, _, fitted_light = relight_case(gamma=1.0)
+    keep = unshadowed(relight, fitted_light)
+    covered = relight.triangle_id >= 0
+    kept_share = float(keep[..., 0][covered].mean())
+    # The torus hides part of each light from its inner side, not most of its surface.
+    assert 0.3 < kept_share < 0.98, kept_share
