@@ -365,13 +365,14 @@ def fit_on_halves(
 
 def conditioning_effect(ranking: list[CandidateResult]) -> str | None:
     """The effect the other evidence is conditioned on: the top candidate when its probe made it
-    significant and it changes every view differently (exposure, white balance, pose, motion
-    blur). Such an effect leaves a large per-view residual that any other probe or refit
-    partly explains; measured on top of it, the others show only what they add."""
+    significant. Such an effect leaves a large held-out residual that other flexible probes
+    partly explain (a per-view exposure or pose, and a blur too, which motion blur, lens
+    distortion and pose refinement all imitate); measured on top of it, the others show only
+    what they add."""
     top = max(ranking, key=CandidateResult.rank_key, default=None)
     if top is None or not top.significant or top.evidence != "probe":
         return None
-    return top.effect if MODEL_EFFECTS[top.effect].per_view else None
+    return top.effect
 
 
 def conditional_probes(

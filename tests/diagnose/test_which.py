@@ -91,12 +91,13 @@ def test_the_pose_probe_warp_follows_a_re_render():
     assert error < 0.35 * change, (float(error), float(change))
 
 
-def test_only_a_per_view_probe_effect_conditions():
+def test_only_a_probe_decided_top_effect_conditions():
     def candidate(name, evidence):
         return CandidateResult(name, 0.0, 0.5, (0.4, 0.6), bool(evidence), evidence=evidence)
 
     assert conditioning_effect([candidate("pose_error", "probe")]) == "pose_error"
-    assert conditioning_effect([candidate("defocus_blur", "probe")]) is None
+    # A global blur too: motion blur, distortion and pose refinement all imitate part of it.
+    assert conditioning_effect([candidate("defocus_blur", "probe")]) == "defocus_blur"
     assert conditioning_effect([candidate("vignetting", "absorption")]) is None
     assert conditioning_effect([candidate("exposure", "")]) is None
 
