@@ -9,11 +9,12 @@ its null allowance, not with zero.
 The allowances were measured with ``scripts/calibrate_diagnosis.py`` on clean calibration
 datasets (the benchmark config at 128², default scene and spot, seeds 103-105: fits that the
 blind benchmark's scored cases never use) as twice the largest reduction seen, floored at
-MINIMUM_SHARE; the script prints the table below from fresh fits (largest clean reductions with
-the Gauss-Newton probes and the absorption refits of this session: defocus 0.081, motion 0.080,
-pose 0.061, lens 0.034, vignetting 0.021, all others below 0.011; absorption: lens 0.059,
-specular 0.004, vignetting 0 (regression); spot's texture-resolution misfit is what the blur probes pick up). The
-visibility fingerprint's largest clean share there was 0.024.
+MINIMUM_SHARE; the script prints the table below from fresh fits (the benchmark fits with 300
+texture steps; largest clean reductions: motion 0.082, defocus 0.080, pose 0.072, lens 0.032,
+vignetting 0.020, response curve 0.011, all others below 0.008; absorption: lens 0.035,
+specular 0.002, vignetting 0.0007 (regression); relight 0.035). Spot's silhouette misfit is
+what the blur and pose probes pick up. The visibility fingerprint's largest clean share there
+was 0.012.
 """
 
 from __future__ import annotations
@@ -24,13 +25,13 @@ MINIMUM_SHARE = 0.02
 # Probe (scene frozen, per-view parameters fitted on half of each held-out view's pixel blocks):
 # twice the largest held-out reduction on the clean calibration fits.
 PROBE_ALLOWANCE: dict[str, float] = {
-    "defocus_blur": 0.162,
-    "motion_blur": 0.161,
-    "pose_error": 0.121,
-    "lens_distortion": 0.069,
-    "vignetting": 0.043,
-    "exposure": 0.021,
-    "response_curve": 0.02,
+    "defocus_blur": 0.16,
+    "motion_blur": 0.165,
+    "pose_error": 0.143,
+    "lens_distortion": 0.064,
+    "vignetting": 0.04,
+    "exposure": 0.02,
+    "response_curve": 0.021,
     "white_balance": 0.02,
     "specular": 0.02,
     "shadows": 0.02,
@@ -56,16 +57,14 @@ def absorption_minimum_share(effect: str) -> float:
 # regression against the same without the falloff): twice the largest reduction over the
 # control on the same calibration fits, floored at absorption_minimum_share.
 ABSORPTION_ALLOWANCE: dict[str, float] = {
-    "lens_distortion": 0.118,
+    "lens_distortion": 0.071,
     "vignetting": 0.005,
     "specular": 0.01,
 }
 
 # Relight response probe (recon.diagnose.relight_probe, with the fitted light's balance error
-# divided out): twice the largest reduction on the clean calibration fits (0.030, spot; the
-# torus 0.029). On the benchmark's response-curve datasets, pairs included, its lower bound is
-# 0.10 or more.
-RELIGHT_ALLOWANCE = 0.059
+# divided out): twice the largest reduction on the clean calibration fits (0.035, spot).
+RELIGHT_ALLOWANCE = 0.07
 
 # Visibility fingerprint (recon.diagnose.fingerprint): the share of the self-shadowing that the
 # fitted mesh and light predict which the fit baked into its albedo. Clean fits stay below

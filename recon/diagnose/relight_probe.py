@@ -44,7 +44,8 @@ from recon.effects.light_transport import dominant_light, vertex_light_visibilit
 from recon.effects.photometric import ResponseCurve
 from recon.render.shading import Lighting, lambertian
 
-# Below this rendered value (linear) the shading ratio is not defined: the prediction keeps R2.
+# Below this rendered value (linear, under either light) the shading ratio is not defined: the
+# prediction keeps R2.
 DARK = 1e-3
 ITERATIONS = 6
 # The bootstrap resamples image tiles of this size (across all views), not views: the exponent
@@ -82,7 +83,9 @@ class RelightResponse(torch.nn.Module):
         """[B, H, W, 3] prediction from the fitted scene under its own light (R1) and under the
         relight split's light (R2)."""
         gamma = self.response.log_gamma.exp()
-        lit = under_fitted > DARK
+        # Both renders must be lit: a fitted SH light can go slightly negative on a few normals,
+        # and a negative ratio has no real power.
+        lit = (under_fitted > DARK) & (under_relight > DARK)
         ratio = torch.where(
             lit, under_relight / under_fitted.clamp_min(DARK), torch.ones_like(under_fitted)
         )
