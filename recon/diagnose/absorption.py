@@ -226,7 +226,7 @@ def absorption_probes(
             # The two refits that move the geometry are the diagnosis' dearest step: they run
             # only where the frozen-scene probe sees a distortion-shaped residual worth naming.
             # (On the benchmark's datasets the refits' lower bound stayed at or below 0.04
-            # wherever the probe's reduction was under this, against an allowance of 0.118.)
+            # wherever the probe's reduction was under this, against an allowance of 0.118 then.)
             continue
         if given and not _had_evidence(candidate):
             # The refits again on top of the given effect only where the first pass saw some
