@@ -10,10 +10,10 @@ with both scenes the pooled cases go to OUT/bench.md, OUT/bench.json and OUT/con
 How the README's figures were made (clean seeds 103-105 calibrate, 100-102 are scored):
 
     python scripts/bench_diagnose.py --fits-only --clean 6           # synthesise and fit
+    python scripts/calibrate_diagnosis.py OUT/*/none_seed10[345]
+    # -> the allowances in recon/diagnose/calibration.py, before any scored case is diagnosed
     python scripts/bench_diagnose.py --reuse-fits --clean 6          # diagnose every case
-    python scripts/calibrate_diagnosis.py --stored OUT/*/none_seed10[345]
-    # -> the allowances in recon/diagnose/calibration.py
-    python scripts/bench_diagnose.py --reuse-fits --rescore --clean 3
+    python scripts/bench_diagnose.py --reuse-fits --rescore --clean 3  # pooled, 100-102 scored
 """
 
 from __future__ import annotations
