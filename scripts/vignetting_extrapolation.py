@@ -40,11 +40,7 @@ def main(argv: list[str] | None = None) -> int:
             like = torch.empty(0, dtype=torch.float64)
             effect = Vignetting(parameters)
             u, v = pixel_grid(height, width, like)
-            natural, mechanical = effect.falloff(captures.cameras, u, v)
-            centre_u = torch.tensor([0.5 * width], dtype=torch.float64)
-            centre_v = torch.tensor([0.5 * height], dtype=torch.float64)
-            natural_centre, mechanical_centre = effect.falloff(captures.cameras, centre_u, centre_v)
-            falloff = natural * mechanical / (natural_centre * mechanical_centre)[:, :, None]
+            falloff = effect.relative_falloff(captures.cameras, u, v, height, width)
             radius = normalised_radius(captures.cameras, height, width, like)
             covered = captures.masks[..., 0] > 0.5
             squared = radius[covered] ** 2

@@ -456,24 +456,6 @@ def barrel_distance_for_strength(strength: float, barrel_radius: float) -> float
 HALF_RADIUS_SAMPLES = 64
 
 
-def half_radius_falloff(
-    effect: Vignetting, cameras: Cameras, height: int, width: int, like: torch.Tensor
-) -> torch.Tensor:
-    """Per-view falloff [B] at half the half image diagonal from the image centre (mean over a
-    circle, over the centre value). A centred object covers this radius in every view, unlike
-    the corners, so a model fitted to the object's pixels can be scored here."""
-    angles = torch.arange(HALF_RADIUS_SAMPLES, dtype=like.dtype, device=like.device)
-    angles = angles * (2.0 * math.pi / HALF_RADIUS_SAMPLES)
-    radius = 0.25 * math.hypot(height, width)
-    u = 0.5 * width + radius * torch.cos(angles)
-    v = 0.5 * height + radius * torch.sin(angles)
-    natural, mechanical = effect.falloff(cameras, u, v)
-    centre = torch.tensor([0.5 * width], dtype=like.dtype, device=like.device)
-    middle = torch.tensor([0.5 * height], dtype=like.dtype, device=like.device)
-    natural_centre, mechanical_centre = effect.falloff(cameras, centre, middle)
-    return (natural * mechanical).mean(dim=1) / (natural_centre * mechanical_centre)[:, 0]
-
-
 class Vignetting(WorldEffect):
     """Optical vignetting: the natural cos^p falloff of the real field angle times an
     off-centre mechanical (barrel) vignetting.
@@ -548,6 +530,24 @@ class Vignetting(WorldEffect):
         distance = separation * torch.hypot(mechanical_u, mechanical_v) / corner
         return natural, pupil_transmission(distance, radius)
 
+    def _centre_falloff(
+        self, cameras: Cameras, height: int, width: int, like: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Natural and mechanical factors [B, 1] at the image centre (like's dtype and device)."""
+        centre = torch.tensor([0.5 * width], dtype=like.dtype, device=like.device)
+        middle = torch.tensor([0.5 * height], dtype=like.dtype, device=like.device)
+        return self.falloff(cameras, centre, middle)
+
+    def relative_falloff(
+        self, cameras: Cameras, u: torch.Tensor, v: torch.Tensor, height: int, width: int
+    ) -> torch.Tensor:
+        """Total falloff [B, ...] at pixel positions u, v [...] over its value at the centre of
+        a height x width image."""
+        natural, mechanical = self.falloff(cameras, u, v)
+        natural_centre, mechanical_centre = self._centre_falloff(cameras, height, width, u)
+        centre = natural_centre * mechanical_centre
+        return natural * mechanical / centre.reshape(-1, *([1] * u.ndim))
+
     def apply(self, capture: Capture, generator: torch.Generator) -> AppliedEffect:
         """images [B, H, W, 3] *= falloff [B, H, W]; alpha and cameras unchanged (coverage is
         geometry; vignetting only dims the light)."""
@@ -563,19 +563,26 @@ class Vignetting(WorldEffect):
         corners_v = torch.tensor(
             [0.5, 0.5, height - 0.5, height - 0.5], dtype=torch.float64, device=like.device
         )
-        centre = torch.tensor([0.5 * width], dtype=torch.float64, device=like.device)
-        middle = torch.tensor([0.5 * height], dtype=torch.float64, device=like.device)
         natural_corners, mechanical_corners = self.falloff(capture.cameras, corners_u, corners_v)
-        natural_centre, mechanical_centre = self.falloff(capture.cameras, centre, middle)
-        total = (natural_corners * mechanical_corners).mean(dim=1) / (
-            natural_centre * mechanical_centre
-        )[:, 0]
-        half_radius = half_radius_falloff(self, capture.cameras, height, width, like)
+        natural_centre, mechanical_centre = self._centre_falloff(
+            capture.cameras, height, width, like
+        )
+        total = self.relative_falloff(capture.cameras, corners_u, corners_v, height, width)
+        # Half-way to the corner (mean round the circle): a centred object covers this radius in
+        # every view, unlike the corners, so a model fitted to its pixels can be scored here.
+        angles = torch.arange(HALF_RADIUS_SAMPLES, dtype=torch.float64, device=like.device)
+        angles = angles * (2.0 * math.pi / HALF_RADIUS_SAMPLES)
+        half_radius = 0.25 * math.hypot(height, width)
+        circle_u = 0.5 * width + half_radius * torch.cos(angles)
+        circle_v = 0.5 * height + half_radius * torch.sin(angles)
+        half_radius_falloff = self.relative_falloff(
+            capture.cameras, circle_u, circle_v, height, width
+        )
         return AppliedEffect(
             self.name,
             {
-                "corner_falloff": to_list(total),
-                "half_radius_falloff": to_list(half_radius),
+                "corner_falloff": to_list(total.mean(dim=1)),
+                "half_radius_falloff": to_list(half_radius_falloff.mean(dim=1)),
                 "natural_corner_falloff": to_list(
                     natural_corners.mean(dim=1) / natural_centre[:, 0]
                 ),

@@ -39,15 +39,16 @@ PROBE_ALLOWANCE: dict[str, float] = {
 }
 
 # The absorption evidence compares two refits of the same length from the same start, so its
-# null spread is far smaller than a probe's (largest clean reduction 0.004 for specular): its
+# null spread is far smaller than a probe's (largest clean reduction 0.002 for specular): its
 # floor is half the probe's.
 ABSORPTION_MINIMUM_SHARE = 0.01
 
 
 # Vignetting's absorption evidence is a closed-form regression on interior pixels
 # (recon.diagnose.radial_absorption), a share of a smaller error than the refits': on the clean
-# calibration fits its reduction is 0 (the fitted falloff brightens or is flat), and on the
-# other effects' datasets its lower bound stays below 0.0003. Its floor is half the refits'.
+# calibration fits its reduction is at most 0.0007 (the fitted falloff mostly brightens or is
+# flat), and on the other effects' datasets its lower bound stays below 0.0003. Its floor is
+# half the refits'.
 def absorption_minimum_share(effect: str) -> float:
     """The floor of an effect's absorption allowance (by the kind of its evidence)."""
     return 0.005 if effect == "vignetting" else ABSORPTION_MINIMUM_SHARE
@@ -68,7 +69,7 @@ RELIGHT_ALLOWANCE = 0.07
 
 # Visibility fingerprint (recon.diagnose.fingerprint): the share of the self-shadowing that the
 # fitted mesh and light predict which the fit baked into its albedo. Clean fits stay below
-# 0.06; its bootstrap lower bound must clear VISIBILITY_SHARE_MINIMUM to count. Light that is
+# 0.02; its bootstrap lower bound must clear VISIBILITY_SHARE_MINIMUM to count. Light that is
 # simply blocked leaves about 0.8 (the prediction is a 64-direction estimate of the true
 # occlusion); bounced light fills part of it back, leaving about 1 - albedo of it: below
 # SHADOW_SHARE the missing effect is interreflection, above it shadows.

@@ -19,7 +19,8 @@ Two things besides a tone curve bend the ratio between the two renders, and both
 - The fitted light's own error. Where the fit got the first light's balance wrong (too weak a
   sun and too much ambient, say), the albedo absorbed S_true1 / S_fit1 = 1 + (dA + dB c) / S_fit1
   (c the sun's cosine), a function of the normal, and it shows under the second light as a
-  ratio that also grows with the shading (clean spot fits read it as an exponent of 1.08-1.11).
+  ratio that also grows with the shading (without this factor, clean spot fits read it as an
+  exponent of 1.08-1.11).
   The test's two fits (gamma free and gamma at 1) both divide that factor out with dA and dB
   fitted: whatever function of the first light's shading the albedo absorbed, a tone curve
   also makes the ratio depend on the *second* light's shading s2, and that is what the test
@@ -166,7 +167,7 @@ def relight_response_probe(
     """relight: the relight split rendered under its own light (rendered = R2); under_fitted:
     the same views rendered under the fitted light (R1) [B, H, W, 3]; fitted_lighting: the
     fit's light (its error shapes, and the cast shadows of both lights). Returns {"reduction",
-    "interval", "parameters": {"gamma", "effective_gamma"}}."""
+    "interval", "parameters": {"gamma", "effective_gamma", "gamma_with_light_error"}}."""
     batch, height, width, _ = relight.observed.shape
     first, second = block_halves(batch, height, width, relight.observed.device)
     relight = replace(relight, region=relight.region * unshadowed(relight, fitted_lighting))
@@ -174,16 +175,21 @@ def relight_response_probe(
     baseline = _fit(
         RelightResponse(light_basis, fit_gamma=False), under_fitted, relight, first, second
     )
-    curved = _fit(RelightResponse(light_basis), under_fitted, relight, first, second)
+    tested = RelightResponse(light_basis)
+    curved = _fit(tested, under_fitted, relight, first, second)
     reduction, interval = bootstrap_reduction(baseline, curved, seed)
     # The exponent itself comes from the fit without the light-error factor: a power law of the
     # ratio s2 / s1 is in part a function of s1, so with the factor free the exponent is pinned
-    # by s2 alone and comes out low even on clean fits (0.89-0.94 on the calibration fits).
+    # by s2 alone and comes out low even on clean fits (recorded as gamma_with_light_error).
     estimate = RelightResponse(light_basis[..., :0])
     _fit(estimate, under_fitted, relight, first, second)
     gamma = float(estimate.response.log_gamma.detach().exp())
     return {
         "reduction": reduction,
         "interval": list(interval),
-        "parameters": {"gamma": gamma, "effective_gamma": gamma},
+        "parameters": {
+            "gamma": gamma,
+            "effective_gamma": gamma,
+            "gamma_with_light_error": float(tested.response.log_gamma.detach().exp()),
+        },
     }
