@@ -184,6 +184,11 @@ def _diagnose(arguments) -> int:
             f"refit with {' + '.join(refit['effects'])}: RMSE {refit['before_rmse']:.4f} -> "
             f"{refit['after_rmse']:.4f}, closed {100 * refit['closed_fraction']:.0f} % of the gap "
             "above the floor"
+            + (
+                f" (relight split: {100 * refit['relight_closed_fraction']:.0f} %)"
+                if "relight_closed_fraction" in refit
+                else ""
+            )
         )
     print(f"verdict: {result['verdict']}")
     print(f"diagnosis: {paths.root / 'diagnosis.json'}")

@@ -7,7 +7,8 @@ diagnosis.json (stable schema, see README "Gap diagnosis"):
   where:   per domain {score, score_in_sample, summary}
   ranking: [{effect, score, heldout_reduction, interval, significant, evidence, parameters,
             absorption, absorption_interval, fingerprint, conditional_on}]
-  refits:  [{effects, before, after, floor, closed_fraction, geometry_before, geometry_after}]
+  refits:  [{effects, before, after, floor, closed_fraction, relight_before, relight_after,
+            relight_floor, relight_closed_fraction, geometry_before, geometry_after}]
   verdict: the significant effects in order, or "no significant unmodelled effect"
 """
 
@@ -37,6 +38,7 @@ from recon.diagnose.which import (
     rank_candidates,
     verdict_of,
 )
+from recon.effects.forward import render_with_effects
 from recon.effects.registry import MODEL_EFFECTS
 from recon.errors import ReconError
 from recon.io.atomic import atomic_path, atomic_write_json
@@ -71,6 +73,54 @@ def heldout_gap(data: DiagnosisData, modules: list) -> float:
     parameters of the given effect modules on the first half (scene frozen)."""
     squared, count = heldout_errors(data, modules)
     return float(squared.sum() / count.sum())
+
+
+GAUGE_ITERATIONS = 3
+
+
+def relight_heldout_gap(relight: DiagnosisData, mesh, modules: list) -> float:
+    """The relight split's MSE after a refit, measured like heldout_gap: per-view effect
+    parameters fitted on the first half of the pixel blocks, the error on the second half, the
+    scene rendered under the split's own light.
+
+    The albedo x light gauge is fixed first, as relight_gap does: the fitted albedo is only
+    known up to a per-channel scale that the fitted light carries. A curve after the albedo (a
+    response curve, x -> x^gamma) turns a texture gain g into g^gamma, so the texture's gain
+    is found by secant steps on log g against the log of the least-squares gain r of the render
+    with the global effects on (r = 1 at the answer; the first step takes gamma = 1)."""
+    renderer = Renderer(texture_filter="linear-mipmap-linear", texture_boundary="clamp")
+    mesh = mesh.to(relight.observed.device)
+    global_effects = [module for module in modules if not module.per_view]
+    region = relight.region.double()
+    observed = relight.observed.double()
+    log_gain = torch.zeros(3, dtype=torch.float64)
+    previous: tuple[torch.Tensor, torch.Tensor] | None = None
+    gauged = mesh
+    for _ in range(GAUGE_ITERATIONS):
+        with torch.no_grad():
+            color = render_with_effects(
+                renderer, gauged, relight.cameras, relight.lighting, global_effects
+            ).color.double()
+        numerator = (observed * color * region).sum(dim=(0, 1, 2))
+        log_ratio = (numerator / (color * color * region).sum(dim=(0, 1, 2))).clamp_min(1e-6).log()
+        slope = torch.ones(3, dtype=torch.float64)  # d log r / d log g = -slope
+        if previous is not None:
+            moved = log_gain - previous[0]
+            usable = moved.abs() > 1e-9
+            secant = (previous[1] - log_ratio) / torch.where(usable, moved, torch.ones_like(moved))
+            slope = torch.where(usable, secant.clamp(0.2, 5.0), slope)
+        previous = (log_gain, log_ratio)
+        log_gain = log_gain + log_ratio / slope
+        gauged = replace(mesh, texture=mesh.texture * log_gain.exp().to(mesh.texture.dtype))
+    return heldout_gap(replace(relight, mesh=gauged), modules)
+
+
+def _relight_exponent(ranking: list[CandidateResult]) -> float | None:
+    """The relight probe's response exponent (None without a relight split)."""
+    for candidate in ranking:
+        if candidate.effect == "response_curve" and candidate.relight_parameters:
+            return candidate.relight_parameters["gamma"]
+    return None
 
 
 def fingerprint_evidence(ranking, data: DiagnosisData, probe: EffectProbe) -> dict:
@@ -212,13 +262,27 @@ def diagnose_run(
     if refit != "none":
         chosen: list[str] = []
         before_mse = heldout_gap(data, [])
+        relight_floor = relight_before = None
+        if relight_views is not None:
+            # Where the fit baked an effect into the albedo under its one light (shadows, a
+            # response curve), the held-out views show little of it: the relight split does.
+            relight_data = relight_views[0]
+            relight_before = relight_heldout_gap(relight_data, relight_data.mesh, [])
+            relight_floor = (noise_floor(relight_data).get("floor_rmse") or 0.0) ** 2
         for candidate in ranking:
             if not candidate.significant or (refit == "top" and chosen):
                 continue
             if len(chosen) >= MAX_GREEDY_EFFECTS:
                 break
             names = chosen + [candidate.effect]
-            mesh, lighting, fitted_effects = refit_with(names, paths, config, device, refit_steps)
+            mesh, lighting, fitted_effects = refit_with(
+                names,
+                paths,
+                config,
+                device,
+                refit_steps,
+                response_exponent=_relight_exponent(ranking) if "response_curve" in names else None,
+            )
             refit_data = replace(data, mesh=mesh, lighting=lighting)
             modules = heldout_modules(names, fitted_effects.modules, len(data.cameras), device)
             after_mse = heldout_gap(refit_data, modules)
@@ -234,6 +298,21 @@ def diagnose_run(
                 "closed_fraction": closed,
                 "parameters": {m.name: m.parameters_summary() for m in fitted_effects.modules},
             }
+            if relight_views is not None:
+                relight_modules = heldout_modules(
+                    names,
+                    fitted_effects.modules,
+                    len(relight_data.cameras),
+                    relight_data.observed.device,
+                )
+                relight_after = relight_heldout_gap(relight_data, mesh, relight_modules)
+                record.update(
+                    relight_before=relight_before,
+                    relight_after=relight_after,
+                    relight_floor=relight_floor,
+                    relight_closed_fraction=(relight_before - relight_after)
+                    / max(relight_before - relight_floor, 1e-20),
+                )
             if reference is not None:
                 record["geometry_before"] = gap["parameters"]["geometry"]["chamfer_l1"]
                 record["geometry_after"] = _geometry_errors(mesh, reference)["chamfer_l1"]
@@ -241,7 +320,9 @@ def diagnose_run(
             if refit == "greedy" and closed < 0.05:
                 break
             chosen = names
-            before_mse = after_mse if refit == "greedy" else before_mse
+            if refit == "greedy":
+                before_mse = after_mse
+                relight_before = record.get("relight_after", relight_before)
         timings["refit_seconds"] = round(
             time.perf_counter() - started - timings["diagnose_seconds"], 2
         )

@@ -248,6 +248,16 @@ class ResponseCurve(ModelEffect):
         check_image(color, alpha, self.name)
         return self.curve(color), alpha
 
+    def hold_exponent(self, gamma: float) -> None:
+        """Set the exponent to gamma and keep it there (its gradient stops; the LUT stays free):
+        for a refit whose training views, all under one light, cannot pin the exponent while
+        another measurement (the relight probe) has."""
+        if not gamma > 0:
+            raise ReconError(f"effect {self.name}: held exponent must be > 0, got {gamma}")
+        with torch.no_grad():
+            self.log_gamma.fill_(math.log(gamma))
+        self.log_gamma.requires_grad_(False)
+
     def effective_exponent(self) -> float:
         """k of the least-squares fit log f(E) = k log E over E in [0.05, 0.9]: comparable with
         the world's effective_exponent (1 for the identity)."""

@@ -201,7 +201,14 @@ def _ranking_table(diagnosis: dict) -> tuple[list[str], list[list[str]]]:
 
 def _refit_table(diagnosis: dict) -> tuple[list[str], list[list[str]]]:
     """The refits (how far the gap shrinks) as (header, rows) of text cells."""
-    header = ["refit with", "RMSE before", "RMSE after", "floor RMSE", "gap above floor closed"]
+    header = [
+        "refit with",
+        "RMSE before",
+        "RMSE after",
+        "floor RMSE",
+        "gap above floor closed",
+        "relight split closed",
+    ]
     rows = [
         [
             " + ".join(refit["effects"]),
@@ -209,6 +216,9 @@ def _refit_table(diagnosis: dict) -> tuple[list[str], list[list[str]]]:
             f"{refit['after_rmse']:.4f}",
             f"{refit['floor'] ** 0.5:.4f}",
             f"{100 * refit['closed_fraction']:.0f} %",
+            f"{100 * refit['relight_closed_fraction']:.0f} %"
+            if "relight_closed_fraction" in refit
+            else "",
         ]
         for refit in diagnosis["refits"]
     ]

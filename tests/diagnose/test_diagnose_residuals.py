@@ -20,7 +20,9 @@ import yaml
 from data_synth.shapes import torus
 from recon.camera import orbit_cameras
 from recon.cli import main
+from recon.diagnose import diagnose as diagnose_module
 from recon.diagnose.data import DiagnosisData, build_diagnosis_data, load_diagnosis_data
+from recon.diagnose.diagnose import relight_heldout_gap
 from recon.diagnose.figures import where_figures, worst_views_figure
 from recon.diagnose.residuals import (
     DOMAINS,
@@ -203,6 +205,25 @@ def test_relight_gap_fixes_the_albedo_light_gauge(scene):
     relit = relight_gap(data)
     assert relit["gauge_gain"] == pytest.approx([1.25] * 3, rel=0.01)
     assert relit["rmse"] < 0.004 < gap_summary(data)["rmse"]
+
+
+def test_relight_heldout_gap_fixes_the_gauge_through_a_response_curve(scene, monkeypatch):
+    # The camera's curve x^0.6 on every relight view; the refit's albedo is 0.8 of the truth
+    # (the gauge) and its module holds the curve. A texture gain g becomes g^0.6 after the
+    # curve: one least-squares step leaves 0.8^0.4 = 0.91 of the gain missing, the secant
+    # steps take it to the truth's error.
+    curve = make_effect("response_curve")
+    curve.hold_exponent(0.6)
+    with torch.no_grad():
+        observed = noisy(curve(scene.output.color, scene.output.alpha)[0], 0.002, seed=7)
+    data = scene.data(observed)
+    darker = replace(scene.mesh, texture=scene.mesh.texture * 0.8)
+    truth_error = relight_heldout_gap(data, scene.mesh, [curve])
+    gauged_error = relight_heldout_gap(data, darker, [curve])
+    assert gauged_error == pytest.approx(truth_error, rel=0.01)
+    assert relight_heldout_gap(data, darker, []) > 4 * gauged_error  # the curve unmodelled
+    monkeypatch.setattr(diagnose_module, "GAUGE_ITERATIONS", 1)
+    assert relight_heldout_gap(data, darker, [curve]) > 2 * gauged_error
 
 
 @pytest.mark.parametrize("sigma", [0.01, 0.04])

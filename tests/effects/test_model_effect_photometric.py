@@ -211,3 +211,15 @@ def test_response_curve_recovers_effective_gamma(sphere_scene, adam_fit):
     summary = effect.parameters_summary()
     assert summary["effective_gamma"] == pytest.approx(1.6, abs=0.05)
     assert summary["mid_grey_observed"] == pytest.approx(0.18**1.6, rel=0.1)
+
+
+def test_response_curve_holds_an_exponent_and_keeps_its_lut_free():
+    curve = ResponseCurve()
+    curve.hold_exponent(0.7)
+    values = torch.tensor([0.04, 0.25, 0.81])
+    assert torch.allclose(curve.curve(values), values.pow(0.7), rtol=1e-5)
+    curve(values.view(1, 1, 3, 1).expand(1, 1, 3, 3), torch.ones(1, 1, 3, 1))[0].sum().backward()
+    assert curve.log_gamma.grad is None
+    assert curve.lut.grad is not None and curve.lut.grad.abs().sum() > 0
+    with pytest.raises(ReconError, match="held exponent"):
+        curve.hold_exponent(0.0)
