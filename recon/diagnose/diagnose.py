@@ -24,10 +24,15 @@ import matplotlib.pyplot as plt
 import torch
 
 from recon.config.run_config import RunConfig
-from recon.diagnose.absorption import absorption_probes, heldout_errors, heldout_modules
+from recon.diagnose.absorption import (
+    GEOMETRY_ABSORBABLE,
+    absorption_probes,
+    heldout_errors,
+    heldout_modules,
+)
 from recon.diagnose.data import DiagnosisData, load_diagnosis_data
 from recon.diagnose.fingerprint import FINGERPRINT_EFFECTS, visibility_fingerprint
-from recon.diagnose.refit import REFIT_STEPS, refit_with
+from recon.diagnose.refit import POSITION_LEARNING_RATE, REFIT_STEPS, refit_with
 from recon.diagnose.relight_probe import relight_response_probe
 from recon.diagnose.residuals import gap_summary, noise_floor, relight_gap, where_analysis
 from recon.diagnose.which import (
@@ -113,6 +118,17 @@ def relight_heldout_gap(relight: DiagnosisData, mesh, modules: list) -> float:
         log_gain = log_gain + log_ratio / slope
         gauged = replace(mesh, texture=mesh.texture * log_gain.exp().to(mesh.texture.dtype))
     return heldout_gap(replace(relight, mesh=gauged), modules)
+
+
+def _position_learning_rate(names: list[str], config: RunConfig) -> float:
+    """The vertices' step size in a how-far refit: the texture stage's own where an effect
+    that bends the geometry is switched on (a lens distortion the fit absorbed must be bent
+    back: on default lens seed 2, 80 steps at 0.002 closed 0.14 of the gap, at 0.01 0.44),
+    else the refit's small default (on default vignetting seed 0 the larger step let the
+    vertices chase the residual: held-out MSE 0.0006 -> 0.0008)."""
+    if any(name in GEOMETRY_ABSORBABLE for name in names):
+        return config.fit.texture.learning_rate
+    return POSITION_LEARNING_RATE
 
 
 def _relight_exponent(ranking: list[CandidateResult]) -> float | None:
@@ -282,6 +298,7 @@ def diagnose_run(
                 device,
                 refit_steps,
                 response_exponent=_relight_exponent(ranking) if "response_curve" in names else None,
+                position_learning_rate=_position_learning_rate(names, config),
             )
             refit_data = replace(data, mesh=mesh, lighting=lighting)
             modules = heldout_modules(names, fitted_effects.modules, len(data.cameras), device)

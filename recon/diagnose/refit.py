@@ -22,6 +22,9 @@ from recon.optimize.scene_model import FitEffects, LightModel
 from recon.optimize.texture_stage import run_texture_stage
 
 REFIT_STEPS = 80
+# Vertex steps of a refit, a fifth of the texture stage's default: the fitted geometry is
+# already right unless the missing effect bent it (see how_far_position_learning_rate).
+POSITION_LEARNING_RATE = 0.002
 
 
 def refit_with(
@@ -32,6 +35,7 @@ def refit_with(
     steps: int = REFIT_STEPS,
     resolution: int | None = None,
     response_exponent: float | None = None,
+    position_learning_rate: float = POSITION_LEARNING_RATE,
 ):
     """Warm start from the fitted mesh + light; optimise texture, light, positions and the
     effects on the training views (at `resolution`, default the captures'). Returns (mesh,
@@ -40,12 +44,14 @@ def refit_with(
     response_exponent: hold a response_curve's exponent there (the relight probe's estimate).
     Under the training views' one light the albedo takes up most of a curve, so a refit that
     starts the exponent at 1 ends near 1 (0.91-0.99 against truths of 0.80-0.89 on the
-    benchmark) and its texture stays curved: the relight split then gains little."""
+    benchmark) and its texture stays curved: the relight split then gains little.
+    position_learning_rate: the vertices' step size."""
     captures = read_captures(paths.dataset, "train")
     mesh = load_mesh(paths.fitted_mesh).to(device)
     light = LightModel.from_lighting(load_fitted_light(paths, device))
     fit_config = replace(
-        config.fit, texture=replace(config.fit.texture, steps=steps, learning_rate=0.002)
+        config.fit,
+        texture=replace(config.fit.texture, steps=steps, learning_rate=position_learning_rate),
     )
     effects = FitEffects(names, len(captures.cameras), device)
     for module in effects.modules:
