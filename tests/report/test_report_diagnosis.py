@@ -41,7 +41,15 @@ def test_report_carries_the_diagnosis(tmp_path):
                 "after_rmse": 0.0251,
                 "floor": 0.0077**2,
                 "closed_fraction": 0.23,
-            }
+                "relight_closed_fraction": 0.41,
+            },
+            {
+                "effects": ["vignetting", "pose_error"],
+                "before_rmse": 0.0251,
+                "after_rmse": 0.0249,
+                "floor": 0.0077**2,
+                "closed_fraction": 0.01,
+            },
         ],
         "figures": {},
     }
@@ -51,7 +59,9 @@ def test_report_carries_the_diagnosis(tmp_path):
     assert "Verdict: significant unmodelled effects: vignetting" in markdown
     assert "| vignetting | absorption | 0.035 | [0.012, 0.060] | 0.104 |  | yes |" in markdown
     assert "| pose_error |  | 0.050 | [-0.010, 0.090] |  |  |" in markdown
-    assert "| vignetting | 0.0304 | 0.0251 | 0.0077 | 23 % |" in markdown
+    assert "| vignetting | 0.0304 | 0.0251 | 0.0077 | 23 % | 41 % |" in markdown
+    # Without a relight split the refit has no relight figures and the cell stays empty.
+    assert "| vignetting + pose_error | 0.0251 | 0.0249 | 0.0077 | 1 % |  |" in markdown
     page = paths.report_html.read_text()
     assert "<h2>Gap diagnosis</h2>" in page
     assert "<td>absorption</td><td>0.035</td>" in page and "<td>23 %</td>" in page
