@@ -23,7 +23,8 @@ from recon.optimize.texture_stage import run_texture_stage
 
 REFIT_STEPS = 80
 # Vertex steps of a refit, a fifth of the texture stage's default: the fitted geometry is
-# already right unless the missing effect bent it (see how_far_position_learning_rate).
+# already right unless the missing effect bent it (see _position_learning_rate in
+# recon.diagnose.diagnose).
 POSITION_LEARNING_RATE = 0.002
 
 
