@@ -191,6 +191,9 @@ def _diagnose(arguments) -> int:
             )
         )
     print(f"verdict: {result['verdict']}")
+    if result["refits"]:
+        confirmed = result["confirmed_by_refit"]
+        print(f"confirmed by a refit: {', '.join(confirmed) if confirmed else 'none'}")
     print(f"diagnosis: {paths.root / 'diagnosis.json'}")
     return 0
 

@@ -7,9 +7,11 @@ diagnosis.json (stable schema, see README "Gap diagnosis"):
   where:   per domain {score, score_in_sample, summary}
   ranking: [{effect, score, heldout_reduction, interval, significant, evidence, parameters,
             absorption, absorption_interval, fingerprint, conditional_on}]
-  refits:  [{effects, before, after, floor, closed_fraction, relight_before, relight_after,
-            relight_floor, relight_closed_fraction, geometry_before, geometry_after}]
+  refits:  [{effects, before, after, floor, closed_fraction, confirmed, relight_before,
+            relight_after, relight_floor, relight_closed_fraction, geometry_before,
+            geometry_after}]
   verdict: the significant effects in order, or "no significant unmodelled effect"
+  confirmed_by_refit: the refitted effects whose refit closed at least 5 % of the gap
 """
 
 from __future__ import annotations
@@ -58,6 +60,9 @@ from recon.render.shading import Lighting
 matplotlib.use("Agg")
 
 MAX_GREEDY_EFFECTS = 3
+# A refit that closes less than this share of the gap above the floor does not confirm its
+# effect (and ends a greedy chain).
+CONFIRMING_SHARE = 0.05
 
 
 class _Lap:
@@ -334,7 +339,8 @@ def diagnose_run(
                 record["geometry_before"] = gap["parameters"]["geometry"]["chamfer_l1"]
                 record["geometry_after"] = _geometry_errors(mesh, reference)["chamfer_l1"]
             refits.append(record)
-            if refit == "greedy" and closed < 0.05:
+            record["confirmed"] = closed >= CONFIRMING_SHARE
+            if refit == "greedy" and not record["confirmed"]:
                 break
             chosen = names
             if refit == "greedy":
@@ -350,6 +356,9 @@ def diagnose_run(
         "ranking": [candidate.to_json() for candidate in ranking],
         "refits": refits,
         "verdict": verdict,
+        # The effects whose refit closed at least CONFIRMING_SHARE of the gap: a significant
+        # effect whose refit does not close the gap is more likely a probe's false alarm.
+        "confirmed_by_refit": [record["effects"][-1] for record in refits if record["confirmed"]],
         "timings": timings,
     }
     folder = paths.root / "diagnosis"

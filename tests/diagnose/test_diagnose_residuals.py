@@ -480,4 +480,8 @@ def test_diagnose_command_writes_the_documented_schema(tiny_run, capsys):
     assert vignetting["absorption"] is not None and len(vignetting["absorption_interval"]) == 2
     assert set(diagnosis["gap"]["visibility_fingerprint"]) >= {"share", "interval", "names"}
     for refit in diagnosis["refits"]:
-        assert {"effects", "before", "after", "floor", "closed_fraction"} <= set(refit)
+        assert {"effects", "before", "after", "floor", "closed_fraction", "confirmed"} <= set(refit)
+        assert refit["confirmed"] == (refit["closed_fraction"] >= 0.05)
+    assert diagnosis["confirmed_by_refit"] == [
+        refit["effects"][-1] for refit in diagnosis["refits"] if refit["confirmed"]
+    ]
