@@ -47,7 +47,7 @@ ABSORPTION_MINIMUM_SHARE = 0.01
 # Vignetting's absorption evidence is a closed-form regression on interior pixels
 # (recon.diagnose.radial_absorption), a share of a smaller error than the refits': on the clean
 # calibration fits its reduction is at most 0.0005 (the fitted falloff mostly brightens or is
-# flat), and on the other effects' datasets its lower bound stays below 0.0003. Its floor is
+# flat), and on the other effects' datasets its lower bound stays below 0.0005. Its floor is
 # half the refits'.
 def absorption_minimum_share(effect: str) -> float:
     """The floor of an effect's absorption allowance (by the kind of its evidence)."""

@@ -19,7 +19,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import matplotlib
 import matplotlib.pyplot as plt
@@ -36,7 +36,13 @@ from recon.diagnose.data import DiagnosisData, load_diagnosis_data
 from recon.diagnose.fingerprint import FINGERPRINT_EFFECTS, visibility_fingerprint
 from recon.diagnose.refit import POSITION_LEARNING_RATE, REFIT_STEPS, refit_with
 from recon.diagnose.relight_probe import relight_response_probe
-from recon.diagnose.residuals import gap_summary, noise_floor, relight_gap, where_analysis
+from recon.diagnose.residuals import (
+    gap_summary,
+    gauge_gain,
+    noise_floor,
+    relight_gap,
+    where_analysis,
+)
 from recon.diagnose.which import (
     CandidateResult,
     EffectProbe,
@@ -101,8 +107,6 @@ def relight_heldout_gap(relight: DiagnosisData, mesh, modules: list) -> float:
     renderer = Renderer(texture_filter="linear-mipmap-linear", texture_boundary="clamp")
     mesh = mesh.to(relight.observed.device)
     global_effects = [module for module in modules if not module.per_view]
-    region = relight.region.double()
-    observed = relight.observed.double()
     log_gain = torch.zeros(3, dtype=torch.float64)
     previous: tuple[torch.Tensor, torch.Tensor] | None = None
     gauged = mesh
@@ -110,9 +114,8 @@ def relight_heldout_gap(relight: DiagnosisData, mesh, modules: list) -> float:
         with torch.no_grad():
             color = render_with_effects(
                 renderer, gauged, relight.cameras, relight.lighting, global_effects
-            ).color.double()
-        numerator = (observed * color * region).sum(dim=(0, 1, 2))
-        log_ratio = (numerator / (color * color * region).sum(dim=(0, 1, 2))).clamp_min(1e-6).log()
+            ).color
+        log_ratio = gauge_gain(relight.observed, color, relight.region).clamp_min(1e-6).log()
         slope = torch.ones(3, dtype=torch.float64)  # d log r / d log g = -slope
         if previous is not None:
             moved = log_gain - previous[0]
@@ -125,12 +128,93 @@ def relight_heldout_gap(relight: DiagnosisData, mesh, modules: list) -> float:
     return heldout_gap(replace(relight, mesh=gauged), modules)
 
 
+@dataclass
+class RefitBaseline:
+    """What a refit is measured against: the held-out views of the fitted scene and their MSE,
+    the noise floor's MSE, and (with a relight split) the same on the relight split."""
+
+    data: DiagnosisData
+    before: float
+    floor: float
+    relight: DiagnosisData | None = None
+    relight_before: float | None = None
+    relight_floor: float | None = None
+
+    @classmethod
+    def measure(
+        cls, data: DiagnosisData, floor: float, relight_views: tuple | None
+    ) -> RefitBaseline:
+        baseline = cls(data, heldout_gap(data, []), floor)
+        if relight_views is not None:
+            # Where the fit baked an effect into the albedo under its one light (shadows, a
+            # response curve), the held-out views show little of it: the relight split does.
+            relight = relight_views[0]
+            baseline.relight = relight
+            baseline.relight_before = relight_heldout_gap(relight, relight.mesh, [])
+            baseline.relight_floor = (noise_floor(relight).get("floor_rmse") or 0.0) ** 2
+        return baseline
+
+    def after(self, record: dict) -> RefitBaseline:
+        """The baseline for the next effect of a greedy chain: this refit's errors."""
+        return replace(self, before=record["after"], relight_before=record.get("relight_after"))
+
+
+def _closed(before: float, after: float, floor: float) -> float:
+    return (before - after) / max(before - floor, 1e-20)
+
+
+def measure_refit(
+    names: list[str],
+    baseline: RefitBaseline,
+    paths: RunPaths,
+    config: RunConfig,
+    device: torch.device,
+    steps: int = REFIT_STEPS,
+    **options,
+) -> tuple[dict, object]:
+    """Refit with `names` switched on (options go to refit_with) and measure the gap again.
+    Returns (the refit record of diagnosis.json without the geometry errors, the refitted
+    mesh)."""
+    mesh, lighting, fitted_effects = refit_with(names, paths, config, device, steps, **options)
+    data = baseline.data
+    modules = heldout_modules(names, fitted_effects.modules, len(data.cameras), device)
+    after = heldout_gap(replace(data, mesh=mesh, lighting=lighting), modules)
+    closed = _closed(baseline.before, after, baseline.floor)
+    record = {
+        "effects": names,
+        "before": baseline.before,
+        "after": after,
+        "before_rmse": math.sqrt(baseline.before),
+        "after_rmse": math.sqrt(max(after, 0.0)),
+        "floor": baseline.floor,
+        "closed_fraction": closed,
+        "confirmed": closed >= CONFIRMING_SHARE,
+        "parameters": {m.name: m.parameters_summary() for m in fitted_effects.modules},
+    }
+    relight = baseline.relight
+    if relight is not None:
+        relight_modules = heldout_modules(
+            names, fitted_effects.modules, len(relight.cameras), relight.observed.device
+        )
+        relight_after = relight_heldout_gap(relight, mesh, relight_modules)
+        record.update(
+            relight_before=baseline.relight_before,
+            relight_after=relight_after,
+            relight_floor=baseline.relight_floor,
+            relight_closed_fraction=_closed(
+                baseline.relight_before, relight_after, baseline.relight_floor
+            ),
+        )
+    return record, mesh
+
+
 def _position_learning_rate(names: list[str], config: RunConfig) -> float:
     """The vertices' step size in a how-far refit: the texture stage's own where an effect
     that bends the geometry is switched on (a lens distortion the fit absorbed must be bent
-    back: on default lens seed 2, 80 steps at 0.002 closed 0.14 of the gap, at 0.01 0.44),
-    else the refit's small default (on default vignetting seed 0 the larger step let the
-    vertices chase the residual: held-out MSE 0.0006 -> 0.0008)."""
+    back: on the benchmark's default lens seed 2, 0.12 of the gap closed at 0.002, 0.39 at
+    0.01), else the refit's small default (on default vignetting seed 0 the larger step let the
+    vertices chase the residual: 0.34 closed at 0.002, 0.28 at 0.01). scripts/refit_settings.py
+    measures both."""
     if any(name in GEOMETRY_ABSORBABLE for name in names):
         return config.fit.texture.learning_rate
     return POSITION_LEARNING_RATE
@@ -156,7 +240,7 @@ def fingerprint_evidence(ranking, data: DiagnosisData, probe: EffectProbe) -> di
     return record
 
 
-def _relight(paths: RunPaths, device: torch.device) -> tuple[dict, tuple | None]:
+def load_relight(paths: RunPaths, device: torch.device) -> tuple[dict, tuple | None]:
     """The relight split's gap under its own light (gauge fixed, residuals.relight_gap), or why
     it cannot be measured (rendered under the fitted light, a relight view would only measure
     the change of light); and the relight views rendered under both lights (relight data,
@@ -244,7 +328,7 @@ def diagnose_run(
     lap("gap")
     relight_views = None
     if (paths.dataset / "transforms_relight.json").exists():
-        gap["relight"], relight_views = _relight(paths, device)
+        gap["relight"], relight_views = load_relight(paths, device)
     lap("relight_gap")
     where = where_analysis(data)
     lap("where")
@@ -282,22 +366,16 @@ def diagnose_run(
     refits = []
     if refit != "none":
         chosen: list[str] = []
-        before_mse = heldout_gap(data, [])
-        relight_floor = relight_before = None
-        if relight_views is not None:
-            # Where the fit baked an effect into the albedo under its one light (shadows, a
-            # response curve), the held-out views show little of it: the relight split does.
-            relight_data = relight_views[0]
-            relight_before = relight_heldout_gap(relight_data, relight_data.mesh, [])
-            relight_floor = (noise_floor(relight_data).get("floor_rmse") or 0.0) ** 2
+        baseline = RefitBaseline.measure(data, floor_rmse**2, relight_views)
         for candidate in ranking:
             if not candidate.significant or (refit == "top" and chosen):
                 continue
             if len(chosen) >= MAX_GREEDY_EFFECTS:
                 break
             names = chosen + [candidate.effect]
-            mesh, lighting, fitted_effects = refit_with(
+            record, mesh = measure_refit(
                 names,
+                baseline,
                 paths,
                 config,
                 device,
@@ -305,47 +383,15 @@ def diagnose_run(
                 response_exponent=_relight_exponent(ranking) if "response_curve" in names else None,
                 position_learning_rate=_position_learning_rate(names, config),
             )
-            refit_data = replace(data, mesh=mesh, lighting=lighting)
-            modules = heldout_modules(names, fitted_effects.modules, len(data.cameras), device)
-            after_mse = heldout_gap(refit_data, modules)
-            floor_mse = floor_rmse**2
-            closed = (before_mse - after_mse) / max(before_mse - floor_mse, 1e-20)
-            record = {
-                "effects": names,
-                "before": before_mse,
-                "after": after_mse,
-                "before_rmse": math.sqrt(before_mse),
-                "after_rmse": math.sqrt(max(after_mse, 0.0)),
-                "floor": floor_mse,
-                "closed_fraction": closed,
-                "parameters": {m.name: m.parameters_summary() for m in fitted_effects.modules},
-            }
-            if relight_views is not None:
-                relight_modules = heldout_modules(
-                    names,
-                    fitted_effects.modules,
-                    len(relight_data.cameras),
-                    relight_data.observed.device,
-                )
-                relight_after = relight_heldout_gap(relight_data, mesh, relight_modules)
-                record.update(
-                    relight_before=relight_before,
-                    relight_after=relight_after,
-                    relight_floor=relight_floor,
-                    relight_closed_fraction=(relight_before - relight_after)
-                    / max(relight_before - relight_floor, 1e-20),
-                )
             if reference is not None:
                 record["geometry_before"] = gap["parameters"]["geometry"]["chamfer_l1"]
                 record["geometry_after"] = _geometry_errors(mesh, reference)["chamfer_l1"]
             refits.append(record)
-            record["confirmed"] = closed >= CONFIRMING_SHARE
             if refit == "greedy" and not record["confirmed"]:
                 break
             chosen = names
             if refit == "greedy":
-                before_mse = after_mse
-                relight_before = record.get("relight_after", relight_before)
+                baseline = baseline.after(record)
         timings["refit_seconds"] = round(
             time.perf_counter() - started - timings["diagnose_seconds"], 2
         )

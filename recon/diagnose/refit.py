@@ -44,7 +44,7 @@ def refit_with(
 
     response_exponent: hold a response_curve's exponent there (the relight probe's estimate).
     Under the training views' one light the albedo takes up most of a curve, so a refit that
-    starts the exponent at 1 ends near 1 (0.91-0.99 against truths of 0.80-0.89 on the
+    starts the exponent at 1 ends near 1 (0.89-1.00 against truths of 0.80-0.89 on the
     benchmark) and its texture stays curved: the relight split then gains little.
     position_learning_rate: the vertices' step size."""
     captures = read_captures(paths.dataset, "train")

@@ -126,17 +126,23 @@ def gap_summary(data: DiagnosisData) -> dict:
     }
 
 
+def gauge_gain(
+    observed: torch.Tensor, rendered: torch.Tensor, region: torch.Tensor
+) -> torch.Tensor:
+    """The per-channel gain [3] (float64) that best maps rendered onto observed [B, H, W, 3] in
+    least squares over region [B, H, W, 1]: the albedo x light gauge of a relit render."""
+    region, rendered, observed = region.double(), rendered.double(), observed.double()
+    numerator = (observed * rendered * region).sum(dim=(0, 1, 2))
+    return numerator / (rendered * rendered * region).sum(dim=(0, 1, 2)).clamp_min(1e-20)
+
+
 def relight_gap(data: DiagnosisData) -> dict:
     """gap_summary of a relight split rendered with its own (known) light, after the albedo x
     light gauge is fixed: the fitted albedo is only known up to a per-channel scale that the
     fitted light carries, so one gain per channel (least squares over the region of every
     view) rescales the render first. Adds "gauge_gain" [3] to the summary."""
-    region = data.region.double()
+    gain = gauge_gain(data.observed, data.rendered, data.region)
     rendered = data.rendered.double()
-    observed = data.observed.double()
-    numerator = (observed * rendered * region).sum(dim=(0, 1, 2))
-    denominator = (rendered * rendered * region).sum(dim=(0, 1, 2)).clamp_min(1e-20)
-    gain = numerator / denominator
     summary = gap_summary(replace(data, rendered=(rendered * gain).to(data.rendered.dtype)))
     summary["gauge_gain"] = gain.tolist()
     return summary

@@ -1,0 +1,74 @@
+"""The how-far refit under other settings, for one diagnosed run: how much of the gap it closes
+on the held-out views and on the relight split with the vertices' step size and the response
+curve's exponent (held at the relight probe's estimate, or free from 1) chosen here rather than
+by recon.diagnose.diagnose. Prints one JSON record per setting.
+
+    python scripts/refit_settings.py RUN EFFECT [--position-rates 0.002,0.01]
+        [--response-exponent relight|free]
+
+For example, on the benchmark's fits (scripts/bench_diagnose.py):
+
+    python scripts/refit_settings.py OUT/default/lens_distortion_seed2 lens_distortion
+    python scripts/refit_settings.py OUT/default/vignetting_seed0 vignetting
+    python scripts/refit_settings.py OUT/default/response_curve_seed0 response_curve \\
+        --position-rates 0.002 --response-exponent free
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+
+def main(argv: list[str] | None = None) -> int:
+    import torch
+
+    from recon.config import load_config
+    from recon.config.run_config import RunConfig
+    from recon.diagnose.data import load_diagnosis_data
+    from recon.diagnose.diagnose import RefitBaseline, load_relight, measure_refit
+    from recon.diagnose.residuals import noise_floor
+    from recon.io.run_folder import open_run_folder
+
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("run", help="a fitted run folder with diagnosis.json (for the exponent)")
+    parser.add_argument("effect")
+    parser.add_argument("--position-rates", default="0.002,0.01")
+    parser.add_argument("--response-exponent", choices=["relight", "free"], default="relight")
+    parser.add_argument("--threads", type=int, default=2)
+    arguments = parser.parse_args(argv)
+    torch.set_num_threads(arguments.threads)
+    device = torch.device("cpu")
+    paths = open_run_folder(arguments.run)
+    config = load_config(paths.resolved_config, RunConfig)
+    split = "test" if (paths.dataset / "transforms_test.json").exists() else "val"
+    data = load_diagnosis_data(paths, split, device)
+    floor = (noise_floor(data).get("floor_rmse") or 0.0) ** 2
+    _, relight_views = load_relight(paths, device)
+    baseline = RefitBaseline.measure(data, floor, relight_views)
+    exponent = None
+    if arguments.effect == "response_curve" and arguments.response_exponent == "relight":
+        ranking = json.loads((paths.root / "diagnosis.json").read_text())["ranking"]
+        entry = next(item for item in ranking if item["effect"] == "response_curve")
+        exponent = entry["relight_parameters"]["gamma"]
+    for rate in (float(value) for value in arguments.position_rates.split(",")):
+        record, _ = measure_refit(
+            [arguments.effect],
+            baseline,
+            paths,
+            config,
+            device,
+            response_exponent=exponent,
+            position_learning_rate=rate,
+        )
+        keys = ("before", "after", "closed_fraction", "relight_after", "relight_closed_fraction")
+        summary = {key: record.get(key) for key in keys}
+        fitted = record["parameters"][arguments.effect]
+        summary["parameters"] = {key: value for key, value in fitted.items() if key != "table"}
+        print(json.dumps({"position_rate": rate, "response_exponent": exponent, **summary}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
