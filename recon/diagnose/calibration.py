@@ -12,7 +12,8 @@ blind benchmark's scored cases never use) as twice the largest reduction seen, f
 MINIMUM_SHARE; the script prints the table below from fresh fits (the benchmark fits: 128³
 hull, Large Steps lambda 10, 300 texture steps; largest clean reductions: defocus 0.078,
 motion 0.070, pose 0.054, lens 0.028, response curve 0.009, all others below 0.005;
-absorption: lens 0.034, specular 0.001, vignetting 0.0005 (regression); relight 0.015). The
+absorption: lens 0.022 (its 15-step refits; 0.034 at 30 steps), specular 0.001, vignetting
+0.0005 (regression); relight 0.015). The
 blur and pose probes pick up the fits' edge misfit (silhouettes, the torus' checker edges).
 The visibility fingerprint's largest clean share was 0.010.
 """
@@ -58,7 +59,7 @@ def absorption_minimum_share(effect: str) -> float:
 # regression against the same without the falloff): twice the largest reduction over the
 # control on the same calibration fits, floored at absorption_minimum_share.
 ABSORPTION_ALLOWANCE: dict[str, float] = {
-    "lens_distortion": 0.067,
+    "lens_distortion": 0.043,
     "vignetting": 0.005,
     "specular": 0.01,
 }

@@ -6,7 +6,8 @@ diagnosis.json (stable schema, see README "Gap diagnosis"):
            visibility fingerprint, geometry error against the ground truth when there is one
   where:   per domain {score, score_in_sample, summary}
   ranking: [{effect, score, heldout_reduction, interval, significant, evidence, parameters,
-            absorption, absorption_interval, fingerprint, conditional_on}]
+            absorption, absorption_interval, fingerprint, conditional_on,
+            absorption_discounted_by}]
   refits:  [{effects, before, after, floor, closed_fraction, confirmed, relight_before,
             relight_after, relight_floor, relight_closed_fraction, geometry_before,
             geometry_after}]
@@ -52,6 +53,7 @@ from recon.diagnose.which import (
     verdict_of,
 )
 from recon.effects.forward import render_with_effects
+from recon.effects.photometric import normalised_radius
 from recon.effects.registry import MODEL_EFFECTS
 from recon.errors import ReconError
 from recon.io.atomic import atomic_path, atomic_write_json
@@ -273,6 +275,40 @@ def relight_evidence(ranking: list[CandidateResult], relight_views: tuple) -> No
             candidate.decide()
 
 
+def covered_radius(data: DiagnosisData) -> float:
+    """The largest normalised radius (over the half image diagonal from the principal point, as
+    the Vignetting module measures it) of a pixel the object covers in any of data's views.
+
+    A falloff is only seen on covered pixels: beyond this radius, and at the corners (radius
+    about 1) unless it is near 1, the fitted vignetting is an extrapolation of its polynomial.
+    On the benchmark the object reaches 0.57-0.61, and even the best fit of the polynomial to
+    the true falloff there misses the corner by 13-24 % (scripts/vignetting_extrapolation.py).
+    """
+    _, height, width, _ = data.observed.shape
+    radius = normalised_radius(data.cameras, height, width, data.observed)
+    covered = data.observed_alpha[..., 0] > 0.5
+    return float(radius[covered].max()) if bool(covered.any()) else 0.0
+
+
+def _mark_vignetting_coverage(ranking: list[CandidateResult], refits: list[dict], radius: float):
+    """Add covered_radius to every vignetting parameter set (ranking and refits), so a corner
+    falloff reads as what it is: measured up to that radius, extrapolated beyond."""
+    parameter_sets = [
+        parameters
+        for candidate in ranking
+        if candidate.effect == "vignetting"
+        for parameters in (candidate.parameters, candidate.absorption_parameters)
+        if parameters
+    ]
+    parameter_sets += [
+        record["parameters"]["vignetting"]
+        for record in refits
+        if "vignetting" in record.get("parameters", {})
+    ]
+    for parameters in parameter_sets:
+        parameters["covered_radius"] = round(radius, 4)
+
+
 def _geometry_errors(mesh, reference) -> dict:
     """Chamfer-L1, normal consistency and F1@1% of a fitted mesh against the reference."""
     from recon.metrics.geometry import geometry_metrics
@@ -395,6 +431,7 @@ def diagnose_run(
         timings["refit_seconds"] = round(
             time.perf_counter() - started - timings["diagnose_seconds"], 2
         )
+    _mark_vignetting_coverage(ranking, refits, covered_radius(data))
     verdict = verdict_of(ranking)
     result = {
         "gap": gap,

@@ -62,6 +62,10 @@ class CandidateResult:
     relight_parameters: dict | None = None
     # The effect its probe and absorption evidence were measured on top of (None: alone).
     conditional_on: str | None = None
+    # The conditioning effect that voids this candidate's absorption evidence, measured alone
+    # (recon.diagnose.absorption.absorption_probes: geometry-moving refits are not repeated on
+    # top of a given effect); None when the absorption evidence counts.
+    absorption_discounted_by: str | None = None
     # What made it significant: "probe", "absorption", "relight" or "fingerprint" ("" when
     # nothing did).
     evidence: str = ""
@@ -76,9 +80,9 @@ class CandidateResult:
         evidence = ""
         if self.interval[0] > probe_threshold(self.effect):
             evidence = "probe"
-        elif self.absorption_interval is not None and self.absorption_interval[
-            0
-        ] > absorption_threshold(self.effect):
+        elif self._absorption_counts() and self.absorption_interval[0] > absorption_threshold(
+            self.effect
+        ):
             evidence = "absorption"
         elif self.relight_interval is not None and self.relight_interval[0] > RELIGHT_ALLOWANCE:
             evidence = "relight"
@@ -86,6 +90,9 @@ class CandidateResult:
             evidence = "fingerprint"
         self.evidence = evidence
         self.significant = bool(evidence)
+
+    def _absorption_counts(self) -> bool:
+        return self.absorption_interval is not None and self.absorption_discounted_by is None
 
     @classmethod
     def from_json(cls, record: dict) -> CandidateResult:
@@ -107,6 +114,7 @@ class CandidateResult:
             relight_interval=None if relight_interval is None else tuple(relight_interval),
             relight_parameters=record.get("relight_parameters"),
             conditional_on=record.get("conditional_on"),
+            absorption_discounted_by=record.get("absorption_discounted_by"),
             evidence=record.get("evidence", ""),
         )
 
@@ -116,7 +124,7 @@ class CandidateResult:
         Comparing raw reductions would favour the flexible probes (pose, blur), whose null
         allowance is several times another's."""
         excess = self.interval[0] - probe_threshold(self.effect)
-        if self.absorption_interval is not None:
+        if self._absorption_counts():
             excess = max(excess, self.absorption_interval[0] - absorption_threshold(self.effect))
         if self.relight_interval is not None:
             excess = max(excess, self.relight_interval[0] - RELIGHT_ALLOWANCE)
@@ -168,6 +176,7 @@ class CandidateResult:
             else list(self.relight_interval),
             "relight_parameters": self.relight_parameters,
             "conditional_on": self.conditional_on,
+            "absorption_discounted_by": self.absorption_discounted_by,
             "evidence": self.evidence,
         }
 

@@ -142,3 +142,39 @@ def test_refits_on_top_of_a_given_effect_only_follow_earlier_evidence(monkeypatc
         absorption.absorption_probes(
             [loud], data, paths, None, torch.device("cpu"), given="exposure"
         )
+
+
+def test_a_given_effect_voids_the_geometry_refits_evidence_without_refitting(monkeypatch):
+    """On top of a given effect the lens refits do not run again: the evidence measured alone
+    is kept in the record but no longer decides, so the conditional probe does; a lens
+    candidate that was significant by absorption alone stops being significant."""
+    import pytest
+
+    import recon.diagnose.absorption as absorption
+    from recon.diagnose.calibration import absorption_threshold
+    from recon.diagnose.which import CandidateResult
+
+    class RefitCalled(Exception):
+        pass
+
+    def refit_with(*arguments, **options):
+        raise RefitCalled
+
+    monkeypatch.setattr(absorption, "refit_with", refit_with)
+    lens = CandidateResult("lens_distortion", 0.0, 0.1, (-0.01, 0.01), False)
+    lens.absorption_interval = (absorption_threshold("lens_distortion") + 0.1, 0.4)
+    lens.decide()
+    assert lens.significant and lens.evidence == "absorption"
+    absorption.absorption_probes(
+        [lens], None, None, None, torch.device("cpu"), given="defocus_blur"
+    )
+    assert lens.absorption_discounted_by == "defocus_blur"
+    assert lens.absorption_interval is not None  # kept for the record
+    assert not lens.significant and lens.excess() < 0
+    again = CandidateResult.from_json(lens.to_json())
+    again.decide()
+    assert not again.significant and again.absorption_discounted_by == "defocus_blur"
+    # Without a given effect the refits still run.
+    fresh = CandidateResult("lens_distortion", 0.0, 0.1, (-0.01, 0.01), False)
+    with pytest.raises(RefitCalled):
+        absorption.absorption_probes([fresh], None, None, None, torch.device("cpu"))

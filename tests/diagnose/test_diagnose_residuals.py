@@ -472,12 +472,16 @@ def test_diagnose_command_writes_the_documented_schema(tiny_run, capsys):
             "significant",
             "parameters",
             "evidence",
+            "conditional_on",
+            "absorption_discounted_by",
         } <= set(item)
         assert item["evidence"] in ("", "probe", "absorption", "fingerprint")
         assert item["significant"] == bool(item["evidence"])
     # Vignetting is absorbable: it carries the absorption refit's evidence.
     vignetting = next(item for item in diagnosis["ranking"] if item["effect"] == "vignetting")
     assert vignetting["absorption"] is not None and len(vignetting["absorption_interval"]) == 2
+    # Its corner falloff says how far out the object's pixels measured it.
+    assert 0.1 < vignetting["probe_parameters"]["covered_radius"] < 1.0
     assert set(diagnosis["gap"]["visibility_fingerprint"]) >= {"share", "interval", "names"}
     for refit in diagnosis["refits"]:
         assert {"effects", "before", "after", "floor", "closed_fraction", "confirmed"} <= set(refit)
@@ -485,3 +489,26 @@ def test_diagnose_command_writes_the_documented_schema(tiny_run, capsys):
     assert diagnosis["confirmed_by_refit"] == [
         refit["effects"][-1] for refit in diagnosis["refits"] if refit["confirmed"]
     ]
+
+
+def test_covered_radius_is_the_farthest_object_pixel():
+    """covered_radius: the largest normalised radius among covered pixels; a full frame reaches
+    the corners (radius about 1), a centred square of half the side about half of that."""
+    from types import SimpleNamespace
+
+    from recon.camera import orbit_cameras
+    from recon.diagnose.diagnose import covered_radius
+
+    size = 32
+    cameras = orbit_cameras(1, (size, size))
+    alpha = torch.zeros(1, size, size, 1)
+    alpha[:, 8:24, 8:24] = 1.0
+    data = SimpleNamespace(
+        observed=torch.zeros(1, size, size, 3), observed_alpha=alpha, cameras=cameras
+    )
+    half = covered_radius(data)
+    assert abs(half - (7.5 / 16)) < 0.02, half  # the square's corner pixel centre
+    data.observed_alpha = torch.ones(1, size, size, 1)
+    assert covered_radius(data) > 0.95
+    data.observed_alpha = torch.zeros(1, size, size, 1)
+    assert covered_radius(data) == 0.0
