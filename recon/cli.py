@@ -165,6 +165,9 @@ def _diagnose(arguments) -> int:
         flag = f"significant ({candidate['evidence']})" if candidate["significant"] else ""
         absorption = candidate.get("absorption")
         absorbed = "" if absorption is None else f" absorption {absorption:6.3f}"
+        if candidate.get("absorption_discounted_by"):
+            # Measured alone, not counted on top of the conditioning effect.
+            absorbed += f" (void beside {candidate['absorption_discounted_by']})"
         relight = candidate.get("relight_reduction")
         relit = "" if relight is None else f" relight {relight:6.3f}"
         print(

@@ -184,6 +184,10 @@ def _ranking_table(diagnosis: dict) -> tuple[list[str], list[list[str]]]:
     for item in diagnosis["ranking"]:
         low, high = item["interval"]
         absorption = item.get("absorption")
+        absorption_cell = "" if absorption is None else f"{absorption:.3f}"
+        if item.get("absorption_discounted_by"):
+            # Measured alone, voided on top of the conditioning effect (it does not decide).
+            absorption_cell += f" (void beside {item['absorption_discounted_by']})"
         relight = item.get("relight_reduction")
         rows.append(
             [
@@ -191,7 +195,7 @@ def _ranking_table(diagnosis: dict) -> tuple[list[str], list[list[str]]]:
                 item.get("evidence", ""),
                 f"{item['heldout_reduction']:.3f}",
                 f"[{low:.3f}, {high:.3f}]",
-                "" if absorption is None else f"{absorption:.3f}",
+                absorption_cell,
                 "" if relight is None else f"{relight:.3f}",
                 "yes" if item["significant"] else "",
             ]

@@ -33,6 +33,15 @@ def test_report_carries_the_diagnosis(tmp_path):
                 "absorption": None,
                 "significant": False,
             },
+            {
+                "effect": "lens_distortion",
+                "evidence": "",
+                "heldout_reduction": 0.01,
+                "interval": [-0.02, 0.03],
+                "absorption": 0.25,
+                "absorption_discounted_by": "defocus_blur",
+                "significant": False,
+            },
         ],
         "refits": [
             {
@@ -59,6 +68,8 @@ def test_report_carries_the_diagnosis(tmp_path):
     assert "Verdict: significant unmodelled effects: vignetting" in markdown
     assert "| vignetting | absorption | 0.035 | [0.012, 0.060] | 0.104 |  | yes |" in markdown
     assert "| pose_error |  | 0.050 | [-0.010, 0.090] |  |  |" in markdown
+    # An absorption voided beside the conditioning effect says so instead of looking decisive.
+    assert "| 0.250 (void beside defocus_blur) |  |  |" in markdown
     assert "| vignetting | 0.0304 | 0.0251 | 0.0077 | 23 % | 41 % |" in markdown
     # Without a relight split the refit has no relight figures and the cell stays empty.
     assert "| vignetting + pose_error | 0.0251 | 0.0249 | 0.0077 | 1 % |  |" in markdown
