@@ -28,7 +28,7 @@ def main(argv: list[str] | None = None) -> int:
     from recon.config.run_config import RunConfig
     from recon.diagnose.data import load_diagnosis_data
     from recon.diagnose.diagnose import RefitBaseline, load_relight, measure_refit
-    from recon.diagnose.residuals import noise_floor
+    from recon.diagnose.gap import noise_floor
     from recon.io.run_folder import open_run_folder
 
     parser = argparse.ArgumentParser(description=__doc__)

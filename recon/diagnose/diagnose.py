@@ -34,16 +34,11 @@ from recon.diagnose.absorption import (
     heldout_modules,
 )
 from recon.diagnose.data import DiagnosisData, load_diagnosis_data
+from recon.diagnose.domains import where_analysis
 from recon.diagnose.fingerprint import FINGERPRINT_EFFECTS, visibility_fingerprint
+from recon.diagnose.gap import gap_summary, gauge_gain, noise_floor, relight_gap
 from recon.diagnose.refit import POSITION_LEARNING_RATE, REFIT_STEPS, refit_with
 from recon.diagnose.relight_probe import relight_response_probe
-from recon.diagnose.residuals import (
-    gap_summary,
-    gauge_gain,
-    noise_floor,
-    relight_gap,
-    where_analysis,
-)
 from recon.diagnose.which import (
     CandidateResult,
     EffectProbe,
@@ -243,7 +238,7 @@ def fingerprint_evidence(ranking, data: DiagnosisData, probe: EffectProbe) -> di
 
 
 def load_relight(paths: RunPaths, device: torch.device) -> tuple[dict, tuple | None]:
-    """The relight split's gap under its own light (gauge fixed, residuals.relight_gap), or why
+    """The relight split's gap under its own light (gauge fixed, gap.relight_gap), or why
     it cannot be measured (rendered under the fitted light, a relight view would only measure
     the change of light); and the relight views rendered under both lights (relight data,
     colour under the fitted light, the fitted light) for the response probe, or None."""

@@ -17,7 +17,8 @@ import numpy as np
 import torch
 
 from recon.diagnose.data import DiagnosisData
-from recon.diagnose.residuals import LUMINANCE_WEIGHTS, gap_summary
+from recon.diagnose.gap import gap_summary
+from recon.diagnose.residuals import luminance_of
 from recon.io.atomic import atomic_path
 from recon.io.images import linear_to_srgb
 
@@ -76,11 +77,6 @@ def _title(analysis: dict, domain: str) -> str:
     )
 
 
-def _luminance(values: torch.Tensor) -> torch.Tensor:
-    weights = torch.tensor(LUMINANCE_WEIGHTS, dtype=values.dtype)
-    return values @ weights
-
-
 def _channel_curves(
     axis, x, curves, label_prefix: str = "", marker: str = "o", linestyle: str = "-"
 ) -> None:
@@ -109,7 +105,7 @@ def _beyond_response(axis, x, curves) -> None:
 def image_position_figure(data: DiagnosisData, analysis: dict, path: Path) -> Path:
     """Mean over views of the residual luminance per pixel (where in the region), and the
     radial gain profile observed / rendered."""
-    residual = _luminance(data.residual.double())  # [B, H, W]
+    residual = luminance_of(data.residual.double())  # [B, H, W]
     region = data.region[..., 0] > 0.5
     count = region.sum(0)
     mean = torch.where(
@@ -324,7 +320,7 @@ def worst_views_figure(data: DiagnosisData, path: Path, count: int = 3) -> Path:
     gap = gap_summary(data)
     rmse = [-1.0 if value is None else value for value in gap["per_view_rmse"]]
     order = sorted(range(len(rmse)), key=lambda index: -rmse[index])[: max(1, count)]
-    residual = _luminance(data.residual.double()) * (data.region[..., 0] > 0.5)
+    residual = luminance_of(data.residual.double()) * (data.region[..., 0] > 0.5)
     limit = _symmetric_limit(residual[order].numpy())
     figure, axes = plt.subplots(len(order), 3, figsize=(9, 3 * len(order)), squeeze=False)
     for row, view in enumerate(order):

@@ -23,14 +23,9 @@ from recon.cli import main
 from recon.diagnose import diagnose as diagnose_module
 from recon.diagnose.data import DiagnosisData, build_diagnosis_data, load_diagnosis_data
 from recon.diagnose.diagnose import relight_heldout_gap
+from recon.diagnose.domains import DOMAINS, where_analysis
 from recon.diagnose.figures import where_figures, worst_views_figure
-from recon.diagnose.residuals import (
-    DOMAINS,
-    gap_summary,
-    noise_floor,
-    relight_gap,
-    where_analysis,
-)
+from recon.diagnose.gap import gap_summary, noise_floor, relight_gap
 from recon.effects import make_effect
 from recon.effects.light_transport import view_directions
 from recon.errors import ReconError
