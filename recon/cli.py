@@ -155,6 +155,7 @@ def _diagnose(arguments) -> int:
     from recon import pipeline
     from recon.diagnose.diagnose import diagnose_run
     from recon.io.run_folder import open_run_folder
+    from recon.report.report import recovered_parameters, summarise_parameters
 
     config = load_config(Path(arguments.run) / "config.resolved.yaml", RunConfig)
     paths = open_run_folder(arguments.run, arguments.data or config.data)
@@ -175,6 +176,8 @@ def _diagnose(arguments) -> int:
             f"[{candidate['interval'][0]:.3f}, {candidate['interval'][1]:.3f}]{absorbed}{relit} "
             f"{flag}"
         )
+    for effect, source, parameters in recovered_parameters(result):
+        print(f"  {effect} ({source}): {summarise_parameters(parameters)}")
     fingerprint = result["gap"].get("visibility_fingerprint")
     if fingerprint:
         low, high = fingerprint["interval"]

@@ -128,6 +128,8 @@ def report_stage(config: RunConfig, paths: RunPaths, device: torch.device) -> di
         rows.append(("diagnosis.verdict", diagnosis["verdict"]))
         diagnosis_markdown = ["", "## Gap diagnosis", "", f"Verdict: {diagnosis['verdict']}", ""]
         diagnosis_markdown += _markdown_table(*_ranking_table(diagnosis))
+        if recovered_parameters(diagnosis):
+            diagnosis_markdown += [""] + _markdown_table(*_parameter_table(diagnosis))
         if diagnosis.get("refits"):
             diagnosis_markdown += [""] + _markdown_table(*_refit_table(diagnosis))
         for name, link in diagnosis.get("figures", {}).items():
@@ -149,6 +151,8 @@ def report_stage(config: RunConfig, paths: RunPaths, device: torch.device) -> di
     )
     if diagnosis_markdown:
         diagnosis_tables = [_ranking_table(diagnosis)]
+        if recovered_parameters(diagnosis):
+            diagnosis_tables.append(_parameter_table(diagnosis))
         if diagnosis.get("refits"):
             diagnosis_tables.append(_refit_table(diagnosis))
         body = (
@@ -201,6 +205,59 @@ def _ranking_table(diagnosis: dict) -> tuple[list[str], list[list[str]]]:
             ]
         )
     return header, rows
+
+
+# Strings longer than this in a parameter set are explanations ("model", "radius_unit"), kept
+# in diagnosis.json but left out of the one-line summaries.
+_SHORT_TEXT = 24
+
+
+def summarise_parameters(parameters: dict) -> str:
+    """One line for an effect's recovered parameters: numbers to three significant digits, a
+    list of numbers (per view) as its range and count, short strings as they are; explanations
+    and nested lists are left to diagnosis.json."""
+    parts = []
+    for key, value in parameters.items():
+        if isinstance(value, bool) or value is None:
+            continue
+        if isinstance(value, int | float):
+            parts.append(f"{key} {value:.3g}")
+        elif (
+            isinstance(value, list)
+            and value
+            and all(isinstance(item, int | float) and not isinstance(item, bool) for item in value)
+        ):
+            parts.append(f"{key} {min(value):.3g}..{max(value):.3g} ({len(value)})")
+        elif isinstance(value, str) and len(value) <= _SHORT_TEXT:
+            parts.append(f"{key} {value}")
+    return ", ".join(parts)
+
+
+def recovered_parameters(diagnosis: dict) -> list[tuple[str, str, dict]]:
+    """(effect, source, parameters) for every significant effect: the last refit that switched
+    it on (fitted with the scene on the training views) when there is one, else the deciding
+    evidence's (held-out views, scene frozen)."""
+    from_refits = {}
+    for refit in diagnosis.get("refits", []):
+        from_refits.update(refit.get("parameters", {}))
+    recovered = []
+    for item in diagnosis["ranking"]:
+        if not item["significant"]:
+            continue
+        if item["effect"] in from_refits:
+            recovered.append((item["effect"], "refit", from_refits[item["effect"]]))
+        else:
+            recovered.append((item["effect"], item.get("evidence", ""), item.get("parameters", {})))
+    return recovered
+
+
+def _parameter_table(diagnosis: dict) -> tuple[list[str], list[list[str]]]:
+    """The significant effects' recovered parameters as (header, rows) of text cells."""
+    rows = [
+        [effect, source, summarise_parameters(parameters)]
+        for effect, source, parameters in recovered_parameters(diagnosis)
+    ]
+    return ["effect", "from", "recovered parameters"], rows
 
 
 def _refit_table(diagnosis: dict) -> tuple[list[str], list[list[str]]]:

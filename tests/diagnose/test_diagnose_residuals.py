@@ -452,6 +452,10 @@ def test_diagnose_command_writes_the_documented_schema(tiny_run, capsys):
     printed = capsys.readouterr().out
     assert "verdict:" in printed and "visibility fingerprint:" in printed
     diagnosis = json.loads((tiny_run / "diagnosis.json").read_text())
+    # Every significant effect's recovered parameters get a line.
+    for item in diagnosis["ranking"]:
+        if item["significant"]:
+            assert f"  {item['effect']} (" in printed
     assert {"gap", "where", "ranking", "refits", "verdict", "timings"} <= set(diagnosis)
     assert {item["effect"] for item in diagnosis["ranking"]} == {
         "exposure",

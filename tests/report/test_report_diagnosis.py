@@ -24,6 +24,7 @@ def test_report_carries_the_diagnosis(tmp_path):
                 "interval": [0.012, 0.06],
                 "absorption": 0.104,
                 "significant": True,
+                "parameters": {"corner_falloff": 0.7, "radius_unit": "half image diagonal ..."},
             },
             {
                 "effect": "pose_error",
@@ -51,6 +52,7 @@ def test_report_carries_the_diagnosis(tmp_path):
                 "floor": 0.0077**2,
                 "closed_fraction": 0.23,
                 "relight_closed_fraction": 0.41,
+                "parameters": {"vignetting": {"corner_falloff": 0.6543, "covered_radius": 0.57}},
             },
             {
                 "effects": ["vignetting", "pose_error"],
@@ -68,6 +70,9 @@ def test_report_carries_the_diagnosis(tmp_path):
     assert "Verdict: significant unmodelled effects: vignetting" in markdown
     assert "| vignetting | absorption | 0.035 | [0.012, 0.060] | 0.104 |  | yes |" in markdown
     assert "| pose_error |  | 0.050 | [-0.010, 0.090] |  |  |" in markdown
+    # The recovered parameters: the refit's (training views) over the evidence's; explanations
+    # stay in diagnosis.json.
+    assert "| vignetting | refit | corner_falloff 0.654, covered_radius 0.57 |" in markdown
     # An absorption voided beside the conditioning effect says so instead of looking decisive.
     assert "| 0.250 (void beside defocus_blur) |  |  |" in markdown
     assert "| vignetting | 0.0304 | 0.0251 | 0.0077 | 23 % | 41 % |" in markdown
@@ -76,3 +81,20 @@ def test_report_carries_the_diagnosis(tmp_path):
     page = paths.report_html.read_text()
     assert "<h2>Gap diagnosis</h2>" in page
     assert "<td>absorption</td><td>0.035</td>" in page and "<td>23 %</td>" in page
+
+
+def test_parameter_summaries_keep_numbers_and_ranges():
+    from recon.report.report import summarise_parameters
+
+    line = summarise_parameters(
+        {
+            "ratios": [1.0, 0.5, 2.0],
+            "gamma": 0.81234,
+            "pinned_view": None,
+            "model": "x_distorted = x (1 + k1 r^2 + k2 r^4), normalised coordinates",
+            "rows": [[1.0, 2.0]],
+            "unit": "stops",
+            "held": True,
+        }
+    )
+    assert line == "ratios 0.5..2 (3), gamma 0.812, unit stops"
