@@ -28,6 +28,7 @@ from recon.diagnose.which import redecide
 from recon.effects.registry import MODEL_EFFECTS
 from recon.io.atomic import atomic_path, atomic_write_json, atomic_write_text
 from recon.io.run_folder import RunPaths, open_run_folder, prepare_run_folder
+from recon.report.report import recovered_parameters
 
 matplotlib.use("Agg")
 
@@ -179,10 +180,10 @@ def parameter_errors(diagnosis: dict, truth: dict) -> dict:
     probe inherits whatever the fitted albedo absorbed from the training views. The response
     curve's exponent always comes from the ranking (the relight split's estimate)."""
     errors = {}
-    found = {item["effect"]: (item["parameters"], "test") for item in diagnosis["ranking"]}
-    for refit in reversed(diagnosis.get("refits", [])):
-        for name, parameters in refit.get("parameters", {}).items():
-            found[name] = (parameters, "train")
+    found = {
+        effect: (parameters, "train" if source == "refit" else "test")
+        for effect, source, parameters in recovered_parameters(diagnosis, significant_only=False)
+    }
     realised_by_split = {
         split: {item["name"]: item["parameters"] for item in items}
         for split, items in truth.get("realised", {}).items()

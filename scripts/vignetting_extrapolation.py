@@ -5,7 +5,8 @@ the world's true falloff (data_synth's Vignetting with the withheld parameters, 
 image centre) on the pixels the object covers in the held-out views, the best least-squares fit
 of the model's 1 + a r^2 + b r^4 to it there, and that fit's corner value against the true
 corner falloff. The error is what no diagnosis can beat: the corners lie outside the object.
-Prints JSON.
+The same fit over every pixel of the frame (as if a backdrop or a frame-filling object covered
+the corners) shows what is left of it once the corners are seen. Prints JSON.
 
     python scripts/vignetting_extrapolation.py OUT/default OUT/spot
 """
@@ -16,6 +17,17 @@ import argparse
 import json
 import sys
 from pathlib import Path
+
+
+def corner_of_fit(radius, falloff, pixels) -> float:
+    """1 + a + b of the least-squares 1 + a r^2 + b r^4 to falloff on the chosen pixels
+    (radius, falloff, pixels: [B, H, W] tensors, pixels boolean)."""
+    import torch
+
+    squared = radius[pixels] ** 2
+    design = torch.stack([squared, squared * squared], dim=1)
+    a, b = torch.linalg.lstsq(design, (falloff[pixels] - 1)[:, None]).solution[:, 0]
+    return float(1 + a + b)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -43,16 +55,14 @@ def main(argv: list[str] | None = None) -> int:
             falloff = effect.relative_falloff(captures.cameras, u, v, height, width)
             radius = normalised_radius(captures.cameras, height, width, like)
             covered = captures.masks[..., 0] > 0.5
-            squared = radius[covered] ** 2
-            design = torch.stack([squared, squared * squared], dim=1)
-            a, b = torch.linalg.lstsq(design, (falloff[covered] - 1)[:, None]).solution[:, 0]
             realised = next(
                 item["parameters"]
                 for item in truth["realised"]["test"]
                 if item["name"] == "vignetting"
             )
             true_corner = sum(realised["corner_falloff"]) / len(realised["corner_falloff"])
-            fitted_corner = float(1 + a + b)
+            fitted_corner = corner_of_fit(radius, falloff, covered)
+            full_frame_corner = corner_of_fit(radius, falloff, torch.ones_like(covered))
             results.append(
                 {
                     "case": f"{folder.name}/{truth_path.stem}",
@@ -61,6 +71,10 @@ def main(argv: list[str] | None = None) -> int:
                     "best_fit_corner_falloff": round(fitted_corner, 4),
                     "corner_relative_error": round(
                         abs(fitted_corner - true_corner) / true_corner, 3
+                    ),
+                    "full_frame_fit_corner_falloff": round(full_frame_corner, 4),
+                    "full_frame_corner_relative_error": round(
+                        abs(full_frame_corner - true_corner) / true_corner, 3
                     ),
                 }
             )

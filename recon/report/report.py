@@ -233,16 +233,19 @@ def summarise_parameters(parameters: dict) -> str:
     return ", ".join(parts)
 
 
-def recovered_parameters(diagnosis: dict) -> list[tuple[str, str, dict]]:
-    """(effect, source, parameters) for every significant effect: the last refit that switched
-    it on (fitted with the scene on the training views) when there is one, else the deciding
-    evidence's (held-out views, scene frozen)."""
-    from_refits = {}
-    for refit in diagnosis.get("refits", []):
+def recovered_parameters(
+    diagnosis: dict, significant_only: bool = True
+) -> list[tuple[str, str, dict]]:
+    """(effect, source, parameters) per ranked effect (the significant ones only, by default):
+    from the first refit that switched it on ("refit": fitted with the scene on the training
+    views) when there is one, else from the deciding evidence (its name: held-out views, scene
+    frozen). The blind benchmark scores the same choice (recon.diagnose_bench)."""
+    from_refits: dict = {}
+    for refit in reversed(diagnosis.get("refits", [])):
         from_refits.update(refit.get("parameters", {}))
     recovered = []
     for item in diagnosis["ranking"]:
-        if not item["significant"]:
+        if significant_only and not item["significant"]:
             continue
         if item["effect"] in from_refits:
             recovered.append((item["effect"], "refit", from_refits[item["effect"]]))

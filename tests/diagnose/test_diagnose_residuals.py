@@ -452,10 +452,6 @@ def test_diagnose_command_writes_the_documented_schema(tiny_run, capsys):
     printed = capsys.readouterr().out
     assert "verdict:" in printed and "visibility fingerprint:" in printed
     diagnosis = json.loads((tiny_run / "diagnosis.json").read_text())
-    # Every significant effect's recovered parameters get a line.
-    for item in diagnosis["ranking"]:
-        if item["significant"]:
-            assert f"  {item['effect']} (" in printed
     assert {"gap", "where", "ranking", "refits", "verdict", "timings"} <= set(diagnosis)
     assert {item["effect"] for item in diagnosis["ranking"]} == {
         "exposure",
@@ -511,3 +507,52 @@ def test_covered_radius_is_the_farthest_object_pixel():
     assert covered_radius(data) > 0.95
     data.observed_alpha = torch.zeros(1, size, size, 1)
     assert covered_radius(data) == 0.0
+
+
+def test_diagnose_command_prints_recovered_parameters_and_voided_evidence(
+    tiny_run, capsys, monkeypatch
+):
+    """The command's lines for a significant effect's recovered parameters (the first refit's
+    over the evidence's) and for an absorption voided beside the conditioning effect."""
+    ranking = [
+        {
+            "effect": "exposure",
+            "heldout_reduction": 0.6,
+            "interval": [0.5, 0.7],
+            "significant": True,
+            "evidence": "probe",
+            "parameters": {"ratios": [0.9, 1.2]},
+        },
+        {
+            "effect": "lens_distortion",
+            "heldout_reduction": 0.01,
+            "interval": [-0.02, 0.03],
+            "significant": False,
+            "evidence": "",
+            "absorption": 0.3,
+            "absorption_discounted_by": "exposure",
+            "parameters": {},
+        },
+    ]
+    result = {
+        "ranking": ranking,
+        "gap": {},
+        "refits": [
+            {
+                "effects": ["exposure"],
+                "before_rmse": 0.1,
+                "after_rmse": 0.05,
+                "closed_fraction": 0.8,
+                "parameters": {"exposure": {"ratios": [0.8, 1.25]}},
+            }
+        ],
+        "verdict": "significant unmodelled effects: exposure",
+        "confirmed_by_refit": ["exposure"],
+    }
+    monkeypatch.setattr(diagnose_module, "diagnose_run", lambda *arguments, **options: result)
+    assert main(["diagnose", str(tiny_run)]) == 0
+    printed = capsys.readouterr().out
+    assert "  exposure (refit): ratios 0.8..1.25 (2)" in printed
+    assert "absorption  0.300 (void beside exposure)" in printed
+    # Not significant: no parameter line.
+    assert "  lens_distortion (" not in printed
