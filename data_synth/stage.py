@@ -25,7 +25,7 @@ from recon.camera import Cameras
 from recon.config.run_config import EffectConfig, LightingConfig, RunConfig
 from recon.errors import ReconError
 from recon.io.atomic import atomic_write_json
-from recon.io.datasets import RELIGHT_LIGHTING, write_nerf_synthetic
+from recon.io.datasets import FLAT_FIELD_SPLIT, RELIGHT_LIGHTING, write_nerf_synthetic
 from recon.io.images import save_contact_sheet, write_exr
 from recon.io.meshes import save_mesh
 from recon.mesh.mesh import Mesh
@@ -276,6 +276,13 @@ def synth_stage(
         summary["splits"][split] = len(cameras)
         if split == "train":
             sheet_images = list((capture.images + (1 - capture.alpha) * background)[:16])
+    if capture_config.flat_field.views > 0:
+        from data_synth.flat_field import write_flat_field
+
+        realised[FLAT_FIELD_SPLIT] = write_flat_field(
+            paths.dataset, capture_config, effects, config.seed
+        )
+        summary["splits"][FLAT_FIELD_SPLIT] = capture_config.flat_field.views
     if capture_config.contact_sheet and sheet_images:
         save_contact_sheet(sheet_images, paths.contact_sheet, columns=4)
     _write_ground_truth(paths.ground_truth, mesh, world, effects, realised, withheld, options)

@@ -206,6 +206,25 @@ class RelightConfig:
 
 
 @dataclass
+class FlatFieldConfig:
+    """Flat-field frames: the capture camera imaging a uniformly lit white card that fills the
+    frame (the usual vignetting calibration). They pass through the camera, optics, sensor and
+    response effects like the views; effects that leave a uniform field uniform (pose error,
+    lens distortion, blur) and light transport do not touch them. Written as the dataset's
+    flat_field split; the fit never reads them, the diagnosis measures the full-frame falloff on
+    them (the object's own pixels reach only part of the way to the corners)."""
+
+    views: int = 0
+    # Linear radiance of the card (before exposure): mid-grey keeps the corners and a bright
+    # exposure away from both ends of the 8-bit range.
+    radiance: float = 0.5
+
+    def __post_init__(self) -> None:
+        check_range(self.views, "views", low=0, high=1000)
+        check_range(self.radiance, "radiance", low=1e-3, high=1.0)
+
+
+@dataclass
 class CaptureConfig:
     """Views per split; the train/val/test cameras are drawn from one rig, disjoint."""
 
@@ -214,6 +233,7 @@ class CaptureConfig:
     val_views: int = 2
     test_views: int = 4
     relight: RelightConfig = field(default_factory=RelightConfig)
+    flat_field: FlatFieldConfig = field(default_factory=FlatFieldConfig)
     background: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
     effects: list[EffectConfig] = field(default_factory=list)
     # own: recon's rasterizer; mitsuba: the path tracer; auto: mitsuba only when a

@@ -36,6 +36,7 @@ from recon.diagnose.absorption import (
 from recon.diagnose.data import DiagnosisData, load_diagnosis_data
 from recon.diagnose.domains import where_analysis
 from recon.diagnose.fingerprint import FINGERPRINT_EFFECTS, visibility_fingerprint
+from recon.diagnose.flat_field import load_flat_field, measure_flat_field
 from recon.diagnose.gap import gap_summary, gauge_gain, noise_floor, relight_gap
 from recon.diagnose.refit import POSITION_LEARNING_RATE, REFIT_STEPS, refit_with
 from recon.diagnose.relight_probe import relight_response_probe
@@ -285,9 +286,35 @@ def covered_radius(data: DiagnosisData) -> float:
     return float(radius[covered].max()) if bool(covered.any()) else 0.0
 
 
-def _mark_vignetting_coverage(ranking: list[CandidateResult], refits: list[dict], radius: float):
+def flat_field_evidence(ranking: list[CandidateResult], frames: torch.Tensor) -> dict:
+    """The flat-field frames' falloff (recon.diagnose.flat_field), recorded on the vignetting
+    entry, which it makes significant when it clears FLAT_FIELD_ALLOWANCE. A response curve
+    found by then (the relight probe) is undone first: a curve bends a falloff like any other
+    ratio of intensities."""
+    response = next(
+        (item for item in ranking if item.effect == "response_curve" and item.significant), None
+    )
+    exponent = _relight_exponent([response]) if response is not None else None
+    measurement = measure_flat_field(frames, response_exponent=exponent)
+    for candidate in ranking:
+        if candidate.effect == "vignetting":
+            candidate.flat_field = measurement
+            candidate.decide()
+    return measurement
+
+
+def _mark_vignetting_coverage(
+    ranking: list[CandidateResult],
+    refits: list[dict],
+    radius: float,
+    flat_field: dict | None = None,
+):
     """Add covered_radius to every vignetting parameter set (ranking and refits), so a corner
-    falloff reads as what it is: measured up to that radius, extrapolated beyond."""
+    falloff reads as what it is: measured up to that radius, extrapolated beyond.
+
+    With flat-field frames the corner and half-way falloffs are the frames' measurement (the
+    fitted polynomial's stay beside them as model_corner_falloff and model_half_radius_falloff),
+    and the measured radius is the corners'."""
     parameter_sets = [
         parameters
         for candidate in ranking
@@ -302,6 +329,14 @@ def _mark_vignetting_coverage(ranking: list[CandidateResult], refits: list[dict]
     ]
     for parameters in parameter_sets:
         parameters["covered_radius"] = round(radius, 4)
+        if flat_field is None:
+            continue
+        for key in ("corner_falloff", "half_radius_falloff"):
+            if key in parameters:
+                parameters.setdefault(f"model_{key}", parameters[key])
+            parameters[key] = flat_field[key]
+        parameters["falloff_source"] = "flat_field"
+        parameters["covered_radius"] = 1.0
 
 
 def _geometry_errors(mesh, reference) -> dict:
@@ -371,6 +406,10 @@ def diagnose_run(
     if relight_views is not None:
         relight_evidence(ranking, relight_views)
     lap("relight_probe")
+    flat_frames = load_flat_field(paths.dataset)
+    if flat_frames is not None:
+        gap["flat_field"] = flat_field_evidence(ranking, flat_frames)
+    lap("flat_field")
     if absorption:
         absorption_probes(ranking, data, paths, config, device)
     lap("absorption")
@@ -426,7 +465,7 @@ def diagnose_run(
         timings["refit_seconds"] = round(
             time.perf_counter() - started - timings["diagnose_seconds"], 2
         )
-    _mark_vignetting_coverage(ranking, refits, covered_radius(data))
+    _mark_vignetting_coverage(ranking, refits, covered_radius(data), gap.get("flat_field"))
     verdict = verdict_of(ranking)
     result = {
         "gap": gap,

@@ -29,6 +29,7 @@ from recon.diagnose.calibration import (
     probe_threshold,
 )
 from recon.diagnose.data import DiagnosisData
+from recon.diagnose.flat_field import FLAT_FIELD_ALLOWANCE
 from recon.diagnose.gauss_newton import GAUSS_NEWTON_ITERATIONS, GaussNewtonProblem
 from recon.effects.base import ModelEffect
 from recon.effects.forward import (
@@ -66,8 +67,11 @@ class CandidateResult:
     # (recon.diagnose.absorption.absorption_probes: geometry-moving refits are not repeated on
     # top of a given effect); None when the absorption evidence counts.
     absorption_discounted_by: str | None = None
-    # What made it significant: "probe", "absorption", "relight" or "fingerprint" ("" when
-    # nothing did).
+    # The flat-field frames' measurement (vignetting only, recon.diagnose.flat_field): a
+    # falloff there is the camera's, whatever the residual shows.
+    flat_field: dict | None = None
+    # What made it significant: "probe", "absorption", "relight", "flat_field" or
+    # "fingerprint" ("" when nothing did).
     evidence: str = ""
     # The probe's per-view held-out error sums [B] (not saved): the baseline when the others
     # are probed on top of this effect.
@@ -76,9 +80,14 @@ class CandidateResult:
     def decide(self) -> None:
         """Significance from the recorded evidence and the calibrated thresholds
         (recon.diagnose.calibration): the probe's held-out reduction, else the absorption
-        refit's, else the relight split's, else the visibility fingerprint naming this effect."""
+        refit's, else the relight split's, else the visibility fingerprint naming this effect.
+        Flat-field frames (vignetting only) overrule all of them, either way: they measure the
+        falloff itself, where the rest infer it from a residual other effects can shape."""
         evidence = ""
-        if self.interval[0] > probe_threshold(self.effect):
+        if self.flat_field is not None:
+            if self.flat_field["deviation"] > FLAT_FIELD_ALLOWANCE:
+                evidence = "flat_field"
+        elif self.probe_clears():
             evidence = "probe"
         elif self._absorption_counts() and self.absorption_interval[0] > absorption_threshold(
             self.effect
@@ -90,6 +99,10 @@ class CandidateResult:
             evidence = "fingerprint"
         self.evidence = evidence
         self.significant = bool(evidence)
+
+    def probe_clears(self) -> bool:
+        """Whether the probe's held-out reduction clears its null allowance."""
+        return self.interval[0] > probe_threshold(self.effect)
 
     def _absorption_counts(self) -> bool:
         return self.absorption_interval is not None and self.absorption_discounted_by is None
@@ -115,6 +128,7 @@ class CandidateResult:
             relight_parameters=record.get("relight_parameters"),
             conditional_on=record.get("conditional_on"),
             absorption_discounted_by=record.get("absorption_discounted_by"),
+            flat_field=record.get("flat_field"),
             evidence=record.get("evidence", ""),
         )
 
@@ -131,10 +145,11 @@ class CandidateResult:
         return excess
 
     def rank_key(self) -> tuple:
-        """Significant first; then held-out evidence (probe or absorption) before the albedo
-        fingerprint alone, whose effect shows in no held-out residual; then by how far the
-        evidence clears its null (the fingerprint: by its share)."""
-        by_residual = self.evidence in ("probe", "absorption", "relight")
+        """Significant first; then held-out evidence (probe, absorption, relight) or a direct
+        measurement (the flat field) before the albedo fingerprint alone, whose effect shows in
+        no held-out residual; then by how far the residual evidence clears its null (the
+        fingerprint: by its share)."""
+        by_residual = self.evidence in ("probe", "absorption", "relight", "flat_field")
         strength = (self.fingerprint or {}).get("share", 0.0)
         return (
             self.significant,
@@ -143,10 +158,13 @@ class CandidateResult:
         )
 
     def _deciding_parameters(self) -> dict:
-        """The parameters of the evidence that decided; with none deciding, the relight
+        """The parameters of the evidence that decided (a flat field: the absorption
+        regression's, whose corner and half-way falloffs the diagnosis then replaces by the
+        frames' measurement); with none deciding, the relight
         split's when it has them (the one estimate of a response curve the albedo cannot
         absorb), else the probe's."""
-        if self.evidence == "absorption" and self.absorption_parameters is not None:
+        measured = self.evidence in ("absorption", "flat_field")
+        if measured and self.absorption_parameters is not None:
             return self.absorption_parameters
         relight_decides = self.evidence in ("relight", "")
         if relight_decides and self.relight_parameters is not None:
@@ -177,6 +195,7 @@ class CandidateResult:
             "relight_parameters": self.relight_parameters,
             "conditional_on": self.conditional_on,
             "absorption_discounted_by": self.absorption_discounted_by,
+            "flat_field": self.flat_field,
             "evidence": self.evidence,
         }
 
@@ -379,9 +398,11 @@ def conditioning_effect(ranking: list[CandidateResult]) -> str | None:
     distortion and pose refinement all imitate); measured on top of it, the others show only
     what they add."""
     top = max(ranking, key=CandidateResult.rank_key, default=None)
-    if top is None or not top.significant or top.evidence != "probe":
+    if top is None or not top.significant:
         return None
-    return top.effect
+    # A flat field overrules the label, not what the probe saw.
+    by_probe = top.evidence == "probe" or (top.evidence == "flat_field" and top.probe_clears())
+    return top.effect if by_probe else None
 
 
 def conditional_probes(

@@ -94,6 +94,9 @@ class CaptureSet:
 # A dataset's relight split may carry its light (a known capture condition) in this file, in the
 # lighting JSON format of recon.render.shading.Lighting.from_json.
 RELIGHT_LIGHTING = "lighting_relight.json"
+# A dataset's flat-field frames (a uniformly lit card filling the frame, through the capture's
+# camera chain; see recon.config.run_config.FlatFieldConfig) are this split. No fit reads it.
+FLAT_FIELD_SPLIT = "flat_field"
 
 
 def _resize(images: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:

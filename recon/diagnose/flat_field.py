@@ -1,0 +1,119 @@
+"""The full-frame vignetting falloff from a dataset's flat-field frames.
+
+A flat-field frame is the capture camera looking at a uniformly lit card that fills the frame
+(recon.config.run_config.FlatFieldConfig; data_synth writes it as the dataset's flat_field
+split). Whatever is not flat in it is the camera's falloff: exposure and white balance scale a
+frame as a whole, and a blur, a lens distortion or a pose error leave a uniform field uniform.
+
+The object's own pixels reach only part of the way to the corners (0.57-0.61 of the half
+diagonal on the benchmark); a falloff model fitted to them extrapolates beyond, and a
+mechanical (barrel) falloff that sets in further out is invisible to it. The frames measure it
+where it is defined: the mean of the four corner pixels and of a circle half-way to the corner,
+each over the image centre, read off local quadratic fits to the frames' mean (so noise
+averages and the value at a pixel centre needs no smooth global model).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import torch
+
+from recon.diagnose.residuals import luminance_of
+from recon.errors import ReconError
+from recon.io.datasets import FLAT_FIELD_SPLIT, read_nerf_synthetic
+
+# Pixels each side of a point in its local quadratic fit (a 13 x 13 window, clipped at the
+# frame's edge): wide enough to average noise, narrow enough that a quadratic follows a falloff
+# that steepens toward the corners.
+HALF_WINDOW = 6
+# Points round the half-way circle (as data_synth realises its half_radius_falloff).
+CIRCLE_POINTS = 64
+# A card lit to within 2 % over the frame is the usual tolerance of a flat-field target; a
+# corner darker or brighter than that is the camera's. Fixed before any case was scored.
+FLAT_FIELD_ALLOWANCE = 0.02
+
+
+def load_flat_field(dataset: Path) -> torch.Tensor | None:
+    """The dataset's flat-field frames [N, H, W, 3] (linear, float64), or None without them."""
+    if not (Path(dataset) / f"transforms_{FLAT_FIELD_SPLIT}.json").exists():
+        return None
+    captures = read_nerf_synthetic(dataset, FLAT_FIELD_SPLIT, background=None, prefer_exr=True)
+    return captures.images.double()
+
+
+def local_value(image: torch.Tensor, column: float, row: float, half_window: int) -> float:
+    """The value at (column, row) (pixel units, pixel centres at +0.5) of a quadratic fitted by
+    least squares to image [H, W]'s pixels within half_window pixels of it."""
+    height, width = image.shape
+    first_row = max(0, int(math.floor(row)) - half_window)
+    last_row = min(height, int(math.floor(row)) + half_window + 1)
+    first_column = max(0, int(math.floor(column)) - half_window)
+    last_column = min(width, int(math.floor(column)) + half_window + 1)
+    rows = torch.arange(first_row, last_row, dtype=image.dtype) + 0.5 - row
+    columns = torch.arange(first_column, last_column, dtype=image.dtype) + 0.5 - column
+    dv, du = torch.meshgrid(rows, columns, indexing="ij")
+    du, dv = du.reshape(-1), dv.reshape(-1)
+    basis = torch.stack([torch.ones_like(du), du, dv, du * du, du * dv, dv * dv], -1)
+    values = image[first_row:last_row, first_column:last_column].reshape(-1, 1)
+    solution = torch.linalg.lstsq(basis, values).solution
+    return float(solution[0, 0])
+
+
+def measure_flat_field(frames: torch.Tensor, response_exponent: float | None = None) -> dict:
+    """Corner and half-way falloff of frames [N, H, W, 3] (linear), each over the image centre.
+
+    response_exponent: a response curve's effective exponent g when one was found (observed
+    ~ true^g); the measured ratios are raised to 1/g to undo it. Returns corner_falloff,
+    half_radius_falloff, per-frame corner falloffs, deviation (the larger distance of either
+    falloff from 1), a radial profile (normalised radius, mean relative luminance) and the
+    frame count."""
+    if frames.ndim != 4 or frames.shape[-1] != 3 or frames.shape[0] == 0:
+        raise ReconError(
+            f"flat_field.frames: expected shape [N >= 1, H, W, 3], got {tuple(frames.shape)}"
+        )
+    count, height, width, _ = frames.shape
+    luminance = luminance_of(frames.double())
+    # Exposure and white balance scale a frame as a whole: each is taken relative to itself.
+    luminance = (
+        luminance / luminance.flatten(1).median(dim=1).values.clamp_min(1e-12)[:, None, None]
+    )
+    exponent = 1.0 if not response_exponent else float(response_exponent)
+    corners = [(0.5, 0.5), (width - 0.5, 0.5), (0.5, height - 0.5), (width - 0.5, height - 0.5)]
+    half_radius = 0.25 * math.hypot(height, width)
+    angles = [2 * math.pi * index / CIRCLE_POINTS for index in range(CIRCLE_POINTS)]
+    circle = [
+        (0.5 * width + half_radius * math.cos(angle), 0.5 * height + half_radius * math.sin(angle))
+        for angle in angles
+    ]
+
+    def falloffs(image: torch.Tensor) -> tuple[float, float]:
+        centre = local_value(image, 0.5 * width, 0.5 * height, HALF_WINDOW)
+        corner = sum(local_value(image, u, v, HALF_WINDOW) for u, v in corners) / 4
+        half = sum(local_value(image, u, v, HALF_WINDOW) for u, v in circle) / len(circle)
+        return (corner / centre) ** (1 / exponent), (half / centre) ** (1 / exponent)
+
+    corner_falloff, half_radius_falloff = falloffs(luminance.mean(0))
+    per_frame = [falloffs(frame)[0] for frame in luminance] if count > 1 else [corner_falloff]
+    rows = torch.arange(height, dtype=torch.float64) + 0.5 - 0.5 * height
+    columns = torch.arange(width, dtype=torch.float64) + 0.5 - 0.5 * width
+    radius = torch.hypot(rows[:, None], columns[None, :]) / (0.5 * math.hypot(height, width))
+    bins = torch.linspace(0.0, float(radius.max()) + 1e-9, 17, dtype=torch.float64)
+    index = torch.bucketize(radius.reshape(-1), bins[1:-1])
+    mean_image = luminance.mean(0).reshape(-1)
+    sums = torch.zeros(16, dtype=torch.float64).index_add_(0, index, mean_image)
+    counts = torch.zeros(16, dtype=torch.float64).index_add_(0, index, torch.ones_like(mean_image))
+    centre_value = local_value(luminance.mean(0), 0.5 * width, 0.5 * height, HALF_WINDOW)
+    profile = (sums / counts.clamp_min(1) / centre_value).clamp_min(0) ** (1 / exponent)
+    return {
+        "corner_falloff": round(corner_falloff, 5),
+        "half_radius_falloff": round(half_radius_falloff, 5),
+        "corner_falloff_per_frame": [round(value, 5) for value in per_frame],
+        "deviation": round(max(abs(1 - corner_falloff), abs(1 - half_radius_falloff)), 5),
+        "allowance": FLAT_FIELD_ALLOWANCE,
+        "response_exponent": exponent,
+        "frames": count,
+        "profile_radius": [round(float(value), 4) for value in 0.5 * (bins[1:] + bins[:-1])],
+        "profile": [round(float(value), 5) for value in profile],
+    }
