@@ -185,6 +185,14 @@ def _diagnose(arguments) -> int:
             f"visibility fingerprint: {fingerprint['share']:.2f} [{low:.2f}, {high:.2f}] of the "
             f"predicted self-shadowing baked into the albedo ({fingerprint['names'] or 'nothing'})"
         )
+    flat = result["gap"].get("flat_field")
+    if flat:
+        reading = "vignetting" if flat["deviation"] > flat["allowance"] else "flat"
+        print(
+            f"flat field ({flat['frames']} frames): corner falloff {flat['corner_falloff']:.3f}, "
+            f"half-way {flat['half_radius_falloff']:.3f} ({reading}; allowance "
+            f"{flat['allowance']:.2f})"
+        )
     for refit in result["refits"]:
         print(
             f"refit with {' + '.join(refit['effects'])}: RMSE {refit['before_rmse']:.4f} -> "

@@ -224,6 +224,11 @@ def absorption_probes(
         if candidate.effect not in ABSORBABLE or candidate.effect == given:
             continue
         if candidate.effect == "vignetting":
+            if candidate.flat_field is not None and not candidate.significant:
+                # Flat-field frames measured no falloff, and they overrule the residual
+                # evidence (CandidateResult.decide): the regression could not change the verdict,
+                # and loading the training views for it is most of its cost.
+                continue
             if not given:
                 # Its regression holds a gain per view already (a per-view photometric effect
                 # on top changes nothing): computed once, unconditionally.

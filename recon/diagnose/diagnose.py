@@ -314,7 +314,7 @@ def _mark_vignetting_coverage(
 
     With flat-field frames the corner and half-way falloffs are the frames' measurement (the
     fitted polynomial's stay beside them as model_corner_falloff and model_half_radius_falloff),
-    and the measured radius is the corners'."""
+    the measured radius is the corners' and object_radius keeps the object's."""
     parameter_sets = [
         parameters
         for candidate in ranking
@@ -336,7 +336,20 @@ def _mark_vignetting_coverage(
                 parameters.setdefault(f"model_{key}", parameters[key])
             parameters[key] = flat_field[key]
         parameters["falloff_source"] = "flat_field"
+        parameters["object_radius"] = round(radius, 4)
         parameters["covered_radius"] = 1.0
+
+
+def _vignetting_model(ranking: list[CandidateResult], refits: list[dict]) -> dict | None:
+    """The vignetting polynomial to draw beside the flat field: the first refit's that switched
+    it on, else the ranking entry's (absorption regression, else probe)."""
+    for record in refits:
+        if "vignetting" in record.get("parameters", {}):
+            return record["parameters"]["vignetting"]
+    for candidate in ranking:
+        if candidate.effect == "vignetting":
+            return candidate.absorption_parameters or candidate.parameters or None
+    return None
 
 
 def _geometry_errors(mesh, reference) -> dict:
@@ -492,6 +505,12 @@ def diagnose_run(
     if refits:
         waterfall_figure(refits, floor_rmse, folder / "waterfall.png")
         result["figures"]["waterfall"] = "diagnosis/waterfall.png"
+    if "flat_field" in gap:
+        from recon.diagnose.figures import flat_field_figure
+
+        model = _vignetting_model(ranking, refits)
+        flat_field_figure(gap["flat_field"], model, folder / "flat_field.png")
+        result["figures"]["flat_field"] = "diagnosis/flat_field.png"
     atomic_write_json(paths.root / "diagnosis.json", _plain(result))
     return result
 

@@ -357,3 +357,29 @@ def where_figures(data: DiagnosisData, analysis: dict, folder: str | Path) -> di
         "frequency": frequency_figure(analysis, folder / "where_frequency.png"),
         "worst_views": worst_views_figure(data, folder / "where_worst_views.png"),
     }
+
+
+def flat_field_figure(measurement: dict, model: dict | None, path: Path) -> Path:
+    """The flat-field frames' radial profile (relative to the centre) beside the fitted
+    vignetting polynomial 1 + a r^2 + b r^4 (model: a vignetting parameter set with a, b and
+    covered_radius; None without one), with the radius the object's pixels reach: what a fit to
+    the object alone extrapolates beyond."""
+    figure, axis = plt.subplots(figsize=(5.5, 3.5))
+    radius = np.asarray(measurement["profile_radius"])
+    axis.plot(radius, measurement["profile"], "o-", color="k", label="flat field (measured)")
+    if model and "a" in model and "b" in model:
+        grid = np.linspace(0.0, 1.0, 101)
+        polynomial = 1 + model["a"] * grid**2 + model["b"] * grid**4
+        axis.plot(grid, polynomial, color="tab:orange", label="fitted polynomial")
+    covered = (model or {}).get("object_radius")
+    if covered:
+        axis.axvline(covered, color="tab:blue", linestyle=":", label="object reaches")
+    axis.axhline(measurement["corner_falloff"], color="tab:red", linestyle="--", linewidth=0.8)
+    axis.set_xlabel("radius (half image diagonal)")
+    axis.set_ylabel("relative gain")
+    axis.set_title(
+        f"flat field: corner {measurement['corner_falloff']:.3f}, "
+        f"half-way {measurement['half_radius_falloff']:.3f}"
+    )
+    axis.legend(fontsize=8)
+    return _save(figure, path)

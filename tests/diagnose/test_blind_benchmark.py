@@ -120,3 +120,19 @@ def test_parameter_errors_compare_like_with_like():
     assert errors["vignetting_corner_falloff"] == pytest.approx(0.05)
     assert errors["vignetting_half_radius_falloff"] == pytest.approx(0.01)
     assert errors["response_gamma_absolute"] == pytest.approx(0.05)
+
+
+def test_blind_vignetting_is_measured_out_to_the_corners(tiny_config, tmp_path):
+    """The bench config's flat-field frames: vignetting is named from them, and its corner
+    falloff, which the object's pixels never reach, is the frames' measurement."""
+    torch.set_num_threads(1)
+    record = run_case(
+        BenchCase(("vignetting",), seed=1), tiny_config, tmp_path, torch.device("cpu"), "none"
+    )
+    assert record["predicted_top"] == "vignetting", record
+    assert record["parameter_error"]["vignetting_corner_falloff"] < 0.05, record
+    diagnosis = json.loads((Path(record["run_folder"]) / "diagnosis.json").read_text())
+    vignetting = next(item for item in diagnosis["ranking"] if item["effect"] == "vignetting")
+    assert vignetting["evidence"] == "flat_field"
+    assert vignetting["parameters"]["falloff_source"] == "flat_field"
+    assert diagnosis["gap"]["flat_field"]["frames"] == 2
