@@ -89,7 +89,11 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--views: expected >= 1, got {arguments.views}")
     try:
         for run in arguments.runs:
-            print(json.dumps(add_flat_field(run, arguments.views, arguments.truth_dir, arguments.force)))
+            print(
+                json.dumps(
+                    add_flat_field(run, arguments.views, arguments.truth_dir, arguments.force)
+                )
+            )
     except ReconError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
