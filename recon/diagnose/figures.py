@@ -374,7 +374,13 @@ def flat_field_figure(measurement: dict, model: dict | None, path: Path) -> Path
     covered = (model or {}).get("object_radius")
     if covered:
         axis.axvline(covered, color="tab:blue", linestyle=":", label="object reaches")
-    axis.axhline(measurement["corner_falloff"], color="tab:red", linestyle="--", linewidth=0.8)
+    axis.axhline(
+        measurement["corner_falloff"],
+        color="tab:red",
+        linestyle="--",
+        linewidth=0.8,
+        label="corner (mean of the four corner pixels)",
+    )
     axis.set_xlabel("radius (half image diagonal)")
     axis.set_ylabel("relative gain")
     axis.set_title(

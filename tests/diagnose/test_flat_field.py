@@ -177,3 +177,15 @@ def test_a_flat_card_spares_the_vignetting_regression(monkeypatch):
     falling.decide()
     absorption.absorption_probes([falling], None, None, None, torch.device("cpu"))
     assert calls == ["train", "recorded"]
+
+
+def test_the_flat_field_figure_is_drawn(tmp_path):
+    from recon.diagnose.figures import flat_field_figure
+
+    falloff = _falloff(SIZE, SIZE)
+    measured = measure_flat_field(falloff[None, :, :, None].expand(1, SIZE, SIZE, 3))
+    model = {"a": -0.2, "b": 0.05, "object_radius": 0.6}
+    path = flat_field_figure(measured, model, tmp_path / "flat_field.png")
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # Without a model (vignetting not a candidate) the measured profile alone.
+    assert flat_field_figure(measured, None, tmp_path / "alone.png").stat().st_size > 1000
