@@ -186,6 +186,8 @@ def _diagnose(arguments) -> int:
             f"predicted self-shadowing baked into the albedo ({fingerprint['names'] or 'nothing'})"
         )
     flat = result["gap"].get("flat_field")
+    if result["gap"].get("flat_field_error"):
+        print(f"flat field not used: {result['gap']['flat_field_error']}")
     if flat:
         reading = "vignetting" if flat["deviation"] > flat["allowance"] else "flat"
         print(

@@ -21,6 +21,7 @@ import json
 import math
 import time
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import matplotlib
 import matplotlib.pyplot as plt
@@ -53,7 +54,7 @@ from recon.effects.photometric import normalised_radius
 from recon.effects.registry import MODEL_EFFECTS
 from recon.errors import ReconError
 from recon.io.atomic import atomic_path, atomic_write_json
-from recon.io.datasets import RELIGHT_LIGHTING
+from recon.io.datasets import FLAT_FIELD_SPLIT, RELIGHT_LIGHTING
 from recon.io.meshes import load_mesh
 from recon.io.run_folder import RunPaths
 from recon.metrics.evaluate import _plain
@@ -303,6 +304,20 @@ def flat_field_evidence(ranking: list[CandidateResult], frames: torch.Tensor) ->
     return measurement
 
 
+def dataset_flat_field(ranking: list[CandidateResult], dataset: Path) -> dict:
+    """{"flat_field": measurement} when the dataset has usable flat-field frames (recorded on
+    the ranking by flat_field_evidence), {"flat_field_error": why} when it has unusable ones,
+    {} without any. Unusable calibration frames should not cost the rest of the diagnosis: it
+    goes on without them (vignetting decided by the residual evidence) and says why."""
+    frames = load_flat_field(dataset)
+    if frames is None:
+        return {}
+    try:
+        return {"flat_field": flat_field_evidence(ranking, frames)}
+    except ReconError as error:
+        return {"flat_field_error": f"{dataset / FLAT_FIELD_SPLIT}: {error}"}
+
+
 def _mark_vignetting_coverage(
     ranking: list[CandidateResult],
     refits: list[dict],
@@ -419,9 +434,7 @@ def diagnose_run(
     if relight_views is not None:
         relight_evidence(ranking, relight_views)
     lap("relight_probe")
-    flat_frames = load_flat_field(paths.dataset)
-    if flat_frames is not None:
-        gap["flat_field"] = flat_field_evidence(ranking, flat_frames)
+    gap.update(dataset_flat_field(ranking, paths.dataset))
     lap("flat_field")
     if absorption:
         absorption_probes(ranking, data, paths, config, device)

@@ -33,6 +33,10 @@ CIRCLE_POINTS = 64
 # A card lit to within 2 % over the frame is the usual tolerance of a flat-field target; a
 # corner darker or brighter than that is the camera's. Fixed before any case was scored.
 FLAT_FIELD_ALLOWANCE = 0.02
+# A frame with more than this share of its pixels at or above CLIPPED_VALUE (an 8-bit white, or a
+# sensor's full well normalised to 1) is refused: clipping flattens the falloff it measures.
+CLIPPED_VALUE = 0.999
+MAXIMUM_CLIPPED_SHARE = 0.01
 
 
 def load_flat_field(dataset: Path) -> torch.Tensor | None:
@@ -74,11 +78,24 @@ def measure_flat_field(frames: torch.Tensor, response_exponent: float | None = N
             f"flat_field.frames: expected shape [N >= 1, H, W, 3], got {tuple(frames.shape)}"
         )
     count, height, width, _ = frames.shape
+    if not bool(torch.isfinite(frames).all()):
+        raise ReconError("flat_field.frames: non-finite values (NaN or infinity)")
     luminance = luminance_of(frames.double())
+    medians = luminance.flatten(1).median(dim=1).values
+    peaks = frames.double().amax(dim=-1).flatten(1)
+    for index in range(count):
+        if float(medians[index]) <= 0:
+            raise ReconError(f"flat_field.frames[{index}]: no light (median luminance 0)")
+        # Clipped pixels flatten a falloff: an over-exposed card reads as no vignetting.
+        clipped = float((peaks[index] >= CLIPPED_VALUE).double().mean())
+        if clipped > MAXIMUM_CLIPPED_SHARE:
+            raise ReconError(
+                f"flat_field.frames[{index}]: {100 * clipped:.1f} % of the pixels clipped at "
+                f"{CLIPPED_VALUE} or above (at most {100 * MAXIMUM_CLIPPED_SHARE:.0f} % expected); "
+                "shoot the card darker"
+            )
     # Exposure and white balance scale a frame as a whole: each is taken relative to itself.
-    luminance = (
-        luminance / luminance.flatten(1).median(dim=1).values.clamp_min(1e-12)[:, None, None]
-    )
+    luminance = luminance / medians[:, None, None]
     exponent = 1.0 if not response_exponent else float(response_exponent)
     corners = [(0.5, 0.5), (width - 0.5, 0.5), (0.5, height - 0.5), (width - 0.5, height - 0.5)]
     half_radius = 0.25 * math.hypot(height, width)

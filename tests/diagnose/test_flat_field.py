@@ -189,3 +189,44 @@ def test_the_flat_field_figure_is_drawn(tmp_path):
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     # Without a model (vignetting not a candidate) the measured profile alone.
     assert flat_field_figure(measured, None, tmp_path / "alone.png").stat().st_size > 1000
+
+
+def test_unusable_frames_are_refused_by_name():
+    dark = torch.zeros(2, 16, 16, 3, dtype=torch.float64)
+    dark[0] = 0.5
+    with pytest.raises(ReconError, match=r"flat_field.frames\[1\]: no light"):
+        measure_flat_field(dark)
+    clipped = torch.full((1, 16, 16, 3), 0.5, dtype=torch.float64)
+    clipped[0, :8] = 1.0
+    with pytest.raises(ReconError, match=r"flat_field.frames\[0\]: 50.0 % of the pixels clipped"):
+        measure_flat_field(clipped)
+    broken = torch.full((1, 16, 16, 3), float("nan"), dtype=torch.float64)
+    with pytest.raises(ReconError, match="non-finite"):
+        measure_flat_field(broken)
+
+
+def test_a_dataset_s_unusable_frames_are_reported_and_the_diagnosis_goes_on(tmp_path):
+    from recon.camera import intrinsics_from_fov, look_at
+    from recon.camera.cameras import Cameras
+    from recon.diagnose.diagnose import dataset_flat_field
+    from recon.io.datasets import FLAT_FIELD_SPLIT, write_nerf_synthetic
+
+    assert dataset_flat_field([], tmp_path) == {}
+    cameras = Cameras(
+        world_to_cam=look_at(torch.tensor([[0.0, 0.0, 3.0]])),
+        intrinsics=intrinsics_from_fov(40.0, (16, 16))[None],
+        image_size=(16, 16),
+    )
+    write_nerf_synthetic(tmp_path, FLAT_FIELD_SPLIT, cameras, torch.ones(1, 16, 16, 3))
+    candidate = _vignetting(0.3)
+    result = dataset_flat_field([candidate], tmp_path)
+    assert (
+        "clipped" in result["flat_field_error"] and FLAT_FIELD_SPLIT in result["flat_field_error"]
+    )
+    assert candidate.flat_field is None and candidate.evidence == "probe"
+    write_nerf_synthetic(
+        tmp_path, FLAT_FIELD_SPLIT, cameras, torch.full((1, 16, 16, 3), 0.4), force=True
+    )
+    result = dataset_flat_field([candidate], tmp_path)
+    assert result["flat_field"]["deviation"] < 0.01
+    assert candidate.flat_field is result["flat_field"] and not candidate.significant
