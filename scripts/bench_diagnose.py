@@ -14,6 +14,9 @@ How the README's figures were made (clean seeds 103-105 calibrate, 100-102 are s
     # -> the allowances in recon/diagnose/calibration.py, before any scored case is diagnosed
     python scripts/bench_diagnose.py --reuse-fits --clean 6          # diagnose every case
     python scripts/bench_diagnose.py --reuse-fits --rescore --clean 3  # pooled, 100-102 scored
+
+The fits of the current figures predate the flat-field frames; they were added to every case
+with scripts/add_flat_field.py (the fit never reads them) before the --reuse-fits run.
 """
 
 from __future__ import annotations
