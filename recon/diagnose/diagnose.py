@@ -292,10 +292,8 @@ def flat_field_evidence(ranking: list[CandidateResult], frames: torch.Tensor) ->
     entry, which it makes significant when it clears FLAT_FIELD_ALLOWANCE. A response curve
     found by then (the relight probe) is undone first: a curve bends a falloff like any other
     ratio of intensities."""
-    response = next(
-        (item for item in ranking if item.effect == "response_curve" and item.significant), None
-    )
-    exponent = _relight_exponent([response]) if response is not None else None
+    found = any(item.effect == "response_curve" and item.significant for item in ranking)
+    exponent = _relight_exponent(ranking) if found else None
     measurement = measure_flat_field(frames, response_exponent=exponent)
     for candidate in ranking:
         if candidate.effect == "vignetting":

@@ -30,6 +30,8 @@ from recon.io.datasets import FLAT_FIELD_SPLIT, read_nerf_synthetic
 HALF_WINDOW = 6
 # Points round the half-way circle (as data_synth realises its half_radius_falloff).
 CIRCLE_POINTS = 64
+# Radial bins of the profile that the figure draws (0 to the corner).
+PROFILE_BINS = 16
 # A card lit to within 2 % over the frame is the usual tolerance of a flat-field target; a
 # corner darker or brighter than that is the camera's. Fixed before any case was scored.
 FLAT_FIELD_ALLOWANCE = 0.02
@@ -105,23 +107,24 @@ def measure_flat_field(frames: torch.Tensor, response_exponent: float | None = N
         for angle in angles
     ]
 
-    def falloffs(image: torch.Tensor) -> tuple[float, float]:
+    def falloffs(image: torch.Tensor) -> tuple[float, float, float]:
+        """(corner, half-way) over the centre, undone by the exponent, and the centre value."""
         centre = local_value(image, 0.5 * width, 0.5 * height, HALF_WINDOW)
         corner = sum(local_value(image, u, v, HALF_WINDOW) for u, v in corners) / 4
         half = sum(local_value(image, u, v, HALF_WINDOW) for u, v in circle) / len(circle)
-        return (corner / centre) ** (1 / exponent), (half / centre) ** (1 / exponent)
+        return (corner / centre) ** (1 / exponent), (half / centre) ** (1 / exponent), centre
 
-    corner_falloff, half_radius_falloff = falloffs(luminance.mean(0))
+    mean_image = luminance.mean(0)
+    corner_falloff, half_radius_falloff, centre_value = falloffs(mean_image)
     per_frame = [falloffs(frame)[0] for frame in luminance] if count > 1 else [corner_falloff]
     rows = torch.arange(height, dtype=torch.float64) + 0.5 - 0.5 * height
     columns = torch.arange(width, dtype=torch.float64) + 0.5 - 0.5 * width
     radius = torch.hypot(rows[:, None], columns[None, :]) / (0.5 * math.hypot(height, width))
-    bins = torch.linspace(0.0, float(radius.max()) + 1e-9, 17, dtype=torch.float64)
+    bins = torch.linspace(0.0, float(radius.max()) + 1e-9, PROFILE_BINS + 1, dtype=torch.float64)
     index = torch.bucketize(radius.reshape(-1), bins[1:-1])
-    mean_image = luminance.mean(0).reshape(-1)
-    sums = torch.zeros(16, dtype=torch.float64).index_add_(0, index, mean_image)
-    counts = torch.zeros(16, dtype=torch.float64).index_add_(0, index, torch.ones_like(mean_image))
-    centre_value = local_value(luminance.mean(0), 0.5 * width, 0.5 * height, HALF_WINDOW)
+    flat = mean_image.reshape(-1)
+    sums = torch.zeros(PROFILE_BINS, dtype=torch.float64).index_add_(0, index, flat)
+    counts = torch.bincount(index, minlength=PROFILE_BINS).double()
     profile = (sums / counts.clamp_min(1) / centre_value).clamp_min(0) ** (1 / exponent)
     return {
         "corner_falloff": round(corner_falloff, 5),

@@ -556,3 +556,21 @@ def test_diagnose_command_prints_recovered_parameters_and_voided_evidence(
     assert "absorption  0.300 (void beside exposure)" in printed
     # Not significant: no parameter line.
     assert "  lens_distortion (" not in printed
+    # The flat field's line, and the reason when its frames were unusable.
+    result["gap"] = {
+        "flat_field": {
+            "frames": 2,
+            "corner_falloff": 0.61,
+            "half_radius_falloff": 0.93,
+            "deviation": 0.39,
+            "allowance": 0.02,
+        }
+    }
+    assert main(["diagnose", str(tiny_run)]) == 0
+    printed = capsys.readouterr().out
+    assert "flat field (2 frames): corner falloff 0.610, half-way 0.930 (vignetting;" in printed
+    result["gap"] = {"flat_field_error": "dataset/flat_field: flat_field.frames[0]: no light"}
+    assert main(["diagnose", str(tiny_run)]) == 0
+    assert "flat field not used: dataset/flat_field: flat_field.frames[0]: no light" in (
+        capsys.readouterr().out
+    )
