@@ -25,7 +25,7 @@ import torch
 
 from recon.camera.cameras import Cameras
 from recon.config.run_config import RunConfig
-from recon.diagnose.calibration import MINIMUM_SHARE
+from recon.diagnose.calibration import MINIMUM_SHARE, absorption_threshold
 from recon.diagnose.data import DiagnosisData, load_diagnosis_data
 from recon.diagnose.radial_absorption import radial_absorption
 from recon.diagnose.refit import refit_with
@@ -58,6 +58,10 @@ GEOMETRY_ABSORBABLE = ("lens_distortion",)
 # datasets' lower bounds stayed at 0.15-0.32 (0.15-0.35 at 30 steps); the clean calibration
 # fits' largest reduction was 0.022 (the allowance 0.043, recon.diagnose.calibration).
 GEOMETRY_STEPS = 15
+# The least share of the control's error a given effect is taken to leave (a given effect whose
+# probe interval reached 1 would otherwise make every candidate worth refitting on top of it
+# through a division by zero; every candidate is then, which is the safe side).
+SMALLEST_REMAINING_SHARE = 0.05
 GEOMETRY_RESOLUTION = 64
 VIEWS_PER_GROUP = 8
 TEXTURE_LEARNING_RATE = 0.03
@@ -163,10 +167,32 @@ def heldout_errors(
     return fit_on_halves(modules, EffectProbe(data), trainable=per_view)
 
 
-def _had_evidence(candidate: CandidateResult) -> bool:
-    """Whether an earlier absorption pass left a positive lower bound."""
+@dataclass
+class AbsorptionCache:
+    """What the two absorption passes of a diagnosis (alone, then on top of a given effect)
+    share: the training views rasterised once with the fitted geometry."""
+
+    frozen: FrozenTrainingViews | None = None
+
+
+def _could_clear_on_top(candidate: CandidateResult, given: CandidateResult | None) -> bool:
+    """Whether the candidate's unconditional absorption evidence leaves room for it to become
+    significant on top of the given effect, so its refits are worth running again.
+
+    The evidence is a share of the control refit's held-out error. On top of the given effect
+    the control's error is smaller, by at most about the given effect's probe reduction (the
+    upper end of its interval), so the same absolute gain becomes a larger share: the first
+    pass's upper bound, divided by the error the given effect leaves, must reach the allowance.
+    The first pass must also have seen some sign of the effect (a positive lower bound).
+    Candidates below either keep their unconditional evidence; neither their significance nor
+    their place among the significant ones could change (an absorption excess below zero
+    cannot outrank a significant probe's)."""
     interval = candidate.absorption_interval
-    return interval is not None and interval[0] > 0
+    if interval is None or interval[0] <= 0:
+        return False
+    given_high = given.interval[1] if given is not None else 0.0
+    remaining = max(1.0 - min(max(given_high, 0.0), 1.0), SMALLEST_REMAINING_SHARE)
+    return interval[1] / remaining > absorption_threshold(candidate.effect)
 
 
 def absorption_probes(
@@ -176,6 +202,7 @@ def absorption_probes(
     config: RunConfig,
     device: torch.device,
     given: str | None = None,
+    cache: AbsorptionCache | None = None,
 ) -> None:
     """For each candidate in ABSORBABLE: a short refit of texture, light and the effect (and the
     vertex positions for GEOMETRY_ABSORBABLE), against a control refit of the same kind without
@@ -185,36 +212,39 @@ def absorption_probes(
     given: an effect switched on in the control and in every candidate refit alike (see
     which.conditioning_effect), so the evidence is what each candidate adds on top of it. With
     a given effect, the refits run only for candidates whose earlier (unconditional)
-    absorption evidence had a positive lower bound; and the geometry-moving refits do not run
+    absorption evidence could make them significant on top of it (_could_clear_on_top); and
+    the geometry-moving refits do not run
     again at all: their evidence measured alone is voided (absorption_discounted_by), and the
     candidate's conditional probe decides. A blur or pose error that the fit absorbed is
     partly taken back by a distortion in a refit that moves the vertices (lower bounds
     0.2-0.33 on the benchmark's blur datasets), so that evidence does not count beside one;
     measuring it again on top of the given effect cost two more refits, as much as the rest
     of the diagnosis together.
+
+    cache: shared between the two passes of one diagnosis (the rasterised training views).
     """
     # Bilinear without mipmaps: the training views sample the texture near 1:1, and the
     # refits only compare with each other (the held-out evaluation renders in full).
     renderer = Renderer(texture_filter="linear", texture_boundary="clamp")
-    frozen: FrozenTrainingViews | None = None
+    cache = cache if cache is not None else AbsorptionCache()
     base = [given] if given else []
+    given_candidate = next((c for c in ranking if c.effect == given), None) if given else None
 
     def evaluate(names: list[str], moving: bool) -> tuple[torch.Tensor, list[ModelEffect]]:
-        nonlocal frozen
         if moving:
             mesh, lighting, fitted_effects = refit_with(
                 names, paths, config, device, GEOMETRY_STEPS, resolution=GEOMETRY_RESOLUTION
             )
             fitted = fitted_effects.modules
         else:
-            if frozen is None:
-                frozen = FrozenTrainingViews.build(
+            if cache.frozen is None:
+                cache.frozen = FrozenTrainingViews.build(
                     read_captures(paths.dataset, "train"),
                     data.mesh.to(device),
                     data.lighting.to(device),
                     renderer,
                 )
-            mesh, lighting, fitted = frozen_refit(frozen, names, renderer, ABSORPTION_STEPS)
+            mesh, lighting, fitted = frozen_refit(cache.frozen, names, renderer, ABSORPTION_STEPS)
         modules = heldout_modules(names, fitted, data.view_count, data.observed.device)
         refitted = replace(data, mesh=mesh.to("cpu"), lighting=lighting.to("cpu"))
         return heldout_errors(refitted, modules)[0], fitted
@@ -248,9 +278,9 @@ def absorption_probes(
             # (On the benchmark's datasets the refits' lower bound stayed at or below 0.04
             # wherever the probe's reduction was under this, against an allowance of 0.118 then.)
             continue
-        if given and not _had_evidence(candidate):
-            # The refits again on top of the given effect only where the first pass saw some
-            # sign of the effect: otherwise its unconditional evidence stands.
+        if given and not _could_clear_on_top(candidate, given_candidate):
+            # The refits again on top of the given effect only where the first pass leaves
+            # room for a significant effect: otherwise its unconditional evidence stands.
             continue
         if moving not in controls:
             controls[moving] = evaluate(base, moving)[0]

@@ -30,6 +30,7 @@ import torch
 from recon.config.run_config import RunConfig
 from recon.diagnose.absorption import (
     GEOMETRY_ABSORBABLE,
+    AbsorptionCache,
     absorption_probes,
     heldout_errors,
     heldout_modules,
@@ -434,8 +435,9 @@ def diagnose_run(
     lap("relight_probe")
     gap.update(dataset_flat_field(ranking, paths.dataset))
     lap("flat_field")
+    cache = AbsorptionCache()
     if absorption:
-        absorption_probes(ranking, data, paths, config, device)
+        absorption_probes(ranking, data, paths, config, device, cache=cache)
     lap("absorption")
     ranking.sort(key=CandidateResult.rank_key, reverse=True)
     # A per-view effect at the top (exposure, pose, ...) is measured first; everything else is
@@ -447,7 +449,7 @@ def diagnose_run(
         conditional_probes(ranking, probe, given)
         lap("conditional_probes")
         if absorption:
-            absorption_probes(ranking, data, paths, config, device, given=given)
+            absorption_probes(ranking, data, paths, config, device, given=given, cache=cache)
         lap("conditional_absorption")
     ranking.sort(key=CandidateResult.rank_key, reverse=True)
     timings = {"diagnose_seconds": round(time.perf_counter() - started, 2), "stages": stage_seconds}

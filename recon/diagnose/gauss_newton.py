@@ -78,13 +78,28 @@ class GaussNewtonProblem:
         weight: torch.Tensor,
     ) -> None:
         self.render = render
-        self.observed = observed
-        self.weight = weight
         self.view_count = observed.shape[0]
         self.columns = _columns(effects, self.view_count)
         self.per_view_columns = [c for c in self.columns if c.per_view]
         self.global_columns = [c for c in self.columns if not c.per_view]
         self.unknowns = self.view_count * len(self.per_view_columns) + len(self.global_columns)
+        # Only the pixels with weight > 0 enter the sums (a probe's half of the pixel blocks
+        # inside the object's region, about a sixth of the image): the Jacobian, the residual
+        # and the loss are kept at those pixels alone, view after view.
+        self.channels = observed.shape[-1]
+        flat_weight = weight.expand(*observed.shape[:-1], 1).reshape(-1)
+        self._counted = torch.nonzero(flat_weight > 0).squeeze(1)  # [N] over B * H * W
+        self._counted_weight = flat_weight[self._counted][:, None]  # [N, 1]
+        pixels_per_view = observed[0, ..., 0].numel()
+        self._view_counts = torch.bincount(
+            torch.div(self._counted, pixels_per_view, rounding_mode="floor"),
+            minlength=self.view_count,
+        ).tolist()
+        self.observed = self.counted(observed)
+
+    def counted(self, image: torch.Tensor) -> torch.Tensor:
+        """The counted pixels [N, C] of an image [B, H, W, C] (views in order)."""
+        return image.reshape(-1, self.channels).index_select(0, self._counted)
 
     # -- parameter vector ----------------------------------------------------------------
     def _add(self, delta: torch.Tensor) -> None:
@@ -105,28 +120,42 @@ class GaussNewtonProblem:
 
     # -- pieces ----------------------------------------------------------------------------
     def loss(self, image: torch.Tensor | None = None) -> float:
+        """The weighted squared error of an image [B, H, W, C] (default: render())."""
         with torch.no_grad():
             image = self.render() if image is None else image
-            return float(((image - self.observed) ** 2 * self.weight).sum())
+            return float(((self.counted(image) - self.observed) ** 2 * self._counted_weight).sum())
 
     def jacobian(self, base: torch.Tensor) -> torch.Tensor:
-        """[columns, B, H, W, C] forward differences of the image, one column at a time."""
+        """[columns, N, C] forward differences of the image at the counted pixels, one column at
+        a time; base: render() [B, H, W, C] at the current parameters."""
+        base = self.counted(base)
         changes = []
         with torch.no_grad():
             for column in self.columns:
                 self._move_column(column, column.step)
-                changes.append((self.render() - base) / column.step)
+                changes.append((self.counted(self.render()) - base) / column.step)
                 self._move_column(column, -column.step)
         return torch.stack(changes)
 
     def normal_equations(
         self, jacobian: torch.Tensor, residual: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """(J^T W J [unknowns, unknowns], J^T W r [unknowns]) in float64, r = observed - image."""
-        weighted = jacobian * self.weight
-        # Per view: column x column products and column x residual products.
-        products = torch.einsum("cbhwk,dbhwk->cdb", weighted, jacobian).double()
-        right = torch.einsum("cbhwk,bhwk->cb", weighted, residual).double()
+        """(J^T W J [unknowns, unknowns], J^T W r [unknowns]) in float64, from the Jacobian
+        [columns, N, C] and r = observed - image [N, C] at the counted pixels."""
+        weighted = jacobian * self._counted_weight
+        # Per view: column x column products and column x residual products (one matrix
+        # product each over the view's counted pixels).
+        products = jacobian.new_zeros(len(self.columns), len(self.columns), self.view_count)
+        right = jacobian.new_zeros(len(self.columns), self.view_count)
+        start = 0
+        for view, count in enumerate(self._view_counts):
+            rows = weighted[:, start : start + count].reshape(len(self.columns), -1)
+            products[:, :, view] = (
+                rows @ jacobian[:, start : start + count].reshape(len(self.columns), -1).T
+            )
+            right[:, view] = rows @ residual[start : start + count].reshape(-1)
+            start += count
+        products, right = products.double(), right.double()
         views = self.view_count
         per_view = len(self.per_view_columns)
         is_per_view = torch.tensor([c.per_view for c in self.columns])
@@ -160,7 +189,7 @@ class GaussNewtonProblem:
             with torch.no_grad():
                 start_image = self.render()
         matrix, vector = self.normal_equations(
-            self.jacobian(start_image), self.observed - start_image
+            self.jacobian(start_image), self.observed - self.counted(start_image)
         )
         return self._predicted(matrix, vector, self.loss(start_image))
 
@@ -182,7 +211,7 @@ class GaussNewtonProblem:
         loss = self.loss(base)
         initial_loss = loss
         jacobian = self.jacobian(base)
-        matrix, vector = self.normal_equations(jacobian, self.observed - base)
+        matrix, vector = self.normal_equations(jacobian, self.observed - self.counted(base))
         score = self._predicted(matrix, vector, initial_loss)
         damping = INITIAL_DAMPING
         for iteration in range(iterations):
@@ -196,7 +225,9 @@ class GaussNewtonProblem:
                 damping *= DAMPING_DOWN
                 if iteration + 1 < iterations:
                     jacobian = self.jacobian(base)
-                    matrix, vector = self.normal_equations(jacobian, self.observed - base)
+                    matrix, vector = self.normal_equations(
+                        jacobian, self.observed - self.counted(base)
+                    )
             else:
                 self._add(-delta)
                 damping *= DAMPING_UP

@@ -149,6 +149,10 @@ def _screen_bounds(triangles: torch.Tensor, height: int, width: int) -> torch.Te
     """
     w = triangles[..., 3]
     in_front = w > _NEAR_W
+    if bool(in_front.all()):
+        # Every vertex in front (every fit and depth map): no edge crosses the plane, and the
+        # box is the vertices' alone; the general path below gives the same box, slower.
+        return _pixel_ranges(triangles, None, height, width)
     points = [triangles]
     valid = [in_front]
     for i, j in ((0, 1), (1, 2), (2, 0)):
@@ -158,8 +162,14 @@ def _screen_bounds(triangles: torch.Tensor, height: int, width: int) -> torch.Te
         point = triangles[..., i, :] + t[..., None] * (triangles[..., j, :] - triangles[..., i, :])
         points.append(point[..., None, :])
         valid.append(crosses[..., None])
-    points = torch.cat(points, dim=-2)  # [..., 6, 4]
-    valid = torch.cat(valid, dim=-1)  # [..., 6]
+    return _pixel_ranges(torch.cat(points, dim=-2), torch.cat(valid, dim=-1), height, width)
+
+
+def _pixel_ranges(
+    points: torch.Tensor, valid: torch.Tensor | None, height: int, width: int
+) -> torch.Tensor:
+    """Pixel-centre index ranges [..., 4] (x0, x1, y0, y1) of the box around the valid points
+    [..., P, 4] (valid [..., P], None: all); empty where none is valid."""
     safe_w = points[..., 3].clamp_min(_NEAR_W)
     screen_x = (points[..., 0] / safe_w + 1) * 0.5 * width
     screen_y = (points[..., 1] / safe_w + 1) * 0.5 * height
@@ -167,17 +177,27 @@ def _screen_bounds(triangles: torch.Tensor, height: int, width: int) -> torch.Te
     # Clamp before rounding so huge projected values cannot overflow int conversion.
     screen_x = screen_x.clamp(-2.0 * width - 2, 3.0 * width + 2)
     screen_y = screen_y.clamp(-2.0 * height - 2, 3.0 * height + 2)
-    min_x = torch.where(valid, screen_x, big).amin(-1)
-    max_x = torch.where(valid, screen_x, -big).amax(-1)
-    min_y = torch.where(valid, screen_y, big).amin(-1)
-    max_y = torch.where(valid, screen_y, -big).amax(-1)
-    any_valid = valid.any(-1)
+    if valid is not None:
+        screen_x_low, screen_x_high = (
+            torch.where(valid, screen_x, big),
+            torch.where(valid, screen_x, -big),
+        )
+        screen_y_low, screen_y_high = (
+            torch.where(valid, screen_y, big),
+            torch.where(valid, screen_y, -big),
+        )
+    else:
+        screen_x_low = screen_x_high = screen_x
+        screen_y_low = screen_y_high = screen_y
+    min_x, max_x = screen_x_low.amin(-1), screen_x_high.amax(-1)
+    min_y, max_y = screen_y_low.amin(-1), screen_y_high.amax(-1)
     # Pixel centre i + 0.5 inside [min, max]  <=>  ceil(min - 0.5) <= i <= floor(max - 0.5).
     x0 = torch.ceil(min_x - 0.5).clamp(0, width).to(torch.int64)
     x1 = torch.floor(max_x - 0.5).clamp(-1, width - 1).to(torch.int64)
     y0 = torch.ceil(min_y - 0.5).clamp(0, height).to(torch.int64)
     y1 = torch.floor(max_y - 0.5).clamp(-1, height - 1).to(torch.int64)
-    x1 = torch.where(any_valid, x1, x0 - 1)
+    if valid is not None:
+        x1 = torch.where(valid.any(-1), x1, x0 - 1)
     return torch.stack([x0, x1, y0, y1], dim=-1)
 
 

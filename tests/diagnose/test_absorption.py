@@ -144,6 +144,90 @@ def test_refits_on_top_of_a_given_effect_only_follow_earlier_evidence(monkeypatc
         )
 
 
+def test_refits_on_top_of_a_given_effect_need_room_to_clear_the_allowance(monkeypatch):
+    """A positive but small unconditional lower bound is not enough: the refits run again only
+    when the first pass's upper bound, as a share of the error the given effect leaves (its
+    probe interval's upper end), reaches the allowance."""
+    import pytest
+
+    import recon.diagnose.absorption as absorption
+    from recon.diagnose.calibration import absorption_threshold
+    from recon.diagnose.which import CandidateResult
+
+    class RefitCalled(Exception):
+        pass
+
+    def frozen_build(*arguments, **options):
+        raise RefitCalled
+
+    from types import SimpleNamespace
+
+    monkeypatch.setattr(absorption.FrozenTrainingViews, "build", frozen_build)
+    monkeypatch.setattr(absorption, "read_captures", lambda *arguments: None)
+    movable = SimpleNamespace(to=lambda device: None)
+    data = SimpleNamespace(mesh=movable, lighting=movable)
+    paths = SimpleNamespace(dataset=None)
+    threshold = absorption_threshold("specular")
+    # The lens datasets' specular evidence: a lower bound just above zero, far below the
+    # allowance even on the error a lens distortion (probe interval up to 0.26) leaves.
+    given = CandidateResult("lens_distortion", 0.0, 0.2, (0.15, 0.26), True)
+    faint = CandidateResult("specular", 0.0, 0.0, (-0.001, 0.001), False)
+    faint.absorption_interval = (0.001, 0.5 * threshold)
+    absorption.absorption_probes(
+        [given, faint], data, paths, None, torch.device("cpu"), given="lens_distortion"
+    )
+    assert faint.absorption_interval == (0.001, 0.5 * threshold)
+    assert faint.conditional_on is None
+    # The same evidence under a given effect that removes 60 % of the error could clear it.
+    strong = CandidateResult("exposure", 0.0, 0.5, (0.4, 0.6), True)
+    with pytest.raises(RefitCalled):
+        absorption.absorption_probes(
+            [strong, faint], data, paths, None, torch.device("cpu"), given="exposure"
+        )
+
+
+def test_both_absorption_passes_rasterise_the_training_views_once(monkeypatch):
+    """The pass on top of a given effect reuses the first pass's rasterised training views."""
+    from types import SimpleNamespace
+
+    import recon.diagnose.absorption as absorption
+    from recon.diagnose.which import CandidateResult
+
+    builds = []
+
+    def frozen_build(*arguments, **options):
+        builds.append(1)
+        return SimpleNamespace(view_count=2)
+
+    def frozen_refit(frozen, names, renderer, steps):
+        modules = [SimpleNamespace(name=name, parameters_summary=dict) for name in names]
+        return movable, movable, modules
+
+    def heldout_errors(refitted, modules):
+        errors = torch.tensor([1.0, 1.0]) * (0.5 if "specular" in [m.name for m in modules] else 1)
+        return errors, None
+
+    movable = SimpleNamespace(to=lambda device: movable)
+    monkeypatch.setattr(absorption.FrozenTrainingViews, "build", frozen_build)
+    monkeypatch.setattr(absorption, "frozen_refit", frozen_refit)
+    monkeypatch.setattr(absorption, "heldout_errors", heldout_errors)
+    monkeypatch.setattr(absorption, "heldout_modules", lambda names, fitted, *a: fitted)
+    monkeypatch.setattr(absorption, "read_captures", lambda *arguments: None)
+    monkeypatch.setattr(absorption, "replace", lambda data, **changes: data)
+    data = SimpleNamespace(mesh=movable, lighting=movable, view_count=2, observed=torch.zeros(1))
+    paths = SimpleNamespace(dataset=None)
+    specular = CandidateResult("specular", 0.0, 0.0, (-0.01, 0.01), False)
+    exposure = CandidateResult("exposure", 0.0, 0.5, (0.4, 0.6), True)
+    cache = absorption.AbsorptionCache()
+    absorption.absorption_probes([exposure, specular], data, paths, None, "cpu", cache=cache)
+    assert specular.absorption == 0.5 and specular.significant
+    absorption.absorption_probes(
+        [exposure, specular], data, paths, None, "cpu", given="exposure", cache=cache
+    )
+    assert specular.conditional_on == "exposure"
+    assert len(builds) == 1
+
+
 def test_a_given_effect_voids_the_geometry_refits_evidence_without_refitting(monkeypatch):
     """On top of a given effect the lens refits do not run again: the evidence measured alone
     is kept in the record but no longer decides, so the conditional probe does; a lens

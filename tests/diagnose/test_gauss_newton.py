@@ -79,17 +79,61 @@ def test_the_columnwise_jacobian_matches_autograd():
     )
     with torch.no_grad():
         base = problem.render()
-    jacobian = problem.jacobian(base)  # [2 columns, B, H, W, 3]
+    jacobian = problem.jacobian(base)  # [2 columns, N counted pixels, 3]
     for column in range(2):
-        for view in range(VIEWS):
-            selector = torch.zeros(VIEWS, 2)
-            selector[view, column] = 1.0
-            _, tangent = torch.func.jvp(
-                lambda parameters: render_with_parameters(white_balance, parameters, image, alpha),
-                (white_balance.log_red_blue.detach(),),
-                (selector,),
-            )
-            assert torch.allclose(jacobian[column, view], tangent[view], atol=5e-3 * 3)
+        # A per-view column moves its parameter in every view at once.
+        selector = torch.zeros(VIEWS, 2)
+        selector[:, column] = 1.0
+        _, tangent = torch.func.jvp(
+            lambda parameters: render_with_parameters(white_balance, parameters, image, alpha),
+            (white_balance.log_red_blue.detach(),),
+            (selector,),
+        )
+        assert torch.allclose(jacobian[column], problem.counted(tangent), atol=5e-3 * 3)
+
+
+def test_the_normal_equations_over_counted_pixels_match_the_dense_sums():
+    """Summing over the pixels with weight > 0 only gives the dense weighted sums: the per-view
+    blocks, the global block, their cross terms and the right-hand side."""
+    generator = torch.Generator().manual_seed(3)
+    image, alpha = base_images()
+    exposure = make_effect("exposure", view_count=VIEWS, pinned_view=None)
+    vignetting = make_effect("vignetting")
+    weight = alpha * torch.rand(alpha.shape, generator=generator)
+    weight[:, ::2] = 0.0  # rows that do not count, as a probe's other half of the blocks
+    observed = image * 1.05 + 0.01
+    problem = GaussNewtonProblem(
+        [exposure, vignetting],
+        lambda: render_with([exposure, vignetting], image, alpha),
+        observed,
+        weight,
+    )
+    dense = torch.randn(len(problem.columns), *image.shape, generator=generator)
+    residual = torch.randn(image.shape, generator=generator)
+    matrix, vector = problem.normal_equations(
+        torch.stack([problem.counted(column) for column in dense]), problem.counted(residual)
+    )
+    weighted = dense * weight
+    products = torch.einsum("cbhwk,dbhwk->cdb", weighted, dense).double()
+    right = torch.einsum("cbhwk,bhwk->cb", weighted, residual).double()
+    # Unknowns: the exposure of each view, then vignetting's global parameters.
+    is_per_view = torch.tensor([column.per_view for column in problem.columns])
+    local = torch.nonzero(is_per_view).flatten()
+    shared = torch.nonzero(~is_per_view).flatten()
+    assert local.numel() == 1 and shared.numel() >= 1
+    for view in range(VIEWS):
+        assert torch.isclose(matrix[view, view], products[local[0], local[0], view], rtol=1e-4)
+        assert torch.isclose(vector[view], right[local[0], view], rtol=1e-4, atol=1e-3)
+        cross = products[local[0], shared, view]
+        assert torch.allclose(matrix[view, VIEWS:], cross, rtol=1e-4, atol=1e-3)
+        assert torch.allclose(matrix[VIEWS:, view], cross, rtol=1e-4, atol=1e-3)
+    expected_global = products[shared][:, shared].sum(-1)
+    assert torch.allclose(matrix[VIEWS:, VIEWS:], expected_global, rtol=1e-4, atol=1e-3)
+    assert torch.allclose(vector[VIEWS:], right[shared].sum(-1), rtol=1e-4, atol=1e-3)
+    assert torch.all(matrix[:VIEWS, :VIEWS] == torch.diag(matrix.diagonal()[:VIEWS]))
+    assert math.isclose(
+        problem.loss(image), float(((image - observed) ** 2 * weight).sum()), rel_tol=1e-5
+    )
 
 
 def render_with_parameters(effect, parameters, image, alpha):

@@ -281,3 +281,20 @@ def test_everything_behind_the_camera_is_background():
     clip = torch.tensor([[-0.5, -0.5, 0.0, -1.0], [0.5, -0.5, 0.0, -1.0], [0.0, 0.5, 0.0, -1.0]])
     fragments = rasterize(clip, torch.tensor([[0, 1, 2]]), (8, 8))
     assert bool((fragments.tri_id == -1).all())
+
+
+def test_screen_boxes_of_triangles_in_front_match_the_general_path():
+    """Triangles wholly in front take the short path (their vertices' box); it gives the box
+    the general path (vertices plus near-plane crossings, none here) gives."""
+    from recon.render.rasterize import _pixel_ranges, _screen_bounds
+
+    generator = torch.Generator().manual_seed(4)
+    triangles = torch.rand(2, 50, 3, 4, generator=generator) * 2.4 - 1.2
+    triangles[..., 3] = 0.5 + torch.rand(2, 50, 3, generator=generator)
+    triangles[0, :5, :, 0] = 3.0 * triangles[0, :5, :, 3]  # wholly right of the image
+    valid = torch.ones(2, 50, 3, dtype=torch.bool)
+    general = _pixel_ranges(triangles, valid, 24, 32)
+    assert torch.equal(_screen_bounds(triangles, 24, 32), general)
+    # Boxes reaching past the image are clamped to it, and some are empty (x1 < x0).
+    assert int(general[..., 0].min()) >= 0 and int(general[..., 1].max()) <= 31
+    assert bool((general[..., 1] < general[..., 0]).any())
