@@ -41,7 +41,9 @@ PROBE_ALLOWANCE: dict[str, float] = {
 
 # The absorption evidence compares two refits of the same length from the same start, so its
 # null spread is far smaller than a probe's (largest clean reduction 0.001 for specular): its
-# floor is half the probe's.
+# floor is half the probe's. (The refits run only where the effect's probe removes at least
+# MINIMUM_SHARE, recon.diagnose.absorption; the clean specular figure was measured before that
+# rule, when they ran everywhere: no clean fit's specular probe reaches it.)
 ABSORPTION_MINIMUM_SHARE = 0.01
 
 

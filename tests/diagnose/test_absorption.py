@@ -111,6 +111,37 @@ def test_geometry_refits_run_only_where_the_probe_sees_a_residual(monkeypatch):
         absorption.absorption_probes([loud], None, None, None, torch.device("cpu"))
 
 
+def test_specular_refits_run_only_where_the_probe_sees_a_residual(monkeypatch):
+    """The frozen-geometry specular refits follow the same rule as the lens refits: skipped
+    when the probe's held-out reduction is under MINIMUM_SHARE (no training view is even
+    rasterised), run when it is above."""
+    import pytest
+
+    import recon.diagnose.absorption as absorption
+    from recon.diagnose.calibration import MINIMUM_SHARE
+    from recon.diagnose.which import CandidateResult
+
+    class RefitCalled(Exception):
+        pass
+
+    def frozen_build(*arguments, **options):
+        raise RefitCalled
+
+    from types import SimpleNamespace
+
+    monkeypatch.setattr(absorption.FrozenTrainingViews, "build", frozen_build)
+    monkeypatch.setattr(absorption, "read_captures", lambda *arguments: None)
+    movable = SimpleNamespace(to=lambda device: None)
+    data = SimpleNamespace(mesh=movable, lighting=movable)
+    paths = SimpleNamespace(dataset=None)
+    quiet = CandidateResult("specular", 0.0, 0.5 * MINIMUM_SHARE, (0.0, 0.02), False)
+    absorption.absorption_probes([quiet], data, paths, None, torch.device("cpu"))
+    assert quiet.absorption is None and quiet.absorption_interval is None
+    loud = CandidateResult("specular", 0.0, 2 * MINIMUM_SHARE, (0.0, 0.08), False)
+    with pytest.raises(RefitCalled):
+        absorption.absorption_probes([loud], data, paths, None, torch.device("cpu"))
+
+
 def test_refits_on_top_of_a_given_effect_only_follow_earlier_evidence(monkeypatch):
     """On top of a per-view effect, a candidate whose unconditional absorption lower bound was
     not positive keeps that evidence (no refit); one whose bound was positive is refitted."""
@@ -216,7 +247,7 @@ def test_both_absorption_passes_rasterise_the_training_views_once(monkeypatch):
     monkeypatch.setattr(absorption, "replace", lambda data, **changes: data)
     data = SimpleNamespace(mesh=movable, lighting=movable, view_count=2, observed=torch.zeros(1))
     paths = SimpleNamespace(dataset=None)
-    specular = CandidateResult("specular", 0.0, 0.0, (-0.01, 0.01), False)
+    specular = CandidateResult("specular", 0.0, 0.03, (-0.01, 0.05), False)
     exposure = CandidateResult("exposure", 0.0, 0.5, (0.4, 0.6), True)
     cache = absorption.AbsorptionCache()
     absorption.absorption_probes([exposure, specular], data, paths, None, "cpu", cache=cache)
