@@ -3,6 +3,7 @@ darkening that a fit without it baked in, and finds nothing to take back on clea
 
 from __future__ import annotations
 
+import pytest
 import torch
 from diagnose_scenes import patterned_torus
 
@@ -87,82 +88,57 @@ def test_frozen_buffers_cover_every_training_view_once():
     assert all(group[2].shape[0] == group[1].shape[0] for group in frozen.groups)
 
 
-def test_geometry_refits_run_only_where_the_probe_sees_a_residual(monkeypatch):
-    """The lens-distortion refits (the dearest step) are skipped when the frozen-scene probe's
-    held-out reduction is under MINIMUM_SHARE, and run when it is above."""
-    import pytest
+class RefitCalled(Exception):
+    """Raised by the stand-ins for the refits' first step: a test that expects it knows the
+    refits ran."""
+
+
+@pytest.fixture
+def frozen_refits_raise(monkeypatch):
+    """(RefitCalled, data, paths): the absorption module with FrozenTrainingViews.build (every
+    frozen-geometry refit's start) and refit_with (the lens refits) raising RefitCalled, and
+    stand-ins for the diagnosis data and run paths it is called with."""
+    from types import SimpleNamespace
 
     import recon.diagnose.absorption as absorption
-    from recon.diagnose.calibration import MINIMUM_SHARE
-    from recon.diagnose.which import CandidateResult
-
-    class RefitCalled(Exception):
-        pass
-
-    def refit_with(*arguments, **options):
-        raise RefitCalled
-
-    monkeypatch.setattr(absorption, "refit_with", refit_with)
-    quiet = CandidateResult("lens_distortion", 0.0, 0.5 * MINIMUM_SHARE, (0.0, 0.02), False)
-    absorption.absorption_probes([quiet], None, None, None, torch.device("cpu"))
-    assert quiet.absorption is None and quiet.absorption_interval is None
-    loud = CandidateResult("lens_distortion", 0.0, 2 * MINIMUM_SHARE, (0.0, 0.08), False)
-    with pytest.raises(RefitCalled):
-        absorption.absorption_probes([loud], None, None, None, torch.device("cpu"))
-
-
-def test_specular_refits_run_only_where_the_probe_sees_a_residual(monkeypatch):
-    """The frozen-geometry specular refits follow the same rule as the lens refits: skipped
-    when the probe's held-out reduction is under MINIMUM_SHARE (no training view is even
-    rasterised), run when it is above."""
-    import pytest
-
-    import recon.diagnose.absorption as absorption
-    from recon.diagnose.calibration import MINIMUM_SHARE
-    from recon.diagnose.which import CandidateResult
-
-    class RefitCalled(Exception):
-        pass
 
     def frozen_build(*arguments, **options):
         raise RefitCalled
 
-    from types import SimpleNamespace
-
     monkeypatch.setattr(absorption.FrozenTrainingViews, "build", frozen_build)
+    monkeypatch.setattr(absorption, "refit_with", frozen_build)
     monkeypatch.setattr(absorption, "read_captures", lambda *arguments: None)
     movable = SimpleNamespace(to=lambda device: None)
     data = SimpleNamespace(mesh=movable, lighting=movable)
     paths = SimpleNamespace(dataset=None)
-    quiet = CandidateResult("specular", 0.0, 0.5 * MINIMUM_SHARE, (0.0, 0.02), False)
+    return RefitCalled, data, paths
+
+
+@pytest.mark.parametrize("effect", ["lens_distortion", "specular"])
+def test_refits_run_only_where_the_probe_sees_a_residual(frozen_refits_raise, effect):
+    """The refits (the dearest step: the lens refits move the geometry, the specular ones
+    rasterise the training views first) are skipped when the frozen-scene probe's held-out
+    reduction is under MINIMUM_SHARE, and run when it is above."""
+    import recon.diagnose.absorption as absorption
+    from recon.diagnose.calibration import MINIMUM_SHARE
+    from recon.diagnose.which import CandidateResult
+
+    RefitCalled, data, paths = frozen_refits_raise
+    quiet = CandidateResult(effect, 0.0, 0.5 * MINIMUM_SHARE, (0.0, 0.02), False)
     absorption.absorption_probes([quiet], data, paths, None, torch.device("cpu"))
     assert quiet.absorption is None and quiet.absorption_interval is None
-    loud = CandidateResult("specular", 0.0, 2 * MINIMUM_SHARE, (0.0, 0.08), False)
+    loud = CandidateResult(effect, 0.0, 2 * MINIMUM_SHARE, (0.0, 0.08), False)
     with pytest.raises(RefitCalled):
         absorption.absorption_probes([loud], data, paths, None, torch.device("cpu"))
 
 
-def test_refits_on_top_of_a_given_effect_only_follow_earlier_evidence(monkeypatch):
+def test_refits_on_top_of_a_given_effect_only_follow_earlier_evidence(frozen_refits_raise):
     """On top of a per-view effect, a candidate whose unconditional absorption lower bound was
     not positive keeps that evidence (no refit); one whose bound was positive is refitted."""
-    import pytest
-
     import recon.diagnose.absorption as absorption
     from recon.diagnose.which import CandidateResult
 
-    class RefitCalled(Exception):
-        pass
-
-    def frozen_build(*arguments, **options):
-        raise RefitCalled
-
-    from types import SimpleNamespace
-
-    monkeypatch.setattr(absorption.FrozenTrainingViews, "build", frozen_build)
-    monkeypatch.setattr(absorption, "read_captures", lambda *arguments: None)
-    movable = SimpleNamespace(to=lambda device: None)
-    data = SimpleNamespace(mesh=movable, lighting=movable)
-    paths = SimpleNamespace(dataset=None)
+    RefitCalled, data, paths = frozen_refits_raise
     quiet = CandidateResult("specular", 0.0, 0.001, (0.0, 0.01), False)
     quiet.absorption_interval = (-0.01, 0.02)
     absorption.absorption_probes([quiet], None, None, None, torch.device("cpu"), given="exposure")
@@ -175,29 +151,15 @@ def test_refits_on_top_of_a_given_effect_only_follow_earlier_evidence(monkeypatc
         )
 
 
-def test_refits_on_top_of_a_given_effect_need_room_to_clear_the_allowance(monkeypatch):
+def test_refits_on_top_of_a_given_effect_need_room_to_clear_the_allowance(frozen_refits_raise):
     """A positive but small unconditional lower bound is not enough: the refits run again only
     when the first pass's upper bound, as a share of the error the given effect leaves (its
     probe interval's upper end), reaches the allowance."""
-    import pytest
-
     import recon.diagnose.absorption as absorption
     from recon.diagnose.calibration import absorption_threshold
     from recon.diagnose.which import CandidateResult
 
-    class RefitCalled(Exception):
-        pass
-
-    def frozen_build(*arguments, **options):
-        raise RefitCalled
-
-    from types import SimpleNamespace
-
-    monkeypatch.setattr(absorption.FrozenTrainingViews, "build", frozen_build)
-    monkeypatch.setattr(absorption, "read_captures", lambda *arguments: None)
-    movable = SimpleNamespace(to=lambda device: None)
-    data = SimpleNamespace(mesh=movable, lighting=movable)
-    paths = SimpleNamespace(dataset=None)
+    RefitCalled, data, paths = frozen_refits_raise
     threshold = absorption_threshold("specular")
     # The lens datasets' specular evidence: a lower bound just above zero, far below the
     # allowance even on the error a lens distortion (probe interval up to 0.26) leaves.
@@ -263,8 +225,6 @@ def test_a_given_effect_voids_the_geometry_refits_evidence_without_refitting(mon
     """On top of a given effect the lens refits do not run again: the evidence measured alone
     is kept in the record but no longer decides, so the conditional probe does; a lens
     candidate that was significant by absorption alone stops being significant."""
-    import pytest
-
     import recon.diagnose.absorption as absorption
     from recon.diagnose.calibration import absorption_threshold
     from recon.diagnose.which import CandidateResult
