@@ -58,10 +58,6 @@ GEOMETRY_ABSORBABLE = ("lens_distortion",)
 # datasets' lower bounds stayed at 0.15-0.32 (0.15-0.35 at 30 steps); the clean calibration
 # fits' largest reduction was 0.022 (the allowance 0.043, recon.diagnose.calibration).
 GEOMETRY_STEPS = 15
-# The least share of the control's error a given effect is taken to leave (a given effect whose
-# probe interval reached 1 would otherwise make every candidate worth refitting on top of it
-# through a division by zero; every candidate is then, which is the safe side).
-SMALLEST_REMAINING_SHARE = 0.05
 GEOMETRY_RESOLUTION = 64
 VIEWS_PER_GROUP = 8
 TEXTURE_LEARNING_RATE = 0.03
@@ -173,6 +169,12 @@ class AbsorptionCache:
     share: the training views rasterised once with the fitted geometry."""
 
     frozen: FrozenTrainingViews | None = None
+
+
+# The least share of the control's error a given effect is taken to leave (a given effect whose
+# probe interval reached 1 would otherwise make every candidate worth refitting on top of it
+# through a division by zero; every candidate is then, which is the safe side).
+SMALLEST_REMAINING_SHARE = 0.05
 
 
 def _could_clear_on_top(candidate: CandidateResult, given: CandidateResult | None) -> bool:
