@@ -185,6 +185,9 @@ def _diagnose(arguments) -> int:
             f"visibility fingerprint: {fingerprint['share']:.2f} [{low:.2f}, {high:.2f}] of the "
             f"predicted self-shadowing baked into the albedo ({fingerprint['names'] or 'nothing'})"
         )
+    fitted_effects = result["gap"].get("fit_effects_not_in_model")
+    if fitted_effects:
+        print(f"note: {', '.join(fitted_effects['names'])} {fitted_effects['note']}")
     flat = result["gap"].get("flat_field")
     if result["gap"].get("flat_field_error"):
         print(f"flat field not used: {result['gap']['flat_field_error']}")

@@ -389,6 +389,18 @@ def waterfall_figure(refits: list[dict], floor_rmse: float, path) -> None:
     plt.close(figure)
 
 
+def fit_effects_note(names: list[str]) -> dict:
+    """What the diagnosis says of effects the fit itself modelled (fit.effects): it renders
+    the fitted mesh, texture and light without them (their per-view parameters belong to the
+    training views, and the global ones stay in the fit's checkpoint), so their share of the
+    residual is measured as if unmodelled and they can be ranked as candidates."""
+    return {
+        "names": sorted(names),
+        "note": "modelled by the fit but not by the diagnosis: it renders the fitted scene "
+        "without them, so their share of the residual counts as unmodelled",
+    }
+
+
 def diagnose_run(
     paths: RunPaths,
     config: RunConfig,
@@ -415,6 +427,8 @@ def diagnose_run(
     split = "test" if (paths.dataset / "transforms_test.json").exists() else "val"
     data = load_diagnosis_data(paths, split, device)
     gap = gap_summary(data)
+    if config.fit.effects:
+        gap["fit_effects_not_in_model"] = fit_effects_note(config.fit.effects)
     floor = noise_floor(data)
     floor_rmse = floor.get("floor_rmse") or 0.0
     gap["noise_floor"] = floor

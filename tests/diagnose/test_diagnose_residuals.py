@@ -453,6 +453,8 @@ def test_diagnose_command_writes_the_documented_schema(tiny_run, capsys):
     assert "verdict:" in printed and "visibility fingerprint:" in printed
     diagnosis = json.loads((tiny_run / "diagnosis.json").read_text())
     assert {"gap", "where", "ranking", "refits", "verdict", "timings"} <= set(diagnosis)
+    # The fit modelled no effect, so there is nothing to say about its effects.
+    assert "fit_effects_not_in_model" not in diagnosis["gap"]
     assert {item["effect"] for item in diagnosis["ranking"]} == {
         "exposure",
         "vignetting",
@@ -507,6 +509,30 @@ def test_covered_radius_is_the_farthest_object_pixel():
     assert covered_radius(data) > 0.95
     data.observed_alpha = torch.zeros(1, size, size, 1)
     assert covered_radius(data) == 0.0
+
+
+def test_a_fit_that_modelled_effects_is_told_they_are_not_in_the_diagnosed_model(
+    tiny_run, tmp_path
+):
+    """A run fitted with fit.effects: the diagnosis renders the fitted scene without those
+    modules, and diagnosis.json says so by name."""
+    import shutil
+
+    from recon.config import load_config
+    from recon.config.run_config import RunConfig
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    paths = open_run_folder(run)
+    config = load_config(paths.resolved_config, RunConfig)
+    config = replace(config, fit=replace(config.fit, effects=["vignetting", "exposure"]))
+    result = diagnose_module.diagnose_run(
+        paths, config, torch.device("cpu"), refit="none", candidates=["exposure"], absorption=False
+    )
+    note = result["gap"]["fit_effects_not_in_model"]
+    assert note["names"] == ["exposure", "vignetting"]
+    stored = json.loads((run / "diagnosis.json").read_text())
+    assert stored["gap"]["fit_effects_not_in_model"] == note
 
 
 def test_diagnose_command_prints_recovered_parameters_and_voided_evidence(
@@ -572,5 +598,13 @@ def test_diagnose_command_prints_recovered_parameters_and_voided_evidence(
     result["gap"] = {"flat_field_error": "dataset/flat_field: flat_field.frames[0]: no light"}
     assert main(["diagnose", str(tiny_run)]) == 0
     assert "flat field not used: dataset/flat_field: flat_field.frames[0]: no light" in (
+        capsys.readouterr().out
+    )
+    # A fit that modelled effects itself: the diagnosis says it did not.
+    from recon.diagnose.diagnose import fit_effects_note
+
+    result["gap"] = {"fit_effects_not_in_model": fit_effects_note(["vignetting", "exposure"])}
+    assert main(["diagnose", str(tiny_run)]) == 0
+    assert "note: exposure, vignetting modelled by the fit but not by the diagnosis" in (
         capsys.readouterr().out
     )
