@@ -193,7 +193,7 @@ def _could_clear_on_top(candidate: CandidateResult, given: CandidateResult | Non
     if interval is None or interval[0] <= 0:
         return False
     given_high = given.interval[1] if given is not None else 0.0
-    remaining = max(1.0 - min(max(given_high, 0.0), 1.0), SMALLEST_REMAINING_SHARE)
+    remaining = max(1.0 - max(given_high, 0.0), SMALLEST_REMAINING_SHARE)
     return interval[1] / remaining > absorption_threshold(candidate.effect)
 
 

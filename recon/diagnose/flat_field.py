@@ -107,16 +107,21 @@ def measure_flat_field(frames: torch.Tensor, response_exponent: float | None = N
         for angle in angles
     ]
 
-    def falloffs(image: torch.Tensor) -> tuple[float, float, float]:
-        """(corner, half-way) over the centre, undone by the exponent, and the centre value."""
+    def mean_value(image: torch.Tensor, points: list[tuple[float, float]]) -> float:
+        return sum(local_value(image, u, v, HALF_WINDOW) for u, v in points) / len(points)
+
+    def corner_falloff_of(image: torch.Tensor) -> tuple[float, float]:
+        """(corner over centre, undone by the exponent; the centre value)."""
         centre = local_value(image, 0.5 * width, 0.5 * height, HALF_WINDOW)
-        corner = sum(local_value(image, u, v, HALF_WINDOW) for u, v in corners) / 4
-        half = sum(local_value(image, u, v, HALF_WINDOW) for u, v in circle) / len(circle)
-        return (corner / centre) ** (1 / exponent), (half / centre) ** (1 / exponent), centre
+        return (mean_value(image, corners) / centre) ** (1 / exponent), centre
 
     mean_image = luminance.mean(0)
-    corner_falloff, half_radius_falloff, centre_value = falloffs(mean_image)
-    per_frame = [falloffs(frame)[0] for frame in luminance] if count > 1 else [corner_falloff]
+    corner_falloff, centre_value = corner_falloff_of(mean_image)
+    half_radius_falloff = (mean_value(mean_image, circle) / centre_value) ** (1 / exponent)
+    # Per frame the corners only (the spread of the corner reading over frames).
+    per_frame = (
+        [corner_falloff_of(frame)[0] for frame in luminance] if count > 1 else [corner_falloff]
+    )
     rows = torch.arange(height, dtype=torch.float64) + 0.5 - 0.5 * height
     columns = torch.arange(width, dtype=torch.float64) + 0.5 - 0.5 * width
     radius = torch.hypot(rows[:, None], columns[None, :]) / (0.5 * math.hypot(height, width))
