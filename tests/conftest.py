@@ -27,3 +27,32 @@ def shared_meshes() -> Path:
     if not SHARED_MESHES.is_dir():
         pytest.skip("../shared/meshes is absent")
     return SHARED_MESHES
+
+
+@pytest.fixture(scope="session")
+def tiny_run(tmp_path_factory) -> Path:
+    """A real run folder, synthesised and fitted at 32 px in a few steps (the quickstart scene):
+    for the diagnosis and the scripts that read fitted runs. Tests may diagnose it in place;
+    copy it to change anything else."""
+    import yaml
+
+    from recon.cli import main
+
+    torch.set_num_threads(1)
+    folder = tmp_path_factory.mktemp("diagnose_run")
+    config = yaml.safe_load((REPO_ROOT / "configs" / "quickstart.yaml").read_text())
+    config["stages"] = ["synth", "fit"]
+    config["capture"]["cameras"]["resolution"] = [32, 32]
+    config["capture"].update({"train_views": 4, "val_views": 0, "test_views": 2})
+    config["scene"]["shape"]["resolution"] = 16
+    config["scene"]["material"]["texture_size"] = 32
+    config["fit"] = {
+        "hull_resolution": 16,
+        "geometry": {"steps": 3, "resolutions": [32], "remesh_every": 0},
+        "texture": {"steps": 1, "texture_size": 64},
+    }
+    path = folder / "tiny.yaml"
+    path.write_text(yaml.safe_dump(config))
+    out = folder / "run"
+    assert main(["run", str(path), "--out", str(out), "--device", "cpu"]) == 0
+    return out

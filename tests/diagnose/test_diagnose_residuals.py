@@ -15,7 +15,6 @@ from pathlib import Path
 
 import pytest
 import torch
-import yaml
 
 from data_synth.shapes import torus
 from recon.camera import orbit_cameras
@@ -380,28 +379,6 @@ def test_where_figures_are_written(scene, tmp_path):
 # --------------------------------------------------------------------------------------------
 # a real (tiny) run folder
 # --------------------------------------------------------------------------------------------
-
-
-@pytest.fixture(scope="module")
-def tiny_run(tmp_path_factory) -> Path:
-    torch.set_num_threads(1)
-    folder = tmp_path_factory.mktemp("diagnose_run")
-    config = yaml.safe_load((REPO_ROOT / "configs" / "quickstart.yaml").read_text())
-    config["stages"] = ["synth", "fit"]
-    config["capture"]["cameras"]["resolution"] = [32, 32]
-    config["capture"].update({"train_views": 4, "val_views": 0, "test_views": 2})
-    config["scene"]["shape"]["resolution"] = 16
-    config["scene"]["material"]["texture_size"] = 32
-    config["fit"] = {
-        "hull_resolution": 16,
-        "geometry": {"steps": 3, "resolutions": [32], "remesh_every": 0},
-        "texture": {"steps": 1, "texture_size": 64},
-    }
-    path = folder / "tiny.yaml"
-    path.write_text(yaml.safe_dump(config))
-    out = folder / "run"
-    assert main(["run", str(path), "--out", str(out), "--device", "cpu"]) == 0
-    return out
 
 
 def test_load_diagnosis_data_renders_the_fitted_scene(tiny_run, tmp_path, device):
