@@ -25,6 +25,7 @@ from recon.camera import Cameras
 from recon.config.run_config import EffectConfig, LightingConfig, RunConfig
 from recon.errors import ReconError
 from recon.io.atomic import atomic_write_json
+from recon.io.checkpoints import load_checkpoint, save_checkpoint
 from recon.io.datasets import FLAT_FIELD_SPLIT, RELIGHT_LIGHTING, write_nerf_synthetic
 from recon.io.images import save_contact_sheet, write_exr
 from recon.io.meshes import save_mesh
@@ -158,11 +159,19 @@ def synth_stage(
     withhold: int = 0,
     truth_out: str | Path | None = None,
     withhold_effects: list[str] | None = None,
+    resume: bool = False,
 ) -> dict:
     """Entry point 'synth' of the recon.stages group (see SynthOptions for the keywords).
 
     withhold_effects: withhold exactly these effects (random plausible strengths) instead of
-    drawing withhold of them at random (the blind benchmark chooses its cases)."""
+    drawing withhold of them at random (the blind benchmark chooses its cases).
+    resume: continue an interrupted synthesis. After each split the stage records the splits
+    it finished, its random states and the realised effects (RunPaths.synth_progress, with the
+    withhold options it was started with), so a resumed run skips finished splits, rewrites the
+    split it was interrupted in, and ends with the same files as an uninterrupted run."""
+    progress = load_checkpoint(paths.synth_progress) if resume else None
+    if progress is not None:
+        withhold, truth_out, withhold_effects = progress["options"]
     options = SynthOptions(withhold, None if truth_out is None else Path(truth_out))
     # Separate streams: switching an effect on must not move the cameras, and vice versa.
     generator = torch.Generator().manual_seed(config.seed)
@@ -220,7 +229,38 @@ def synth_stage(
     splits = [(split, counts[split]) for split in SPLIT_ORDER if counts[split] > 0]
     if capture_config.relight.views > 0:
         splits.append(("relight", capture_config.relight.views))
+    done: list[str] = []
+    if progress is not None:
+        done = list(progress["done"])
+        generator.set_state(progress["generator"])
+        effect_generator.set_state(progress["effect_generator"])
+        summary, realised = progress["summary"], progress["realised"]
+        sheet_images, test_cameras = list(progress["sheet_images"]), progress["test_cameras"]
+
+    def record_progress() -> None:
+        save_checkpoint(
+            paths.synth_progress,
+            {
+                "options": (
+                    withhold,
+                    None if truth_out is None else str(truth_out),
+                    withhold_effects,
+                ),
+                "done": done,
+                "generator": generator.get_state(),
+                "effect_generator": effect_generator.get_state(),
+                "summary": summary,
+                "realised": realised,
+                "sheet_images": sheet_images,
+                "test_cameras": test_cameras,
+            },
+        )
+
+    if progress is None:
+        record_progress()
     for offset, (split, count) in enumerate(splits):
+        if split in done:
+            continue
         if split == "relight":
             # The test cameras (or as many as asked, from the same rig) under another light.
             cameras = (
@@ -257,6 +297,8 @@ def synth_stage(
             capture.images,
             capture.alpha,
             write_exr=capture_config.write_exr,
+            # Resumed: this split's files are this run's own, from the interrupted attempt.
+            force=resume,
         )
         if split == "relight":
             # The relight split's light is a known capture condition (a light stage, a second
@@ -276,17 +318,21 @@ def synth_stage(
         summary["splits"][split] = len(cameras)
         if split == "train":
             sheet_images = list((capture.images + (1 - capture.alpha) * background)[:16])
+        done.append(split)
+        record_progress()
     if capture_config.flat_field.views > 0:
         from data_synth.flat_field import write_flat_field
 
         realised[FLAT_FIELD_SPLIT] = write_flat_field(
-            paths.dataset, capture_config, effects, config.seed
+            paths.dataset, capture_config, effects, config.seed, force=resume
         )
         summary["splits"][FLAT_FIELD_SPLIT] = capture_config.flat_field.views
     if capture_config.contact_sheet and sheet_images:
         save_contact_sheet(sheet_images, paths.contact_sheet, columns=4)
     _write_ground_truth(paths.ground_truth, mesh, world, effects, realised, withheld, options)
     summary["effects"] = [effect.name for effect in effects if effect not in withheld]
+    # Finished: env.json's stage record says so from here on; the progress file has done its job.
+    paths.synth_progress.unlink(missing_ok=True)
     return summary
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from recon.config import load_config
 from recon.config.run_config import RunConfig
-from recon.errors import ReconError
+from recon.errors import ReconError, describe_os_error
 
 
 def _add_common(parser: argparse.ArgumentParser) -> None:
@@ -47,12 +47,16 @@ def _add_new_run(parser: argparse.ArgumentParser, withhold: bool) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="recon", description=__doc__)
+    parser.add_argument(
+        "--debug", action="store_true", help="show the Python traceback of an error"
+    )
     commands = parser.add_subparsers(dest="command", required=True)
     run_parser = commands.add_parser("run", help="run every stage the config lists")
     _add_new_run(run_parser, withhold=True)
     run_parser.add_argument("--resume", metavar="RUN", help="continue RUN from its checkpoints")
     synth_parser = commands.add_parser("synth", help="synthesise captures only (data_synth)")
     _add_new_run(synth_parser, withhold=True)
+    synth_parser.add_argument("--resume", metavar="RUN", help="continue RUN's synthesis")
     fit_parser = commands.add_parser(
         "fit", help="fit a dataset: CONFIG (new run) or an existing RUN folder"
     )
@@ -105,6 +109,9 @@ def build_parser() -> argparse.ArgumentParser:
     compare_parser.add_argument(
         "--write", action="store_true", help="write the baseline from this run instead"
     )
+    compare_parser.add_argument(
+        "--force", action="store_true", help="with --write: replace an existing baseline file"
+    )
     return parser
 
 
@@ -119,11 +126,7 @@ def _new_run(arguments, stages: list[str] | None):
     config = load_config(arguments.config, RunConfig, overrides=overrides)
     withhold = getattr(arguments, "withhold", 0)
     truth_out = getattr(arguments, "truth_out", None)
-    if withhold < 0:
-        raise ReconError(f"--withhold: expected N >= 0, got {withhold}")
-    if withhold and not truth_out:
-        raise ReconError("--withhold needs --truth-out PATH, outside the run folder")
-    synth_options = {"withhold": withhold, "truth_out": truth_out} if withhold else {}
+    synth_options = {"withhold": withhold, "truth_out": truth_out} if withhold or truth_out else {}
     return pipeline.run(
         config,
         out=arguments.out,
@@ -131,7 +134,31 @@ def _new_run(arguments, stages: list[str] | None):
         device=arguments.device,
         stages=stages,
         stage_options={"synth": synth_options},
+        config_file=arguments.config,
     )
+
+
+def _check_resume_alone(arguments) -> None:
+    """--resume continues a run with its own recorded config: flags that would change what the
+    run does cannot apply, so they are refused rather than silently ignored."""
+    given = []
+    if arguments.config:
+        given.append(f"CONFIG {arguments.config}")
+    for flag, value in (
+        ("--set", arguments.overrides),
+        ("--out", arguments.out),
+        ("--force", arguments.force),
+        ("--data", getattr(arguments, "data", None)),
+        ("--withhold", getattr(arguments, "withhold", 0)),
+        ("--truth-out", getattr(arguments, "truth_out", None)),
+    ):
+        if value:
+            given.append(flag)
+    if given:
+        raise ReconError(
+            f"--resume {arguments.resume}: continues the run with its recorded "
+            f"config.resolved.yaml; {', '.join(given)} cannot apply (start a new run instead)"
+        )
 
 
 def _compare(arguments) -> int:
@@ -141,12 +168,15 @@ def _compare(arguments) -> int:
     metrics_path = source / "metrics.json" if source.is_dir() else source
     if not metrics_path.exists():
         raise ReconError(f"compare: {metrics_path} not found (run 'recon evaluate' first)")
-    metrics = json.loads(metrics_path.read_text())
+    try:
+        metrics = json.loads(metrics_path.read_text())
+    except json.JSONDecodeError as error:
+        raise ReconError(f"compare: {metrics_path}: not valid JSON ({error})") from error
     if arguments.write:
-        write_baseline(metrics, arguments.baseline)
+        write_baseline(metrics, arguments.baseline, force=arguments.force)
         print(f"baseline written: {arguments.baseline}")
         return 0
-    results = compare(metrics, load_baseline(arguments.baseline))
+    results = compare(metrics, load_baseline(arguments.baseline), source=metrics_path)
     print(format_table(results))
     return 0 if all(item.passed for item in results) else 1
 
@@ -239,43 +269,69 @@ def _diagnose_bench(arguments) -> int:
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
+def _run_command(arguments) -> int:
     from recon import pipeline
 
-    arguments = build_parser().parse_args(argv)
-    try:
-        command = arguments.command
-        if command == "compare":
-            return _compare(arguments)
-        if command == "diagnose":
-            return _diagnose(arguments)
-        if command == "diagnose-bench":
-            return _diagnose_bench(arguments)
-        if command in ("evaluate", "report"):
-            paths = pipeline.run_stage_on(
-                arguments.run, command, arguments.device, arguments.overrides
-            )
-        elif getattr(arguments, "resume", None):
-            stages = ["fit", "evaluate", "report"] if command == "fit" else None
-            paths = pipeline.resume(arguments.resume, arguments.device, stages=stages)
-        elif command == "synth":
-            paths = _new_run(arguments, ["synth"])
-        elif command == "fit":
-            paths = _new_run(arguments, ["fit", "evaluate", "report"])
-        else:
-            paths = _new_run(arguments, None)
-    except ReconError as error:
-        print(f"recon: error: {error}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print(
-            "recon: interrupted; the last checkpoint is kept: continue with "
-            "'recon run --resume RUN'",
-            file=sys.stderr,
-        )
-        return 130
+    command = arguments.command
+    if command == "compare":
+        return _compare(arguments)
+    if command == "diagnose":
+        return _diagnose(arguments)
+    if command == "diagnose-bench":
+        return _diagnose_bench(arguments)
+    if command in ("evaluate", "report"):
+        paths = pipeline.run_stage_on(arguments.run, command, arguments.device, arguments.overrides)
+    elif getattr(arguments, "resume", None):
+        _check_resume_alone(arguments)
+        stages = {"fit": ["fit", "evaluate", "report"], "synth": ["synth"]}.get(command)
+        paths = pipeline.resume(arguments.resume, arguments.device, stages=stages)
+    elif command == "synth":
+        paths = _new_run(arguments, ["synth"])
+    elif command == "fit":
+        paths = _new_run(arguments, ["fit", "evaluate", "report"])
+    else:
+        paths = _new_run(arguments, None)
     print(pipeline.describe(paths))
     return 0
+
+
+def _interrupted_message(arguments, interrupt: KeyboardInterrupt) -> str:
+    """Where to continue: the run folder the pipeline attached to the interrupt, if any."""
+    run = getattr(interrupt, "run_folder", None) or getattr(arguments, "resume", None)
+    if arguments.command not in ("run", "synth", "fit") or run is None:
+        return "recon: interrupted"
+    return (
+        "recon: interrupted; what was written is kept: continue with "
+        f"'recon {arguments.command} --resume {run}'"
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Parse the command line and run it. Every failure is one line, `recon: error: ...`, and
+    exit code 2 (1 is kept for `recon compare` finding a regression); --debug shows the
+    traceback."""
+    arguments = build_parser().parse_args(argv)
+    try:
+        return _run_command(arguments)
+    except KeyboardInterrupt as interrupt:
+        print(_interrupted_message(arguments, interrupt), file=sys.stderr)
+        return 130
+    except Exception as error:  # the one place that turns every failure into exit 2
+        if arguments.debug:
+            import traceback
+
+            traceback.print_exc()
+        if isinstance(error, ReconError):
+            message = str(error)
+        elif isinstance(error, OSError):
+            message = describe_os_error(error)
+        else:
+            message = (
+                f"internal error {type(error).__name__}: {error} (please report it; rerun "
+                "with --debug for the traceback)"
+            )
+        print(f"recon: error: {message}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

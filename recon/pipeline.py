@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import platform
 import random
+import sys
 import time
 from collections.abc import Callable
 from datetime import datetime, timezone
@@ -23,12 +24,13 @@ from recon import __version__
 from recon.config import config_hash, dump_resolved, load_config
 from recon.config.run_config import RunConfig
 from recon.errors import ReconError
-from recon.io.atomic import atomic_write_json
-from recon.io.run_folder import RunPaths, open_run_folder, prepare_run_folder
+from recon.io.atomic import append_json_line, atomic_write_json
+from recon.io.run_folder import RunPaths, open_run_folder, start_run_folder
+from recon.preflight import check_new_run
 
 Stage = Callable[..., dict]
 # Stages that can pick up from their checkpoints when a run is resumed.
-RESUMABLE = {"fit"}
+RESUMABLE = {"synth", "fit"}
 
 
 def resolve_device(requested: str) -> torch.device:
@@ -88,6 +90,11 @@ def _stages_to_run(config: RunConfig, stages: list[str] | None) -> list[str]:
     return chosen
 
 
+def warn(message: str) -> None:
+    """A warning for the user: legal input that may not do what they expect."""
+    print(f"recon: warning: {message}", file=sys.stderr)
+
+
 def run(
     config: RunConfig,
     out: str | Path | None = None,
@@ -95,18 +102,70 @@ def run(
     device: str | None = None,
     stages: list[str] | None = None,
     stage_options: dict[str, dict] | None = None,
+    config_file: str | Path | None = None,
 ) -> RunPaths:
     """Run the config's stages into a new run folder; returns its paths.
 
+    Every input is checked (recon.preflight) before the folder is created. With force, an old
+    run folder in the way is moved aside and deleted only once the first stage has finished; if
+    a check inside that stage fails (ReconError), the new folder is removed and the old run put
+    back, so a failed start never costs the previous run.
+
     stage_options: keyword arguments per stage name (e.g. {"synth": {"withhold": 2,
-    "truth_out": path}}).
+    "truth_out": path}}). config_file: the YAML the config came from (never replaced by --force).
     """
     resolved_device = resolve_device(device or config.device)
-    paths = prepare_run_folder(out or default_run_folder(config), force=force)
+    chosen = _stages_to_run(config, stages)
+    for name in chosen:
+        find_stage(name)
+    out = Path(out or default_run_folder(config))
+    synth_options = (stage_options or {}).get("synth", {})
+    found = check_new_run(
+        config,
+        chosen,
+        out,
+        config_file=config_file,
+        withhold=int(synth_options.get("withhold", 0) or 0),
+        truth_out=synth_options.get("truth_out"),
+        force=force,
+    )
+    for message in found.warnings:
+        warn(message)
+    started = start_run_folder(out, force=force, inputs=found.inputs)
+    paths = started.paths
     if config.data is not None:
         paths = RunPaths(paths.root, Path(config.data))
-    dump_resolved(config, paths.resolved_config)
-    return run_stages(config, paths, resolved_device, _stages_to_run(config, stages), stage_options)
+    try:
+        dump_resolved(config, paths.resolved_config)
+        return run_stages(
+            config,
+            paths,
+            resolved_device,
+            chosen,
+            stage_options,
+            on_first_stage_done=started.commit,
+        )
+    except (ReconError, OSError):
+        # A check that fails inside the first stage (or a folder that cannot be written) leaves
+        # nothing behind: the old run, if --force moved one aside, is put back.
+        if not _completed_stages(paths):
+            started.abandon()
+        raise
+    except KeyboardInterrupt as interrupt:
+        interrupt.run_folder = paths.root  # the CLI says where to --resume
+        if started.replaced is not None:
+            warn(
+                f"the run folder replaced by --force is kept at {started.replaced} until you "
+                "delete it"
+            )
+        raise
+
+
+def _completed_stages(paths: RunPaths) -> list[str]:
+    """Stages that finished in this run folder (env.json's stage_seconds, written after each)."""
+    if not paths.environment.exists():
+        return []
+    return list(json.loads(paths.environment.read_text()).get("stage_seconds", {}))
 
 
 def resume(
@@ -115,13 +174,14 @@ def resume(
     stages: list[str] | None = None,
     stage_options: dict[str, dict] | None = None,
 ) -> RunPaths:
-    """Continue a run from its checkpoints: finished stages whose outputs exist are skipped
-    (synth), the fit resumes from its last checkpoint, evaluate and report run again."""
+    """Continue a run from its checkpoints: stages that finished are skipped when their outputs
+    exist (synth), the synth and fit stages continue from what they wrote, evaluate and report
+    run again."""
     config = load_config(Path(run_folder) / "config.resolved.yaml", RunConfig)
     paths = open_run_folder(run_folder, config.data)
     resolved_device = resolve_device(device or config.device)
     chosen = _stages_to_run(config, stages)
-    if "synth" in chosen and (paths.dataset / "transforms_train.json").exists():
+    if "synth" in chosen and "synth" in _completed_stages(paths):
         chosen.remove("synth")
     return run_stages(config, paths, resolved_device, chosen, stage_options, resume=True)
 
@@ -129,11 +189,22 @@ def resume(
 def run_stage_on(
     run_folder: str | Path, stage: str, device: str | None = None, overrides: list[str] = ()
 ) -> RunPaths:
-    """One stage on an existing run folder (recon fit/evaluate/report RUN)."""
-    config = load_config(Path(run_folder) / "config.resolved.yaml", RunConfig, overrides=overrides)
+    """One stage on an existing run folder (recon evaluate/report RUN).
+
+    The run's config.resolved.yaml and its hash stay the record of the fit: overrides given to a
+    later stage are recorded beside them (RunPaths.stage_overrides), never written into them.
+    """
+    paths = open_run_folder(run_folder)
+    config = load_config(paths.resolved_config, RunConfig, overrides=overrides)
     paths = open_run_folder(run_folder, config.data)
     if overrides:
-        dump_resolved(config, paths.resolved_config)
+        record = {
+            "stage": stage,
+            "overrides": list(overrides),
+            "config_hash": config_hash(config),
+            "time": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        }
+        append_json_line(paths.stage_overrides, record)
     return run_stages(config, paths, resolve_device(device or config.device), [stage], None)
 
 
@@ -144,11 +215,17 @@ def run_stages(
     stages: list[str],
     stage_options: dict[str, dict] | None,
     resume: bool = False,
+    on_first_stage_done: Callable[[], None] | None = None,
 ) -> RunPaths:
+    """Run stages in order, recording each one's time in env.json once it has finished.
+
+    env.json's config_hash is the hash of the config the run was created with; a later stage
+    run with overrides keeps it (its own hash goes to stage_overrides.jsonl).
+    """
     stage_options = stage_options or {}
     environment = json.loads(paths.environment.read_text()) if paths.environment.exists() else {}
     environment.update(environment_record(device))
-    environment["config_hash"] = config_hash(config)
+    environment.setdefault("config_hash", config_hash(config))
     environment.setdefault("stage_seconds", {})
     atomic_write_json(paths.environment, environment)
     seed_everything(config.seed)
@@ -159,8 +236,21 @@ def run_stages(
             options["resume"] = True
         find_stage(name)(config, paths, device, **options)
         environment["stage_seconds"][name] = round(time.perf_counter() - started, 3)
+        environment["peak_memory_mb"] = peak_memory_mb()
         atomic_write_json(paths.environment, environment)
+        if on_first_stage_done is not None:
+            on_first_stage_done()
+            on_first_stage_done = None
     return paths
+
+
+def peak_memory_mb() -> float:
+    """This process's peak resident memory so far, in MiB (ru_maxrss is KiB on Linux)."""
+    import resource
+
+    usage = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    scale = 1 / (1024 * 1024) if sys.platform == "darwin" else 1 / 1024
+    return round(usage * scale, 1)
 
 
 def describe(paths: RunPaths) -> str:

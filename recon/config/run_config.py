@@ -12,6 +12,10 @@ from typing import Literal
 
 from recon.config.checks import ConfigFieldError, check_range
 
+# The smallest view recon can evaluate: SSIM's 11-tap window needs more than 5 pixels a side;
+# 16 leaves the window room to slide.
+MINIMUM_VIEW_SIZE = 16
+
 
 @dataclass
 class ShapeConfig:
@@ -25,6 +29,12 @@ class ShapeConfig:
     def __post_init__(self) -> None:
         if (self.procedural is None) == (self.mesh_path is None):
             raise ConfigFieldError("procedural", "give exactly one of 'procedural' and 'mesh_path'")
+        if self.texture_path is not None and self.mesh_path is None:
+            raise ConfigFieldError(
+                "texture_path",
+                f"applies only to a mesh_path shape; the procedural shape {self.procedural!r} "
+                f"would ignore {self.texture_path!r} (use material.albedo for its texture)",
+            )
         check_range(self.resolution, "resolution", low=8, high=512)
 
 
@@ -161,7 +171,8 @@ class CameraRigConfig:
         check_range(self.fov_deg, "fov_deg", low=1.0, high=170.0)
         if len(self.resolution) != 2:
             raise ConfigFieldError("resolution", f"expected [height, width], got {self.resolution}")
-        check_range(self.resolution, "resolution", low=4, high=8192)
+        # Evaluation's SSIM uses an 11-tap window: smaller views could be fitted but never scored.
+        check_range(self.resolution, "resolution", low=MINIMUM_VIEW_SIZE, high=8192)
         check_range(self.jitter_deg, "jitter_deg", low=0.0, high=90.0)
         if not 0 < self.near < self.far:
             raise ConfigFieldError(
@@ -291,6 +302,8 @@ class GeometryStageConfig:
     def __post_init__(self) -> None:
         check_range(self.steps, "steps", low=0)
         check_range(self.views_per_step, "views_per_step", low=1)
+        if not self.resolutions:
+            raise ConfigFieldError("resolutions", "expected at least one resolution, got []")
         check_range(self.resolutions, "resolutions", low=8, high=8192)
         for key in ("learning_rate", "albedo_learning_rate", "light_learning_rate"):
             check_range(getattr(self, key), key, low=0.0)

@@ -16,7 +16,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from recon.errors import ReconError
+from recon.errors import ReconError, WriteError, describe_os_error
 
 
 def _process_umask() -> int:
@@ -44,10 +44,13 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
             write_something(temporary)
     """
     target = Path(path)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    handle, name = tempfile.mkstemp(
-        dir=target.parent, prefix=f".{target.stem}.", suffix=f".tmp{target.suffix}"
-    )
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        handle, name = tempfile.mkstemp(
+            dir=target.parent, prefix=f".{target.stem}.", suffix=f".tmp{target.suffix}"
+        )
+    except OSError as error:
+        raise WriteError(f"cannot write {describe_os_error(error, target)}") from error
     os.close(handle)
     temporary = Path(name)
     try:
@@ -60,6 +63,9 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         # mkstemp creates files with mode 0600; give the file the mode a plain open() would.
         os.chmod(temporary, 0o666 & ~_process_umask())
         os.replace(temporary, target)
+    except OSError as error:
+        temporary.unlink(missing_ok=True)
+        raise WriteError(f"cannot write {describe_os_error(error, target)}") from error
     except BaseException:
         temporary.unlink(missing_ok=True)
         raise
@@ -88,3 +94,25 @@ def atomic_write_json(path: str | os.PathLike, data: Any, indent: int | None = 2
     except (TypeError, ValueError) as error:
         raise ReconError(f"{path}: cannot write as JSON: {error}") from error
     atomic_write_text(path, text + "\n")
+
+
+def append_json_line(path: str | os.PathLike, record: Any, allow_nan: bool = False) -> None:
+    """Append one JSON record as a line, flushed to disk (a log: earlier lines are never rewritten).
+
+    The record is encoded before the file is opened, so a record that is not valid JSON leaves
+    the file untouched (ReconError naming the path). allow_nan: write NaN/Infinity as Python's
+    json does (for logs read back by Python only).
+    """
+    try:
+        line = json.dumps(record, allow_nan=allow_nan) + "\n"
+    except (TypeError, ValueError) as error:
+        raise ReconError(f"{path}: cannot write as JSON: {error}") from error
+    target = Path(path)
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        with open(target, "a", encoding="utf-8") as handle:
+            handle.write(line)
+            handle.flush()
+            os.fsync(handle.fileno())
+    except OSError as error:
+        raise WriteError(f"cannot write {describe_os_error(error, target)}") from error

@@ -2,11 +2,19 @@
 
 from __future__ import annotations
 
+import json
+import os
 import shutil
+from collections.abc import Sequence
 from dataclasses import dataclass
+from datetime import datetime, timezone
 from pathlib import Path
 
 from recon.errors import ReconError
+from recon.io.atomic import atomic_write_text
+
+# Written when recon creates a run folder: --force replaces only folders that hold it.
+RUN_MARKER = ".recon-run"
 
 
 @dataclass(frozen=True)
@@ -16,6 +24,25 @@ class RunPaths:
     root: Path
     # A dataset outside the run folder (config key 'data'); None = the run's own dataset/.
     external_dataset: Path | None = None
+
+    @property
+    def marker(self) -> Path:
+        """Written at creation: the folder is recon's own and --force may replace it."""
+        return self.root / RUN_MARKER
+
+    @property
+    def stage_overrides(self) -> Path:
+        """One JSON record per later-stage run with --set overrides (the fit's record stays)."""
+        return self.root / "stage_overrides.jsonl"
+
+    @property
+    def synth_progress(self) -> Path:
+        """The synth stage's progress (finished splits, random states) while it runs."""
+        return self.root / "synth_progress.pt"
+
+    @property
+    def diagnosis(self) -> Path:
+        return self.root / "diagnosis.json"
 
     @property
     def resolved_config(self) -> Path:
@@ -102,20 +129,126 @@ def open_run_folder(root: str | Path, external_dataset: str | Path | None = None
     return RunPaths(root, None if external_dataset is None else Path(external_dataset))
 
 
-def prepare_run_folder(root: str | Path, force: bool = False) -> RunPaths:
-    """Create the run folder; refuse to reuse a non-empty one unless force (then it is emptied).
+def is_recon_run_folder(root: str | Path) -> bool:
+    """Whether recon created this folder (it holds the marker written at creation)."""
+    return (Path(root) / RUN_MARKER).is_file()
 
-    Raises ReconError naming the folder, so a previous run is never overwritten by accident.
+
+def _refuse_replacing(root: Path, inputs: Sequence[Path]) -> None:
+    """Raise ReconError unless `root` (an existing, non-empty folder) may be replaced by --force.
+
+    Only a folder recon created (RUN_MARKER inside) may be replaced, and never the working
+    directory or one of its ancestors, nor a folder that holds one of this run's inputs.
+    """
+    if root.is_symlink():
+        raise ReconError(
+            f"run folder {root}: is a symbolic link to {root.resolve()}; --force replaces only "
+            "a real folder that recon created"
+        )
+    absolute = root.resolve()
+    working = Path.cwd().resolve()
+    if absolute == working or absolute in working.parents:
+        raise ReconError(
+            f"run folder {root}: is the working directory or one of its ancestors; --force "
+            "never replaces it (choose another --out)"
+        )
+    for item in inputs:
+        item_absolute = Path(item).resolve()
+        if item_absolute == absolute or absolute in item_absolute.parents:
+            raise ReconError(
+                f"run folder {root}: holds this run's input {item}; --force never replaces a "
+                "folder with an input in it (choose another --out)"
+            )
+    if not is_recon_run_folder(root):
+        raise ReconError(
+            f"run folder {root}: exists, is not empty and was not created by recon (no "
+            f"{RUN_MARKER} marker); --force replaces only recon's own run folders: choose "
+            "another --out or remove it yourself"
+        )
+
+
+@dataclass
+class NewRunFolder:
+    """A run folder being started; the folder it replaces (if any) waits aside until commit().
+
+    paths: the new run's paths. created: recon made the folder (it did not exist before).
+    replaced: where the old run (--force) was moved, a hidden sibling; None when nothing was
+    replaced.
+    """
+
+    paths: RunPaths
+    created: bool
+    replaced: Path | None = None
+
+    def commit(self) -> None:
+        """The new run has started cleanly: delete the old run it replaces."""
+        if self.replaced is not None and self.replaced.exists():
+            shutil.rmtree(self.replaced)
+        self.replaced = None
+
+    def abandon(self) -> None:
+        """The new run failed its checks: remove what this start created, put the old run back."""
+        root = self.paths.root
+        if self.created:
+            shutil.rmtree(root, ignore_errors=True)
+        elif root.is_dir():
+            # An existing empty folder was used: empty it again, keep the folder itself.
+            for child in root.iterdir():
+                if child.is_dir() and not child.is_symlink():
+                    shutil.rmtree(child, ignore_errors=True)
+                else:
+                    child.unlink(missing_ok=True)
+        if self.replaced is not None and self.replaced.exists():
+            os.replace(self.replaced, root)
+        self.replaced = None
+
+
+def start_run_folder(
+    root: str | Path, force: bool = False, inputs: Sequence[str | Path] = ()
+) -> NewRunFolder:
+    """Create a new run folder with recon's marker in it.
+
+    A missing or empty folder is used as it is. A non-empty one is refused unless force is given
+    and the folder may be replaced (see _refuse_replacing); it is then moved aside, not deleted,
+    until the caller commits (the new run started cleanly) or abandons (a check failed).
+    inputs: files and folders this run reads (config, dataset, meshes): never inside a replaced
+    folder.
     """
     root = Path(root)
     if root.exists() and not root.is_dir():
         raise ReconError(f"run folder {root}: exists and is not a folder")
-    if root.exists() and any(root.iterdir()):
+    replaced = None
+    created = not root.exists()
+    if root.is_dir() and any(root.iterdir()):
         if not force:
             raise ReconError(
                 f"run folder {root}: already exists and is not empty; pass --force to replace "
                 "it or --out to choose another folder"
             )
-        shutil.rmtree(root)
-    root.mkdir(parents=True, exist_ok=True)
-    return RunPaths(root)
+        _refuse_replacing(root, [Path(item) for item in inputs])
+        stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M%S")
+        replaced = root.parent / f".{root.name}.replaced-{stamp}-{os.getpid()}"
+        os.replace(root, replaced)
+        created = True
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(
+            root / RUN_MARKER,
+            json.dumps({"created": datetime.now(timezone.utc).isoformat(timespec="seconds")})
+            + "\n",
+        )
+    except BaseException:
+        if replaced is not None:
+            shutil.rmtree(root, ignore_errors=True)
+            os.replace(replaced, root)
+        raise
+    return NewRunFolder(RunPaths(root), created, replaced)
+
+
+def prepare_run_folder(
+    root: str | Path, force: bool = False, inputs: Sequence[str | Path] = ()
+) -> RunPaths:
+    """start_run_folder, committed at once (for callers with no checks of their own to run)."""
+    started = start_run_folder(root, force=force, inputs=inputs)
+    started.commit()
+    return started.paths

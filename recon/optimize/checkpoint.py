@@ -1,29 +1,27 @@
-"""Checkpoints and history: written atomically so an interrupted run can always resume."""
+"""Checkpoints and history: written atomically so an interrupted run can always resume.
+
+save_checkpoint/load_checkpoint live in recon.io.checkpoints (data_synth uses them too).
+"""
 
 from __future__ import annotations
 
 import json
-import os
 import random
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from recon.io.atomic import atomic_path
+from recon.io.atomic import append_json_line, atomic_path
+from recon.io.checkpoints import load_checkpoint, save_checkpoint
 
-
-def save_checkpoint(path: Path, state: dict) -> None:
-    """torch.save to a temp file in the same folder, then rename: never a half-written file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as temporary:
-        torch.save(state, temporary)
-
-
-def load_checkpoint(path: Path) -> dict | None:
-    if not path.exists():
-        return None
-    return torch.load(path, map_location="cpu", weights_only=False)
+__all__ = [
+    "History",
+    "load_checkpoint",
+    "random_states",
+    "restore_random_states",
+    "save_checkpoint",
+]
 
 
 def random_states(generator: torch.Generator) -> dict:
@@ -64,10 +62,8 @@ class History:
                 temporary.write_text(text)
 
     def log(self, record: dict) -> None:
-        with open(self.path, "a") as handle:
-            handle.write(json.dumps(record) + "\n")
-            handle.flush()
-            os.fsync(handle.fileno())
+        # A diverged loss is logged as NaN rather than lost.
+        append_json_line(self.path, record, allow_nan=True)
 
     def records(self) -> list[dict]:
         if not self.path.exists():

@@ -12,6 +12,7 @@ bad direction from a recorded value.
 
 from __future__ import annotations
 
+import difflib
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,6 +20,7 @@ from pathlib import Path
 import yaml
 
 from recon.errors import ReconError
+from recon.io.atomic import atomic_write_text
 
 # Which way is better for the metrics recon writes (used by write_baseline).
 HIGHER_IS_BETTER = ("psnr", "ssim", "f1", "precision", "recall", "normal_consistency")
@@ -35,62 +37,121 @@ class Comparison:
 def metric_value(metrics: dict, dotted: str) -> float | None:
     """metrics['image']['psnr'] for 'image.psnr' (keys may contain '@' and '%')."""
     group, _, key = dotted.partition(".")
-    value = metrics.get(group, {}).get(key) if key else metrics.get(group)
-    return None if value is None else float(value)
+    values = metrics.get(group)
+    value = values.get(key) if key and isinstance(values, dict) else None if key else values
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return None
+    return float(value)
+
+
+BOUND_KEYS = ("min", "max", "value", "tolerance", "better")
+
+
+def _check_bounds(path: Path, metric: str, bounds: object) -> None:
+    """One metric's bounds: known keys, numbers where numbers go, better in higher/lower."""
+    if not isinstance(bounds, dict) or not set(bounds) <= set(BOUND_KEYS) or not bounds:
+        raise ReconError(
+            f"baseline {path}: {metric}: expected keys among {', '.join(BOUND_KEYS)}; "
+            f"got {bounds!r}"
+        )
+    for key in ("min", "max", "value", "tolerance"):
+        if key not in bounds:
+            continue
+        value = bounds[key]
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or value != value:
+            raise ReconError(f"baseline {path}: {metric}.{key}: expected a number, got {value!r}")
+    if "tolerance" in bounds and bounds["tolerance"] < 0:
+        raise ReconError(
+            f"baseline {path}: {metric}.tolerance: expected >= 0, got {bounds['tolerance']}"
+        )
+    if bounds.get("better", "higher") not in ("higher", "lower"):
+        raise ReconError(
+            f"baseline {path}: {metric}.better: expected 'higher' or 'lower', got "
+            f"{bounds['better']!r}"
+        )
+    if ("tolerance" in bounds or "better" in bounds) and "value" not in bounds:
+        raise ReconError(f"baseline {path}: {metric}: 'tolerance' and 'better' need a 'value'")
 
 
 def load_baseline(path: str | Path) -> dict:
+    """Read and check a baseline file (ReconError naming the file, metric and key)."""
     path = Path(path)
-    if not path.exists():
+    if not path.is_file():
         raise ReconError(f"baseline {path}: file not found")
-    text = path.read_text()
     try:
+        text = path.read_text(encoding="utf-8")
         data = json.loads(text) if path.suffix == ".json" else yaml.safe_load(text)
-    except (json.JSONDecodeError, yaml.YAMLError) as error:
+    except (json.JSONDecodeError, yaml.YAMLError, UnicodeDecodeError) as error:
         raise ReconError(
             f"baseline {path}: not valid {path.suffix[1:] or 'YAML'}: {error}"
         ) from error
-    if not isinstance(data, dict):
-        raise ReconError(f"baseline {path}: expected a mapping of metric -> bounds")
+    if not isinstance(data, dict) or not data:
+        raise ReconError(f"baseline {path}: expected a mapping of metric -> bounds, got {data!r}")
     for metric, bounds in data.items():
-        if not isinstance(bounds, dict) or not set(bounds) <= {
-            "min",
-            "max",
-            "value",
-            "tolerance",
-            "better",
-        }:
-            raise ReconError(
-                f"baseline {path}: {metric}: expected keys among min, max, value, tolerance, "
-                f"better; got {bounds!r}"
-            )
+        _check_bounds(path, str(metric), bounds)
     return data
 
 
-def compare(metrics: dict, baseline: dict) -> list[Comparison]:
+def _known_metrics(metrics: dict) -> list[str]:
+    return [
+        f"{group}.{key}"
+        for group, values in metrics.items()
+        if isinstance(values, dict)
+        for key, value in values.items()
+        if isinstance(value, (int, float)) and not isinstance(value, bool)
+    ]
+
+
+def compare(metrics: dict, baseline: dict, source: str | Path = "metrics.json") -> list[Comparison]:
+    """Each bound of the baseline checked against the run's metrics.
+
+    A metric the baseline names but the run does not have is an error (a misspelt name must not
+    read as a regression): ReconError naming it, with the closest known names.
+    """
+    known = _known_metrics(metrics)
+    for metric in baseline:
+        if metric_value(metrics, metric) is None:
+            close = difflib.get_close_matches(metric, known, n=3)
+            hint = f"; did you mean {', '.join(close)}?" if close else ""
+            raise ReconError(
+                f"baseline metric {metric!r}: not in {source} (it has {len(known)} numeric "
+                f"metrics){hint}"
+            )
     results = []
     for metric, bounds in baseline.items():
         value = metric_value(metrics, metric)
         checks = []
         if "min" in bounds:
-            checks.append((f">= {bounds['min']}", value is not None and value >= bounds["min"]))
+            checks.append((f">= {bounds['min']}", value >= bounds["min"]))
         if "max" in bounds:
-            checks.append((f"<= {bounds['max']}", value is not None and value <= bounds["max"]))
+            checks.append((f"<= {bounds['max']}", value <= bounds["max"]))
         if "value" in bounds:
             tolerance = float(bounds.get("tolerance", 0.0))
             if bounds.get("better", "higher") == "higher":
                 limit = bounds["value"] - tolerance
-                checks.append((f">= {limit:.6g}", value is not None and value >= limit))
+                checks.append((f">= {limit:.6g}", value >= limit))
             else:
                 limit = bounds["value"] + tolerance
-                checks.append((f"<= {limit:.6g}", value is not None and value <= limit))
+                checks.append((f"<= {limit:.6g}", value <= limit))
         for text, passed in checks:
             results.append(Comparison(metric, value, text, passed))
     return results
 
 
-def write_baseline(metrics: dict, path: str | Path, relative_tolerance: float = 0.05) -> None:
-    """A baseline from a run's metrics: every numeric image/geometry metric with a tolerance."""
+def write_baseline(
+    metrics: dict, path: str | Path, relative_tolerance: float = 0.05, force: bool = False
+) -> None:
+    """A baseline from a run's metrics: every numeric image/geometry metric with a tolerance.
+
+    An existing file is refused unless force (ReconError naming it); the write is atomic.
+    """
+    path = Path(path)
+    if path.exists() and not force:
+        raise ReconError(
+            f"baseline {path}: already exists; pass --force to replace it, or choose another path"
+        )
+    if path.is_dir():
+        raise ReconError(f"baseline {path}: is a folder; expected a file path")
     baseline = {}
     for group in ("image", "geometry"):
         for key, value in metrics.get(group, {}).items():
@@ -102,7 +163,11 @@ def write_baseline(metrics: dict, path: str | Path, relative_tolerance: float = 
                 "tolerance": abs(float(value)) * relative_tolerance,
                 "better": better,
             }
-    Path(path).write_text(yaml.safe_dump(baseline, sort_keys=False))
+    if not baseline:
+        raise ReconError(
+            "compare --write: the run's metrics.json has no numeric image/geometry metric"
+        )
+    atomic_write_text(path, yaml.safe_dump(baseline, sort_keys=False))
 
 
 def format_table(results: list[Comparison]) -> str:
