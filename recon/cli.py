@@ -185,10 +185,14 @@ def _diagnose(arguments) -> int:
     from recon import pipeline
     from recon.diagnose.diagnose import diagnose_run
     from recon.io.run_folder import open_run_folder
+    from recon.preflight import check_writable
     from recon.report.report import recovered_parameters, summarise_parameters
 
-    config = load_config(Path(arguments.run) / "config.resolved.yaml", RunConfig)
+    paths = open_run_folder(arguments.run)
+    config = load_config(paths.resolved_config, RunConfig)
     paths = open_run_folder(arguments.run, arguments.data or config.data)
+    # Checked before the diagnosis runs, not when its result cannot be written.
+    check_writable(paths.root, "run folder")
     candidates = None if arguments.effects == "all" else arguments.effects.split(",")
     device = pipeline.resolve_device(arguments.device or config.device)
     result = diagnose_run(paths, config, device, refit=arguments.refit, candidates=candidates)
@@ -243,7 +247,10 @@ def _diagnose(arguments) -> int:
     if result["refits"]:
         confirmed = result["confirmed_by_refit"]
         print(f"confirmed by a refit: {', '.join(confirmed) if confirmed else 'none'}")
-    print(f"diagnosis: {paths.root / 'diagnosis.json'}")
+    print(f"diagnosis: {paths.diagnosis}")
+    # The report shows the diagnosis: bring it up to date with the new diagnosis.json.
+    pipeline.run_stages(config, paths, device, ["report"], None)
+    print(f"report: {paths.report_html} (with the diagnosis section)")
     return 0
 
 

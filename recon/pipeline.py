@@ -26,7 +26,7 @@ from recon.config.run_config import RunConfig
 from recon.errors import ReconError
 from recon.io.atomic import append_json_line, atomic_write_json
 from recon.io.run_folder import RunPaths, open_run_folder, start_run_folder
-from recon.preflight import check_new_run
+from recon.preflight import check_new_run, check_writable
 
 Stage = Callable[..., dict]
 # Stages that can pick up from their checkpoints when a run is resumed.
@@ -197,6 +197,7 @@ def run_stage_on(
     paths = open_run_folder(run_folder)
     config = load_config(paths.resolved_config, RunConfig, overrides=overrides)
     paths = open_run_folder(run_folder, config.data)
+    check_writable(paths.root, "run folder")
     if overrides:
         record = {
             "stage": stage,

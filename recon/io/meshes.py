@@ -134,6 +134,26 @@ def _obj_texture_path(path: Path) -> Path | None:
     return texture_path
 
 
+# Formats that are text only: a binary file with one of these names is a wrong file (trimesh
+# would otherwise fail deep inside its encoding detection).
+TEXT_MESH_SUFFIXES = (".obj", ".off")
+
+
+def _check_text_file(path: Path) -> None:
+    """Raise ReconError unless the file's first 64 KiB look like text (no NUL, UTF-8/Latin-1)."""
+    try:
+        with open(path, "rb") as handle:
+            head = handle.read(65536)
+    except OSError as error:
+        raise ReconError(f"{path}: cannot read ({error.strerror})") from error
+    if b"\0" in head:
+        offset = head.index(b"\0")
+        raise ReconError(
+            f"{path}: expected a text {path.suffix.lower()[1:].upper()} file, found binary data "
+            f"(a NUL byte at offset {offset}); is this the right file?"
+        )
+
+
 def load_mesh(path: str | os.PathLike, texture_path: str | os.PathLike | None = None) -> Mesh:
     """Load an OBJ / PLY / GLB / glTF / OFF / STL file as a Mesh (float32 / int64 on the CPU).
 
@@ -151,6 +171,8 @@ def load_mesh(path: str | os.PathLike, texture_path: str | os.PathLike | None = 
         raise ReconError(
             f"{path}: unsupported mesh format {suffix!r} (expected one of {MESH_SUFFIXES})"
         )
+    if suffix in TEXT_MESH_SUFFIXES:
+        _check_text_file(path)
     # For OBJ we read the MTL ourselves: trimesh would decode every texture with Pillow (8 bits
     # only) and invents a 2x2 gray placeholder texture for OBJs that have UVs but no material.
     options = {"skip_materials": True} if suffix == ".obj" else {}

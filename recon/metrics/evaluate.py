@@ -4,6 +4,7 @@ run has one) -> metrics.json and renders/ (target | render | error per view)."""
 from __future__ import annotations
 
 import json
+import sys
 
 import matplotlib
 import numpy as np
@@ -55,6 +56,13 @@ def evaluate_stage(config: RunConfig, paths: RunPaths, device: torch.device) -> 
         raise ReconError(f"evaluate: no fitted mesh at {paths.fitted_mesh} (run the fit stage)")
     llff = (paths.dataset / "poses_bounds.npy").exists()
     split = "test" if llff or (paths.dataset / "transforms_test.json").exists() else "val"
+    if split == "val":
+        # Legal (a dataset without a test split), but the user must know what was scored.
+        print(
+            f"recon: warning: {paths.dataset} has no transforms_test.json; evaluating on the "
+            "'val' split instead (metrics.json says split: val)",
+            file=sys.stderr,
+        )
     captures = read_captures(paths.dataset, split)
     mesh, colors, alphas = render_fitted(paths, captures.cameras, device)
     background = torch.tensor(config.capture.background)
