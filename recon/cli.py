@@ -330,6 +330,9 @@ def main(argv: list[str] | None = None) -> int:
             traceback.print_exc()
         if isinstance(error, ReconError):
             message = str(error)
+            run = getattr(error, "run_folder", None)
+            if run is not None and arguments.command in ("run", "synth", "fit"):
+                message += f"; what was written is kept: 'recon {arguments.command} --resume {run}'"
         elif isinstance(error, OSError):
             message = describe_os_error(error)
         else:

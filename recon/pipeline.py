@@ -23,9 +23,9 @@ import torch
 from recon import __version__
 from recon.config import config_hash, dump_resolved, load_config
 from recon.config.run_config import RunConfig
-from recon.errors import ReconError
+from recon.errors import ReconError, WriteError
 from recon.io.atomic import append_json_line, atomic_write_json
-from recon.io.run_folder import RunPaths, open_run_folder, start_run_folder
+from recon.io.run_folder import NewRunFolder, RunPaths, open_run_folder, start_run_folder
 from recon.preflight import check_new_run, check_writable
 
 Stage = Callable[..., dict]
@@ -145,20 +145,28 @@ def run(
             stage_options,
             on_first_stage_done=started.commit,
         )
-    except (ReconError, OSError):
-        # A check that fails inside the first stage (or a folder that cannot be written) leaves
-        # nothing behind: the old run, if --force moved one aside, is put back.
+    except WriteError as error:
+        _keep_after_failure(started, error)
+        raise
+    except ReconError:
+        # A check that fails inside the first stage leaves nothing behind: the old run, if
+        # --force moved one aside, is put back.
         if not _completed_stages(paths):
             started.abandon()
         raise
-    except KeyboardInterrupt as interrupt:
-        interrupt.run_folder = paths.root  # the CLI says where to --resume
-        if started.replaced is not None:
-            warn(
-                f"the run folder replaced by --force is kept at {started.replaced} until you "
-                "delete it"
-            )
+    except (OSError, KeyboardInterrupt) as error:
+        _keep_after_failure(started, error)
         raise
+
+
+def _keep_after_failure(started: NewRunFolder, error: BaseException) -> None:
+    """An interrupt or a failed write (full disk, read-only folder) keeps what the new run wrote
+    so it can be resumed, and the run --force replaced stays aside: nothing is deleted."""
+    error.run_folder = started.paths.root  # the CLI says where to --resume
+    if started.replaced is not None:
+        warn(
+            f"the run folder replaced by --force is kept at {started.replaced} until you delete it"
+        )
 
 
 def _completed_stages(paths: RunPaths) -> list[str]:

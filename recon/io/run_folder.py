@@ -238,8 +238,9 @@ def start_run_folder(
             + "\n",
         )
     except BaseException:
-        if replaced is not None:
+        if created:
             shutil.rmtree(root, ignore_errors=True)
+        if replaced is not None:
             os.replace(replaced, root)
         raise
     return NewRunFolder(RunPaths(root), created, replaced)
