@@ -253,15 +253,16 @@ EFFECT_NAMES = (
 
 @dataclass
 class EffectConfig:
-    """One injected real-world effect and its strength parameters (names per effect; see
-    README "Effects"). Per-view values are drawn from these with the run's seed."""
+    """One injected real-world effect and its strength parameters (names, defaults and ranges
+    per effect: docs/effect_parameters.md). Per-view values are drawn from these with the run's
+    seed."""
 
     name: Literal[EFFECT_NAMES] = setting(
         "exposure", "Which real-world effect to inject (the effect catalogue; see `recon effects`)."
     )  # type: ignore[valid-type]
     parameters: dict[str, float] = setting(
         factory=dict,
-        doc="The effect's strength parameters by name (per effect; see docs/data_synth.md). Per-view values are drawn from these with the run's seed.",
+        doc="The effect's strength parameters by name (per effect: docs/effect_parameters.md); left out, a parameter takes its default. Per-view values are drawn from these with the run's seed.",
     )
 
 
