@@ -1,4 +1,4 @@
-"""The CLI's read-only views: ``recon config keys``, ``recon config show`` and ``recon effects``.
+"""The CLI's read-only views: ``recon config keys|show``, ``recon effects`` and ``recon scenes``.
 
 They print what the code knows (the config schema, the effect catalogue) and touch no run
 folder. cli.py adds their parsers with ``add_commands`` and calls ``run`` for them; torch is
@@ -9,9 +9,11 @@ from __future__ import annotations
 
 import argparse
 import inspect
+import re
 from collections.abc import Callable
+from pathlib import Path
 
-COMMANDS = ("config", "effects")
+COMMANDS = ("config", "effects", "scenes")
 
 
 def add_commands(commands: argparse._SubParsersAction) -> None:
@@ -43,6 +45,12 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     commands.add_parser(
         "effects", help="the effect catalogue: names, where each acts, what the model does"
     )
+    scenes_parser = commands.add_parser(
+        "scenes", help="the run configs in a folder (default: configs/), each with its summary"
+    )
+    scenes_parser.add_argument(
+        "folder", nargs="?", default="configs", help="where to look (default: configs)"
+    )
 
 
 def run(arguments: argparse.Namespace) -> int:
@@ -50,6 +58,7 @@ def run(arguments: argparse.Namespace) -> int:
     handlers: dict[str, Callable[[argparse.Namespace], int]] = {
         "config": _config,
         "effects": _effects,
+        "scenes": _scenes,
     }
     return handlers[arguments.command](arguments)
 
@@ -104,5 +113,46 @@ def _effects(arguments: argparse.Namespace) -> int:
     print(
         "\ncaptures inject them with capture.effects (data_synth's own implementations);\n"
         "fits add the model modules with fit.effects; `recon diagnose` ranks them."
+    )
+    return 0
+
+
+def config_summary(path: Path, limit: int = 90) -> str:
+    """The first sentence of a config file's leading comment block ('' when it has none),
+    shortened to limit characters at a word boundary."""
+    lines = []
+    for line in path.read_text(encoding="utf-8").splitlines():
+        if not line.startswith("#"):
+            break
+        text = line.lstrip("#").strip()
+        if not text:
+            break
+        lines.append(text)
+    comment = " ".join(lines)
+    sentence_end = re.search(r"[.:](\s|$)", comment)
+    sentence = comment[: sentence_end.start()] if sentence_end else comment
+    if len(sentence) > limit:  # one terminal line per config
+        sentence = sentence[: sentence.rfind(" ", 0, limit - 3)] + "..."
+    return sentence
+
+
+def _scenes(arguments: argparse.Namespace) -> int:
+    from recon.errors import ReconError
+
+    folder = Path(arguments.folder)
+    if not folder.is_dir():
+        raise ReconError(
+            f"scenes: {folder} is not a folder (run from the repository root, or name the "
+            "folder holding the YAML configs)"
+        )
+    paths = sorted(folder.rglob("*.yaml"))
+    if not paths:
+        raise ReconError(f"scenes: no .yaml configs under {folder}")
+    width = max(len(str(path)) for path in paths)
+    for path in paths:
+        print(f"{str(path):{width}}  {config_summary(path)}")
+    print(
+        "\nrun one with `recon run CONFIG`; see it resolved with `recon config show CONFIG`;\n"
+        "built-in shapes for scene.shape.procedural: `recon config keys`."
     )
     return 0

@@ -62,3 +62,32 @@ def test_effects_lists_the_catalogue_in_order_with_where_each_acts(capsys):
         assert by_name[name].startswith(effect.stage)
         assert ("per view" in by_name[name]) == effect.per_view
     assert by_name["noise"].startswith("none")
+
+
+def test_scenes_lists_every_config_with_its_summary(tmp_path, capsys):
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "a.yaml").write_text("# A first scene: with detail.\n# More.\nname: a\n")
+    (tmp_path / "sub" / "b.yaml").write_text("name: b\n")
+    long = "# " + "word " * 40 + "\nname: c\n"
+    (tmp_path / "c.yaml").write_text(long)
+    assert main(["scenes", str(tmp_path)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].split() == [str(tmp_path / "a.yaml"), "A", "first", "scene"]
+    assert lines[1].endswith("...") and len(lines[1].split("  ", 1)[1].strip()) <= 90
+    assert lines[2].strip() == str(tmp_path / "sub" / "b.yaml")  # no comment, no summary
+
+
+def test_scenes_of_the_repository_include_the_quickstart(capsys, monkeypatch):
+    monkeypatch.chdir(REPO_ROOT)
+    assert main(["scenes"]) == 0
+    output = capsys.readouterr().out
+    for path in sorted((REPO_ROOT / "configs").rglob("*.yaml")):
+        assert str(path.relative_to(REPO_ROOT)) in output
+    assert "configs/quickstart.yaml" in output
+
+
+def test_scenes_reports_a_missing_or_empty_folder(tmp_path, capsys):
+    assert main(["scenes", str(tmp_path / "absent")]) == 2
+    assert "absent is not a folder" in capsys.readouterr().err
+    assert main(["scenes", str(tmp_path)]) == 2
+    assert f"no .yaml configs under {tmp_path}" in capsys.readouterr().err

@@ -45,7 +45,7 @@ def test_help_is_user_facing_and_lists_every_command():
         assert f"    {command} " in result.stdout
 
 
-def test_help_and_config_views_do_not_import_torch():
+def test_help_config_views_and_scenes_do_not_import_torch():
     # torch costs about 3 s to import; --help and the config views must not pay it.
     probe = (
         "import sys\n"
@@ -57,7 +57,9 @@ def test_help_and_config_views_do_not_import_torch():
         "        pass\n"
         "print('torch imported:', 'torch' in sys.modules, file=sys.stderr)\n"
     )
-    argv = "['--help'], ['config', 'keys'], ['config', 'show', 'configs/quickstart.yaml']"
+    argv = (
+        "['--help'], ['config', 'keys'], ['config', 'show', 'configs/quickstart.yaml'], ['scenes']"
+    )
     result = _python("-c", probe.format(argv=argv))
     assert result.returncode == 0, result.stderr
     assert "torch imported: False" in result.stderr
