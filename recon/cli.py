@@ -1,4 +1,8 @@
-"""Command line: parse, resolve the config and device, call the pipeline. Nothing else."""
+"""Command line: parse, resolve the config and device, call the pipeline. Nothing else.
+
+Heavy modules (torch, recon.pipeline) are imported inside the commands that need them, so
+``recon --help`` and the read-only views of recon/cli_info.py start fast.
+"""
 
 from __future__ import annotations
 
@@ -7,9 +11,21 @@ import json
 import sys
 from pathlib import Path
 
+from recon import __version__, cli_info
 from recon.config import load_config
 from recon.config.run_config import RunConfig
 from recon.errors import ReconError, describe_os_error
+
+DESCRIPTION = """\
+Inverse-rendering reconstruction with its own differentiable rasterizer: synthesise captures
+of a scene, fit mesh, texture and light to them, evaluate, report, and diagnose the gap
+between the fitted model and the captures.
+
+quickstart:
+  recon run configs/quickstart.yaml --out runs/quickstart
+  recon config keys              every config key with type, default and description
+  recon COMMAND --help           the options of one command
+"""
 
 
 def _add_common(parser: argparse.ArgumentParser) -> None:
@@ -46,7 +62,10 @@ def _add_new_run(parser: argparse.ArgumentParser, withhold: bool) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="recon", description=__doc__)
+    parser = argparse.ArgumentParser(
+        prog="recon", description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--version", action="version", version=f"recon {__version__}")
     parser.add_argument(
         "--debug", action="store_true", help="show the Python traceback of an error"
     )
@@ -112,6 +131,7 @@ def build_parser() -> argparse.ArgumentParser:
     compare_parser.add_argument(
         "--force", action="store_true", help="with --write: replace an existing baseline file"
     )
+    cli_info.add_commands(commands)
     return parser
 
 
@@ -277,9 +297,11 @@ def _diagnose_bench(arguments) -> int:
 
 
 def _run_command(arguments) -> int:
-    from recon import pipeline
-
     command = arguments.command
+    if command in cli_info.COMMANDS:
+        return cli_info.run(arguments)
+    from recon import pipeline  # torch: after parsing, so --help and the views stay fast
+
     if command == "compare":
         return _compare(arguments)
     if command == "diagnose":

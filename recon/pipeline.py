@@ -8,6 +8,7 @@ not import, so every stage is found the same way, by name.
 from __future__ import annotations
 
 import json
+import os
 import platform
 import random
 import sys
@@ -44,11 +45,21 @@ def resolve_device(requested: str) -> torch.device:
     return torch.device(requested)
 
 
-def seed_everything(seed: int) -> None:
-    """One seed for every random source, so the same config gives the same result on CPU."""
+def seed_everything(seed: int, deterministic: bool = True) -> None:
+    """One seed for every random source, so the same config gives the same result on CPU.
+
+    deterministic: torch's deterministic kernels. Without them, accumulating index_put (the
+    backward of advanced indexing) sums in a thread-dependent order on CPU, so two runs with
+    two threads differed in the last bits and, through the fit, in every metric. warn_only keeps
+    CUDA ops that have no deterministic kernel usable (they warn once).
+    """
     random.seed(seed)
     np.random.seed(seed % (2**32))
     torch.manual_seed(seed)
+    if deterministic:
+        # cuBLAS is deterministic only with a fixed workspace; read when CUDA starts.
+        os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
+    torch.use_deterministic_algorithms(deterministic, warn_only=True)
 
 
 def find_stage(name: str) -> Stage:
@@ -237,7 +248,7 @@ def run_stages(
     environment.setdefault("config_hash", config_hash(config))
     environment.setdefault("stage_seconds", {})
     atomic_write_json(paths.environment, environment)
-    seed_everything(config.seed)
+    seed_everything(config.seed, config.deterministic)
     for name in stages:
         started = time.perf_counter()
         options = dict(stage_options.get(name, {}))

@@ -30,7 +30,7 @@ class ConfigFieldError(ConfigError):
         return (type(self), (self.key, self.reason))
 
 
-def _describe_bounds(
+def describe_bounds(
     low: float | None, high: float | None, low_inclusive: bool, high_inclusive: bool
 ) -> str:
     """``in [0, 1)``, ``>= 0`` or ``< 1``: the accepted range in words."""
@@ -73,7 +73,7 @@ def check_range(
                 high_inclusive=high_inclusive,
             )
         return
-    bounds = _describe_bounds(low, high, low_inclusive, high_inclusive)
+    bounds = describe_bounds(low, high, low_inclusive, high_inclusive)
     if math.isnan(value):
         raise ConfigFieldError(key, f"must be {bounds}, got nan")
     too_low = low is not None and (value < low if low_inclusive else value <= low)

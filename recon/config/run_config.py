@@ -1,5 +1,10 @@
 """The run config schema: what a YAML config may say. Every section is strict (unknown keys are
-errors with a suggestion) and validated where it is loaded; see README "Config reference".
+errors with a suggestion) and validated where it is loaded.
+
+Every field is declared with ``setting(default, doc)``: its doc is the user-facing description
+that docs/config.md and ``recon config keys`` are generated from (recon/config/reference.py;
+a test fails when a field has none or the file is stale). Over 500 lines because it is the whole
+schema in one place; the per-section split is a later step of the layout (docs/decisions).
 
 Sections consumed by data_synth (scene, capture) are declared here so that a config is checked
 whole before any stage runs; data_synth imports them (recon never imports data_synth).
@@ -7,10 +12,11 @@ whole before any stage runs; data_synth imports them (recon never imports data_s
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Literal
 
 from recon.config.checks import ConfigFieldError, check_range
+from recon.config.schema import setting
 
 # The smallest view recon can evaluate: SSIM's 11-tap window needs more than 5 pixels a side;
 # 16 leaves the window room to slide.
@@ -21,10 +27,20 @@ MINIMUM_VIEW_SIZE = 16
 class ShapeConfig:
     """The reference geometry: a built-in procedural shape or a mesh file (OBJ/PLY/GLB/OFF)."""
 
-    procedural: str | None = "torus"
-    mesh_path: str | None = None
-    resolution: int = 64
-    texture_path: str | None = None
+    procedural: str | None = setting(
+        "torus",
+        "Built-in shape to use: sphere, torus (genus 1), rounded_box, dumbbell, double_torus (genus 2) or blob; null when mesh_path is given.",
+    )
+    mesh_path: str | None = setting(
+        None,
+        "Mesh file of the reference (OBJ/PLY/GLB/OFF, with its texture); null for a procedural shape.",
+    )
+    resolution: int = setting(
+        64, "Tessellation resolution of the procedural shape (segments around its main circle)."
+    )
+    texture_path: str | None = setting(
+        None, "Texture image for the mesh file, when the file does not name its own."
+    )
 
     def __post_init__(self) -> None:
         if (self.procedural is None) == (self.mesh_path is None):
@@ -43,12 +59,20 @@ class MaterialConfig:
     """Albedo: a procedural texture (checker, stripes, noise, patches), the mesh file's own
     texture ('file'), or a procedural vertex colour field ('vertex_noise')."""
 
-    albedo: Literal["checker", "stripes", "noise", "patches", "file", "vertex_noise"] = "checker"
-    texture_size: int = 256
-    seed: int = 0
-    # Used only where light transport renders specular reflection (the 'specular' effect).
-    roughness: float = 0.3
-    specular_level: float = 0.5
+    albedo: Literal["checker", "stripes", "noise", "patches", "file", "vertex_noise"] = setting(
+        "checker",
+        "Where the albedo comes from: a procedural pattern, the mesh file's own texture ('file') or a procedural vertex colour field ('vertex_noise').",
+    )
+    texture_size: int = setting(256, "Side in texels of the procedural albedo texture.")
+    seed: int = setting(0, "Seed of the procedural albedo pattern (independent of the run's seed).")
+    roughness: float = setting(
+        0.3,
+        "Specular roughness (GGX alpha); used only where light transport renders the 'specular' effect.",
+    )
+    specular_level: float = setting(
+        0.5,
+        "Specular reflectance level; used only where light transport renders the 'specular' effect.",
+    )
 
     def __post_init__(self) -> None:
         check_range(self.texture_size, "texture_size", low=4, high=8192)
@@ -60,8 +84,13 @@ class MaterialConfig:
 class SunConfig:
     """A directional light: direction toward the light (world), irradiance per channel."""
 
-    direction: list[float] = field(default_factory=lambda: [0.4, 0.8, 0.5])
-    irradiance: list[float] = field(default_factory=lambda: [2.0, 2.0, 2.0])
+    direction: list[float] = setting(
+        factory=lambda: [0.4, 0.8, 0.5],
+        doc="Direction toward the light, world frame (normalised on use).",
+    )
+    irradiance: list[float] = setting(
+        factory=lambda: [2.0, 2.0, 2.0], doc="Irradiance per channel (R, G, B), linear."
+    )
 
     def __post_init__(self) -> None:
         if len(self.direction) != 3:
@@ -80,8 +109,12 @@ def _check_vector(values: list[float], key: str, length: int = 3) -> None:
 class PointLightConfig:
     """An isotropic bulb: position (world), intensity per channel."""
 
-    position: list[float] = field(default_factory=lambda: [1.5, 2.0, 1.5])
-    intensity: list[float] = field(default_factory=lambda: [5.0, 5.0, 5.0])
+    position: list[float] = setting(
+        factory=lambda: [1.5, 2.0, 1.5], doc="Position of the bulb, world frame."
+    )
+    intensity: list[float] = setting(
+        factory=lambda: [5.0, 5.0, 5.0], doc="Radiant intensity per channel (R, G, B), linear."
+    )
 
     def __post_init__(self) -> None:
         _check_vector(self.position, "position")
@@ -94,9 +127,16 @@ class AreaLightConfig:
     """A one-sided rectangular emitter facing the origin from center (soft shadows in the path
     tracer; recon's renderer treats it as a point light with a cosine lobe at its centre)."""
 
-    center: list[float] = field(default_factory=lambda: [1.0, 2.5, 1.0])
-    size: list[float] = field(default_factory=lambda: [1.0, 1.0])
-    radiance: list[float] = field(default_factory=lambda: [4.0, 4.0, 4.0])
+    center: list[float] = setting(
+        factory=lambda: [1.0, 2.5, 1.0],
+        doc="Centre of the rectangle, world frame; it faces the origin.",
+    )
+    size: list[float] = setting(
+        factory=lambda: [1.0, 1.0], doc="Width and height of the rectangle, world units."
+    )
+    radiance: list[float] = setting(
+        factory=lambda: [4.0, 4.0, 4.0], doc="Emitted radiance per channel (R, G, B), linear."
+    )
 
     def __post_init__(self) -> None:
         _check_vector(self.center, "center")
@@ -111,13 +151,22 @@ class EnvironmentConfig:
     """An environment map: none, an HDR equirectangular EXR, a procedural sky (with a sun as a
     directional light) or a procedural studio with softboxes."""
 
-    kind: Literal["none", "exr", "sky", "studio"] = "none"
-    path: str | None = None
-    strength: float = 1.0
-    sun_elevation_deg: float = 45.0
-    sun_azimuth_deg: float = 30.0
-    sun_irradiance: float = 3.0
-    resolution: list[int] = field(default_factory=lambda: [64, 128])
+    kind: Literal["none", "exr", "sky", "studio"] = setting(
+        "none",
+        "Environment map: none, an HDR equirectangular EXR file, a procedural sky with a sun, or a procedural studio with softboxes.",
+    )
+    path: str | None = setting(None, "The EXR file when kind is 'exr'.")
+    strength: float = setting(1.0, "Multiplier of the environment's radiance.")
+    sun_elevation_deg: float = setting(
+        45.0, "Sky only: the sun's elevation above the horizon, degrees."
+    )
+    sun_azimuth_deg: float = setting(30.0, "Sky only: the sun's azimuth, degrees.")
+    sun_irradiance: float = setting(
+        3.0, "Sky only: the sun's irradiance (added as a directional light)."
+    )
+    resolution: list[int] = setting(
+        factory=lambda: [64, 128], doc="Procedural map size [height, width] in texels."
+    )
 
     def __post_init__(self) -> None:
         if self.kind == "exr" and not self.path:
@@ -134,12 +183,19 @@ class LightingConfig:
     """SH environment (ambient radiance per channel + a sky/ground gradient), suns, point and
     area lights, and an optional environment map (projected to SH for recon's renderer)."""
 
-    ambient: list[float] = field(default_factory=lambda: [0.6, 0.6, 0.6])
-    sky_gradient: float = 0.2
-    suns: list[SunConfig] = field(default_factory=lambda: [SunConfig()])
-    points: list[PointLightConfig] = field(default_factory=list)
-    areas: list[AreaLightConfig] = field(default_factory=list)
-    environment: EnvironmentConfig = field(default_factory=EnvironmentConfig)
+    ambient: list[float] = setting(
+        factory=lambda: [0.6, 0.6, 0.6], doc="SH ambient radiance per channel (R, G, B), linear."
+    )
+    sky_gradient: float = setting(
+        0.2, "Sky/ground gradient of the ambient term: positive brightens light from above."
+    )
+    suns: list[SunConfig] = setting(factory=lambda: [SunConfig()], doc="Directional lights.")
+    points: list[PointLightConfig] = setting(factory=list, doc="Point lights.")
+    areas: list[AreaLightConfig] = setting(factory=list, doc="Rectangular area lights.")
+    environment: EnvironmentConfig = setting(
+        factory=EnvironmentConfig,
+        doc="Optional environment map (projected to SH for recon's renderer, used whole by the path tracer).",
+    )
 
     def __post_init__(self) -> None:
         _check_vector(self.ambient, "ambient")
@@ -149,22 +205,32 @@ class LightingConfig:
 
 @dataclass
 class SceneConfig:
-    shape: ShapeConfig = field(default_factory=ShapeConfig)
-    material: MaterialConfig = field(default_factory=MaterialConfig)
-    lighting: LightingConfig = field(default_factory=LightingConfig)
+    """The synthetic scene data_synth renders the captures of: geometry, material and light."""
+
+    shape: ShapeConfig = setting(factory=ShapeConfig, doc="The reference geometry.")
+    material: MaterialConfig = setting(
+        factory=MaterialConfig, doc="The reference albedo and specular material."
+    )
+    lighting: LightingConfig = setting(factory=LightingConfig, doc="The capture light.")
 
 
 @dataclass
 class CameraRigConfig:
     """Where the captures are taken from."""
 
-    rig: Literal["fibonacci", "orbit", "random", "hemisphere"] = "fibonacci"
-    distance: float = 3.0
-    fov_deg: float = 40.0
-    resolution: list[int] = field(default_factory=lambda: [128, 128])
-    jitter_deg: float = 0.0
-    near: float = 0.1
-    far: float = 100.0
+    rig: Literal["fibonacci", "orbit", "random", "hemisphere"] = setting(
+        "fibonacci", "How camera positions are placed on the sphere around the object."
+    )
+    distance: float = setting(3.0, "Distance of every camera from the origin, world units.")
+    fov_deg: float = setting(40.0, "Vertical field of view, degrees.")
+    resolution: list[int] = setting(
+        factory=lambda: [128, 128], doc="Image size [height, width] in pixels."
+    )
+    jitter_deg: float = setting(
+        0.0, "Random perturbation of each camera's viewing direction, degrees."
+    )
+    near: float = setting(0.1, "Near clipping distance (0 < near < far).")
+    far: float = setting(100.0, "Far clipping distance.")
 
     def __post_init__(self) -> None:
         check_range(self.distance, "distance", low=0.0, low_inclusive=False)
@@ -198,19 +264,30 @@ EFFECT_NAMES = (
 
 @dataclass
 class EffectConfig:
-    """One injected real-world effect and its strength parameters (names per effect; see
-    README "Effects"). Per-view values are drawn from these with the run's seed."""
+    """One injected real-world effect and its strength parameters (names, defaults and ranges
+    per effect: docs/effect_parameters.md). Per-view values are drawn from these with the run's
+    seed."""
 
-    name: Literal[EFFECT_NAMES] = "exposure"  # type: ignore[valid-type]
-    parameters: dict[str, float] = field(default_factory=dict)
+    name: Literal[EFFECT_NAMES] = setting(
+        "exposure", "Which real-world effect to inject (the effect catalogue; see `recon effects`)."
+    )  # type: ignore[valid-type]
+    parameters: dict[str, float] = setting(
+        factory=dict,
+        doc="The effect's strength parameters by name (per effect: docs/effect_parameters.md); left out, a parameter takes its default. Per-view values are drawn from these with the run's seed.",
+    )
 
 
 @dataclass
 class RelightConfig:
     """An extra split of the test cameras rendered under another light (relight test)."""
 
-    views: int = 0
-    lighting: LightingConfig = field(default_factory=LightingConfig)
+    views: int = setting(
+        0, "Number of test cameras also rendered under the relight light (0: no relight split)."
+    )
+    lighting: LightingConfig = setting(
+        factory=LightingConfig,
+        doc="The second light of the relight split (written to dataset/lighting_relight.json).",
+    )
 
     def __post_init__(self) -> None:
         check_range(self.views, "views", low=0, high=10000)
@@ -225,10 +302,11 @@ class FlatFieldConfig:
     flat_field split; the fit never reads them, the diagnosis measures the full-frame falloff on
     them (the object's own pixels reach only part of the way to the corners)."""
 
-    views: int = 0
-    # Linear radiance of the card (before exposure): mid-grey keeps the corners and a bright
-    # exposure away from both ends of the 8-bit range.
-    radiance: float = 0.5
+    views: int = setting(0, "Number of flat-field frames (0: none).")
+    radiance: float = setting(
+        0.5,
+        "Linear radiance of the card before exposure: mid-grey keeps the corners and a bright exposure away from both ends of the 8-bit range.",
+    )
 
     def __post_init__(self) -> None:
         check_range(self.views, "views", low=0, high=1000)
@@ -239,21 +317,34 @@ class FlatFieldConfig:
 class CaptureConfig:
     """Views per split; the train/val/test cameras are drawn from one rig, disjoint."""
 
-    cameras: CameraRigConfig = field(default_factory=CameraRigConfig)
-    train_views: int = 16
-    val_views: int = 2
-    test_views: int = 4
-    relight: RelightConfig = field(default_factory=RelightConfig)
-    flat_field: FlatFieldConfig = field(default_factory=FlatFieldConfig)
-    background: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
-    effects: list[EffectConfig] = field(default_factory=list)
-    # own: recon's rasterizer; mitsuba: the path tracer; auto: mitsuba only when a
-    # light-transport effect (specular, shadows, interreflection) is requested.
-    backend: Literal["auto", "own", "mitsuba"] = "auto"
-    mitsuba_spp: int = 64
-    write_exr: bool = True
-    write_depth_normals: bool = False
-    contact_sheet: bool = True
+    cameras: CameraRigConfig = setting(
+        factory=CameraRigConfig, doc="The camera rig all splits are drawn from."
+    )
+    train_views: int = setting(16, "Number of training views.")
+    val_views: int = setting(2, "Number of validation views.")
+    test_views: int = setting(4, "Number of held-out test views.")
+    relight: RelightConfig = setting(
+        factory=RelightConfig, doc="Optional relight split of the test cameras under another light."
+    )
+    flat_field: FlatFieldConfig = setting(
+        factory=FlatFieldConfig, doc="Optional flat-field frames (vignetting calibration)."
+    )
+    background: list[float] = setting(
+        factory=lambda: [0.0, 0.0, 0.0],
+        doc="Background colour (R, G, B), linear, composited behind the object.",
+    )
+    effects: list[EffectConfig] = setting(
+        factory=list,
+        doc="Real-world effects to inject, each at most once, applied in physical order.",
+    )
+    backend: Literal["auto", "own", "mitsuba"] = setting(
+        "auto",
+        "Renderer of the captures: own (recon's rasterizer), mitsuba (the path tracer), or auto (mitsuba only when a light-transport effect, specular, shadows or interreflection, is requested).",
+    )
+    mitsuba_spp: int = setting(64, "Samples per pixel of the Mitsuba path tracer.")
+    write_exr: bool = setting(True, "Also write each view as linear EXR beside the PNG.")
+    write_depth_normals: bool = setting(False, "Also write depth and normal EXRs per view.")
+    contact_sheet: bool = setting(True, "Write captures_contact_sheet.png into the run folder.")
 
     def __post_init__(self) -> None:
         check_range(self.train_views, "train_views", low=1, high=10000)
@@ -280,24 +371,37 @@ class CaptureConfig:
 class GeometryStageConfig:
     """Stage 1: vertex positions (Large Steps), per-vertex albedo and lighting, with remeshing."""
 
-    steps: int = 400
-    views_per_step: int = 4
-    # Coarse to fine: the rendering resolution grows through these (capped at the data's),
-    # switching at equal fractions of the steps.
-    resolutions: list[int] = field(default_factory=lambda: [64, 128, 256])
-    learning_rate: float = 0.02
-    albedo_learning_rate: float = 0.03
-    light_learning_rate: float = 0.02
-    large_steps_lambda: float = 20.0
-    remesh_every: int = 50
-    remesh_until: float = 0.8
-    # Target edge length of the remesher, as a fraction of the initial shape's bounding-box
-    # diagonal, shrinking geometrically from start to end over the remeshing period.
-    edge_length_start: float = 0.04
-    edge_length_end: float = 0.012
-    mask_weight: float = 1.0
-    image_loss: Literal["l1", "log_srgb_l1"] = "l1"
-    directional_light: bool = True
+    steps: int = setting(400, "Optimisation steps of the geometry stage.")
+    views_per_step: int = setting(4, "Training views rendered per step (random batch).")
+    resolutions: list[int] = setting(
+        factory=lambda: [64, 128, 256],
+        doc="Coarse-to-fine rendering resolutions (longer side, capped at the data's), switched at equal fractions of the steps.",
+    )
+    learning_rate: float = setting(
+        0.02, "Step size of the vertex positions (Large Steps latent, uniform Adam)."
+    )
+    albedo_learning_rate: float = setting(0.03, "Step size of the per-vertex albedo.")
+    light_learning_rate: float = setting(0.02, "Step size of the SH light and the sun.")
+    large_steps_lambda: float = setting(
+        20.0, "Smoothing weight lambda of the Large Steps parameterisation u = (I + lambda L) v."
+    )
+    remesh_every: int = setting(50, "Steps between isotropic remeshings (0: never).")
+    remesh_until: float = setting(0.8, "Share of the steps after which remeshing stops.")
+    edge_length_start: float = setting(
+        0.04,
+        "Remesher target edge length at the start, as a fraction of the initial shape's bounding-box diagonal.",
+    )
+    edge_length_end: float = setting(
+        0.012,
+        "Remesher target edge length at the end of the remeshing period (shrinks geometrically from the start value).",
+    )
+    mask_weight: float = setting(
+        1.0, "Weight of the L1 loss of the antialiased coverage against the masks."
+    )
+    image_loss: Literal["l1", "log_srgb_l1"] = setting(
+        "l1", "Image loss: L1 in linear radiance or L1 of log-sRGB."
+    )
+    directional_light: bool = setting(True, "Fit a sun (directional light) beside the SH light.")
 
     def __post_init__(self) -> None:
         check_range(self.steps, "steps", low=0)
@@ -317,7 +421,11 @@ class GeometryStageConfig:
 
 @dataclass
 class SimplifyConfig:
-    target_faces: int = 20000
+    """Simplification of the geometry stage's mesh before it is unwrapped and textured."""
+
+    target_faces: int = setting(
+        20000, "Face count the fitted mesh is simplified to before unwrapping."
+    )
 
     def __post_init__(self) -> None:
         check_range(self.target_faces, "target_faces", low=4)
@@ -327,15 +435,19 @@ class SimplifyConfig:
 class TextureStageConfig:
     """Stage 2: UV texture (trilinear), lighting and vertex positions on a fixed topology."""
 
-    steps: int = 200
-    views_per_step: int = 4
-    texture_size: int = 512
-    learning_rate: float = 0.01
-    texture_learning_rate: float = 0.03
-    light_learning_rate: float = 0.01
-    large_steps_lambda: float = 20.0
-    smoothness_weight: float = 0.01
-    mask_weight: float = 1.0
+    steps: int = setting(200, "Optimisation steps of the texture stage.")
+    views_per_step: int = setting(4, "Training views rendered per step (random batch).")
+    texture_size: int = setting(512, "Side in texels of the unwrapped texture.")
+    learning_rate: float = setting(0.01, "Step size of the vertex positions on the fixed topology.")
+    texture_learning_rate: float = setting(0.03, "Step size of the texture.")
+    light_learning_rate: float = setting(0.01, "Step size of the SH light and the sun.")
+    large_steps_lambda: float = setting(
+        20.0, "Smoothing weight lambda of the Large Steps parameterisation of the positions."
+    )
+    smoothness_weight: float = setting(0.01, "Weight of the total-variation term on the texture.")
+    mask_weight: float = setting(
+        1.0, "Weight of the L1 loss of the antialiased coverage against the masks."
+    )
 
     def __post_init__(self) -> None:
         check_range(self.steps, "steps", low=0)
@@ -350,13 +462,28 @@ class TextureStageConfig:
 class FitConfig:
     """The reconstruction recipe (two passes, nvdiffrec style)."""
 
-    init: Literal["visual_hull", "icosphere"] = "visual_hull"
-    hull_resolution: int = 128
-    geometry: GeometryStageConfig = field(default_factory=GeometryStageConfig)
-    simplify: SimplifyConfig = field(default_factory=SimplifyConfig)
-    texture: TextureStageConfig = field(default_factory=TextureStageConfig)
-    checkpoint_every: int = 50
-    effects: list[str] = field(default_factory=list)
+    init: Literal["visual_hull", "icosphere"] = setting(
+        "visual_hull",
+        "Initial shape: the visual hull of the masks (keeps holes) or an icosphere filling the hull's bounds.",
+    )
+    hull_resolution: int = setting(128, "Voxel grid side of the visual hull.")
+    geometry: GeometryStageConfig = setting(
+        factory=GeometryStageConfig, doc="Stage 1: geometry, per-vertex albedo and light."
+    )
+    simplify: SimplifyConfig = setting(
+        factory=SimplifyConfig, doc="Simplification between the stages."
+    )
+    texture: TextureStageConfig = setting(
+        factory=TextureStageConfig,
+        doc="Stage 2: texture, light and positions on the fixed topology.",
+    )
+    checkpoint_every: int = setting(
+        50, "Steps between checkpoints (resume continues from the last one)."
+    )
+    effects: list[str] = setting(
+        factory=list,
+        doc="Model-side effect modules to fit with the scene (names from `recon effects`; none by default).",
+    )
 
     def __post_init__(self) -> None:
         check_range(self.hull_resolution, "hull_resolution", low=8, high=512)
@@ -367,17 +494,34 @@ class FitConfig:
 class RunConfig:
     """A whole run: a name, one seed threaded through every stage, the device, and sections."""
 
-    name: str = "run"
-    seed: int = 0
-    # An existing dataset folder (NeRF-synthetic or LLFF) to fit instead of synthesising one.
-    data: str | None = None
-    device: Literal["auto", "cpu", "cuda"] = "auto"
-    stages: list[Literal["synth", "fit", "evaluate", "report"]] = field(
-        default_factory=lambda: ["synth", "fit", "evaluate", "report"]
+    name: str = setting(
+        "run", "Run name: the folder under runs/ when --out is not given (a plain folder name)."
     )
-    scene: SceneConfig = field(default_factory=SceneConfig)
-    capture: CaptureConfig = field(default_factory=CaptureConfig)
-    fit: FitConfig = field(default_factory=FitConfig)
+    seed: int = setting(
+        0,
+        "The one seed threaded through every stage: the same config and seed give the same result on CPU.",
+    )
+    data: str | None = setting(
+        None,
+        "An existing dataset folder (NeRF-synthetic or LLFF) to fit instead of synthesising one.",
+    )
+    device: Literal["auto", "cpu", "cuda"] = setting(
+        "auto", "Where to compute: auto picks cuda when present, else cpu."
+    )
+    deterministic: bool = setting(
+        True,
+        "Use torch's deterministic kernels, so the same config and seed give identical results "
+        "with any thread count (CPU); false may be faster on CUDA but results then vary.",
+    )
+    stages: list[Literal["synth", "fit", "evaluate", "report"]] = setting(
+        factory=lambda: ["synth", "fit", "evaluate", "report"],
+        doc="Stages `recon run` runs, in order.",
+    )
+    scene: SceneConfig = setting(factory=SceneConfig, doc="The synthetic scene (data_synth).")
+    capture: CaptureConfig = setting(
+        factory=CaptureConfig, doc="The synthetic capture: cameras, splits, effects (data_synth)."
+    )
+    fit: FitConfig = setting(factory=FitConfig, doc="The reconstruction recipe.")
 
     def __post_init__(self) -> None:
         if not self.name or any(character in self.name for character in "/\\:"):

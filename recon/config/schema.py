@@ -11,12 +11,36 @@ from __future__ import annotations
 import dataclasses
 import types
 import typing
+from collections.abc import Callable
 from typing import Any, Literal, Union
 
 # A key path inside a config: mapping keys are str, list indices are int.
 KeyPath = tuple[str | int, ...]
 
 NONE_TYPE = type(None)
+
+
+def setting(
+    default: Any = dataclasses.MISSING,
+    doc: str = "",
+    *,
+    factory: Callable[[], Any] | Any = dataclasses.MISSING,
+) -> Any:
+    """A schema field with its documentation: ``dataclasses.field`` plus ``metadata["doc"]``.
+
+    default: the value when a config leaves the key out; factory: a callable building a
+    mutable default (lists, nested sections) instead. doc: one user-facing sentence, shown in
+    docs/config.md and ``recon config keys``. Validation stays in the schema's __post_init__.
+    """
+    if not doc:
+        raise TypeError("config schema: setting() needs a doc string")
+    return dataclasses.field(default=default, default_factory=factory, metadata={"doc": doc})
+
+
+def field_doc(field: dataclasses.Field) -> str | None:
+    """The field's description from ``setting(..., doc)``, or None when it has none."""
+    doc = field.metadata.get("doc")
+    return doc if isinstance(doc, str) and doc.strip() else None
 
 
 def is_schema(hint: Any) -> bool:
