@@ -299,3 +299,16 @@ def test_later_stage_overrides_never_rewrite_the_fit_record(tiny_run, tmp_path):
         ("report", ["name=renamed"])
     ]
     assert records[0]["config_hash"] != config_hash
+
+
+def test_diagnose_refreshes_the_report(tiny_run, tmp_path, capsys):
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    assert main(["report", str(run), "--device", "cpu"]) == 0
+    assert "Gap diagnosis" not in (run / "report.md").read_text()
+    assert main(["diagnose", str(run), "--refit", "none", "--device", "cpu"]) == 0
+    verdict = json.loads((run / "diagnosis.json").read_text())["verdict"]
+    for report in ("report.md", "report.html"):
+        text = (run / report).read_text()
+        assert "Gap diagnosis" in text and verdict.split(" ")[0] in text
+    assert "report:" in capsys.readouterr().out
