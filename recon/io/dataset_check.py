@@ -14,6 +14,7 @@ from pathlib import Path
 
 from PIL import Image
 
+from recon.config.run_config import MINIMUM_VIEW_SIZE
 from recon.errors import DatasetError
 from recon.io.datasets import _frame_image_path
 
@@ -118,6 +119,12 @@ def check_dataset(folder: str | Path, heldout_needed: bool = False) -> DatasetSu
         if (folder / f"transforms_{split}.json").is_file():
             _nerf_split(folder, split, summary)
     sizes = summary.image_size
+    for split, (height, width) in sizes.items():
+        if min(height, width) < MINIMUM_VIEW_SIZE:
+            raise DatasetError(
+                f"{folder}: the {split} views are {height}x{width}; expected at least "
+                f"{MINIMUM_VIEW_SIZE} px a side (evaluation's SSIM window)"
+            )
     if len(set(sizes.values())) > 1:
         listed = ", ".join(f"{split} {size[0]}x{size[1]}" for split, size in sizes.items())
         raise DatasetError(

@@ -119,6 +119,17 @@ def _sizes_differ(root: Path) -> None:
     (root / "big.yaml").unlink()
 
 
+def _tiny_images(root: Path) -> None:
+    """A dataset whose views are 8 x 8 pixels: too small to evaluate."""
+    from PIL import Image
+
+    shutil.copytree(root / "run" / "dataset", root / "thumbs")
+    for path in (root / "thumbs").rglob("*.png"):
+        with Image.open(path) as image:
+            small = image.resize((8, 8))
+        small.save(path)
+
+
 def _baseline(text: str) -> Callable[[Path], None]:
     def prepare(root: Path) -> None:
         (root / "run" / "metrics.json").write_text(
@@ -203,6 +214,11 @@ CASES = {
         ["fit", "tiny.yaml", "--data", "mixed", "--out", "new"],
         ["image sizes differ", "train 32x32", "test 48x48"],
         prepare=_sizes_differ,
+    ),
+    "a dataset with views too small to evaluate": Case(
+        ["fit", "tiny.yaml", "--data", "thumbs", "--out", "new"],
+        ["thumbs", "8x8", "at least 16 px"],
+        prepare=_tiny_images,
     ),
     "a dataset folder that is not one": Case(
         ["fit", "tiny.yaml", "--data", "notrun", "--out", "new"],
