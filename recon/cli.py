@@ -10,6 +10,7 @@ from pathlib import Path
 from recon.config import load_config
 from recon.config.run_config import RunConfig
 from recon.errors import ReconError
+from recon.sweep.command import add_sweep_parser, run_sweep_command
 
 
 def _add_common(parser: argparse.ArgumentParser) -> None:
@@ -105,6 +106,7 @@ def build_parser() -> argparse.ArgumentParser:
     compare_parser.add_argument(
         "--write", action="store_true", help="write the baseline from this run instead"
     )
+    add_sweep_parser(commands)
     return parser
 
 
@@ -251,6 +253,8 @@ def main(argv: list[str] | None = None) -> int:
             return _diagnose(arguments)
         if command == "diagnose-bench":
             return _diagnose_bench(arguments)
+        if command == "sweep":
+            return run_sweep_command(arguments)
         if command in ("evaluate", "report"):
             paths = pipeline.run_stage_on(
                 arguments.run, command, arguments.device, arguments.overrides
