@@ -65,13 +65,15 @@ def expand(spec: SweepSpec) -> list[Trial]:
         bases, grid_points, cases, withheld_sets, spec.seeds
     ):
         overrides = list(spec.set)
-        overrides += [f"{key}={format_value(value)}" for key, value in zip(grid_keys, point)]
+        overrides += [
+            f"{key}={format_value(value)}" for key, value in zip(grid_keys, point, strict=True)
+        ]
         overrides += list(case or [])
         overrides.append(f"seed={seed}")
         parameters = {}
         if len(bases) > 1:
             parameters["base"] = base
-        parameters.update(dict(zip(grid_keys, point)))
+        parameters.update(dict(zip(grid_keys, point, strict=True)))
         if case is not None:
             parameters["case"] = " ".join(case) or "(none)"
         if withhold is not None:
