@@ -6,6 +6,7 @@ Figures (each the median over --repeats):
                          that also uses both cores)
   ray_seconds            the Ray backend on an already started local Ray (num_cpus = --cpus,
                          1 CPU per trial): the sweep's own cost
+  ray_warm_workers_seconds  the same sweep again on that Ray (workers have imported recon)
   ray_cold_seconds       the same including starting and stopping the local Ray
   ray_start_seconds      ray.init alone; ray_first_task_seconds a first trivial task after it
                          (a worker process is spawned)
@@ -103,7 +104,7 @@ def main() -> None:
         folder = Path(scratch)
         for repeat in range(arguments.repeats):
 
-            def sweep(name: str, threads: int = 1) -> Path:
+            def sweep(name: str, threads: int = 1, repeat: int = repeat) -> Path:
                 out = folder / f"{name}_{repeat}"
                 return tiny_sweep(folder, out, arguments.trials, arguments.steps, threads)
 
@@ -130,11 +131,21 @@ def main() -> None:
                 "overhead_per_trial",
                 (seconds * arguments.cpus - sum(trial_seconds)) / arguments.trials,
             )
+            # The same sweep again on the same Ray: its workers have imported recon and torch.
+            seconds, trial_seconds = timed_sweep(sweep("ray_again"), "ray")
+            add("ray_warm_workers_seconds", seconds)
+            add(
+                "overhead_per_trial_warm_workers",
+                (seconds * arguments.cpus - sum(trial_seconds)) / arguments.trials,
+            )
             ray.shutdown()
             seconds, _ = timed_sweep(sweep("ray_cold"), "ray", num_cpus=arguments.cpus)
             add("ray_cold_seconds", seconds)
     medians = {name: round(statistics.median(values), 3) for name, values in figures.items()}
     medians["speedup"] = round(medians["local_seconds"] / medians["ray_seconds"], 3)
+    medians["speedup_warm_workers"] = round(
+        medians["local_seconds"] / medians["ray_warm_workers_seconds"], 3
+    )
     medians["speedup_vs_local_2threads"] = round(
         medians["local_2threads_seconds"] / medians["ray_seconds"], 3
     )

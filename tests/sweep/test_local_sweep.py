@@ -113,3 +113,54 @@ def test_an_interrupted_sweep_resumes_from_the_checkpoints(tmp_path, monkeypatch
     assert resumed == {first["trial_id"]: False, second["trial_id"]: True, third["trial_id"]: False}
     # The resumed sweep gives the numbers of the uninterrupted one.
     assert metrics_by_trial(interrupted) == metrics_by_trial(whole)
+
+
+def test_a_killed_sweep_process_resumes(tmp_path, capsys):
+    """SIGKILL (no clean-up at all) while the second trial fits, then --resume."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from sweep_helpers import REPO_ROOT
+
+    cases = [["fit.geometry.steps=1"], ["fit.geometry.steps=20"]]
+    killed = tmp_path / "killed"
+    sweep = three_trials(tmp_path, killed, cases=cases)
+    environment = dict(os.environ, PYTHONPATH=str(REPO_ROOT))
+    process = subprocess.Popen(
+        [sys.executable, "-m", "recon.cli", "sweep", str(sweep)],
+        env=environment,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    try:
+        deadline = time.monotonic() + 120
+        checkpoint = None
+        while time.monotonic() < deadline and process.poll() is None:
+            manifest = killed / "sweep.json"
+            if manifest.exists():
+                second = json.loads(manifest.read_text())["trials"][1]["trial_id"]
+                path = killed / "trials" / second / "run" / "checkpoints" / "geometry.pt"
+                if path.exists():
+                    checkpoint = path
+                    break
+            time.sleep(0.02)
+        assert checkpoint is not None, "the second trial never wrote a checkpoint"
+        os.kill(process.pid, signal.SIGKILL)
+        process.wait()
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+    trial_folder = checkpoint.parents[2]
+    assert not (trial_folder / "result.json").exists()
+    assert len(records(killed)) == 1  # the first trial's record survived the kill intact
+
+    assert main(["sweep", str(sweep), "--resume"]) == 0
+    assert "1 run, 1 kept, 0 failed" in capsys.readouterr().out
+    assert [record["resumed"] for record in records(killed)] == [False, True]
+    whole = tmp_path / "whole"
+    assert main(["sweep", str(three_trials(tmp_path, whole, cases=cases))]) == 0
+    assert metrics_by_trial(killed) == metrics_by_trial(whole)
