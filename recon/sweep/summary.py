@@ -108,6 +108,9 @@ def write_summary(out: Path, title: str, records: list[dict], metrics: list[str]
         for key in dict.fromkeys(key for record in records for key in record["parameters"])
         if len({str(record["parameters"].get(key)) for record in records}) > 1
     ]
+    if len(swept) > 1 and "seed" in swept:
+        # Seeds are repeats, not a setting: their spread shows in the other plots' dots.
+        swept.remove("seed")
     if swept:
         parts.append("<h2>Metrics vs parameters</h2>")
     for metric in metrics:

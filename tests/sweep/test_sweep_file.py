@@ -89,3 +89,23 @@ def test_grid_values_become_set_overrides(tmp_path):
     config = load_config(trials[0].base, RunConfig, overrides=trials[0].overrides)
     assert config.capture.cameras.resolution == [32, 32] and config.seed == 3
     assert yaml.safe_load(sweep.read_text())["seeds"] == [3]
+
+
+def test_the_ray_backend_without_ray_says_how_to_install_it(tmp_path, capsys, monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray raises ImportError
+    sweep = write_sweep(tmp_path, tmp_path / "out")
+    assert main(["sweep", str(sweep), "--backend", "ray"]) == 2
+    assert "pip install -e '.[ray]'" in capsys.readouterr().err
+
+
+def test_the_example_sweep_files_are_valid(monkeypatch):
+    from sweep_helpers import REPO_ROOT
+
+    monkeypatch.chdir(REPO_ROOT)  # their paths are relative to the repository root
+    sizes = {
+        path.name: len(expand(load_sweep(path)))
+        for path in sorted((REPO_ROOT / "configs" / "sweeps").glob("*.yaml"))
+    }
+    assert sizes == {"blind.yaml": 48, "calibration.yaml": 3, "tiny.yaml": 6}
