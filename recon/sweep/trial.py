@@ -6,6 +6,7 @@ the same thing wherever it runs: the same config, seed, device and torch thread 
 Trial folder:
     run/          the run folder (recon.pipeline.run, or pipeline.resume when it exists)
     truth.json    withheld effects (only with 'withhold'; beside the run folder, never in it)
+    running.json  host and process id of the trial's last (or current) attempt
     result.json   the trial's record; its presence marks the trial finished
     error.txt     the traceback of a failed trial
 """
@@ -14,6 +15,7 @@ from __future__ import annotations
 
 import json
 import os
+import socket
 import time
 import traceback
 from dataclasses import replace
@@ -28,6 +30,7 @@ from recon.errors import ReconError
 from recon.io.atomic import atomic_write_json, atomic_write_text
 
 RESULT_NAME = "result.json"
+RUNNING_NAME = "running.json"
 
 
 def read_metric(name: str, run_folder: Path, score: dict | None) -> object:
@@ -86,6 +89,10 @@ def run_trial(trial: dict, folder: str, settings: dict) -> dict:
         "resumed": False,
     }
     started = time.perf_counter()
+    # Which process runs the trial (on a cluster: which node), while it runs and after.
+    where = {"host": socket.gethostname(), "pid": os.getpid()}
+    record.update(where)
+    atomic_write_json(folder / RUNNING_NAME, where)
     previous_threads = torch.get_num_threads()
     # Ray sets OMP_NUM_THREADS=1 in its workers; set the count explicitly in every backend so
     # the same trial does the same arithmetic (and gives the same numbers) everywhere.

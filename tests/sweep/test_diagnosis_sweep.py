@@ -19,7 +19,7 @@ def test_a_diagnosis_sweep_scores_withheld_effects(tmp_path, capsys):
         grid=None,
         withhold=[["exposure"], []],
         seeds=[0],
-        diagnose={"refit": "none"},
+        diagnose={"refit": "none", "candidates": ["exposure", "white_balance", "vignetting"]},
         metrics=["score.top1_correct", "score.predicted_top", "fit.loss"],
     )
     text = sweep.read_text().replace("grid: null\n", "")

@@ -52,3 +52,44 @@ def test_ray_records_a_failing_trial_and_resumes(tmp_path, capsys, local_ray):
     # On --resume the finished trial is kept and the failed one runs again.
     assert main(["sweep", str(sweep), "--backend", "ray", "--resume"]) == 1
     assert "1 run, 1 kept, 1 failed" in capsys.readouterr().out
+
+
+def test_a_killed_ray_worker_is_retried_and_resumes_the_trial(tmp_path, capsys, local_ray):
+    """SIGKILL the worker process mid-fit: Ray retries the task, which resumes the trial from
+    its checkpoint, and the sweep's numbers are those of an uninterrupted local run."""
+    import json
+    import os
+    import signal
+    import threading
+    import time
+
+    cases = [["fit.geometry.steps=20"]]
+    out = tmp_path / "ray"
+    sweep = three_trials(tmp_path, out, cases=cases)
+    killed = {}
+
+    def kill_the_worker_after_a_checkpoint():
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            folders = list((out / "trials").glob("*")) if (out / "trials").exists() else []
+            for folder in folders:
+                running = folder / "running.json"
+                if (folder / "run" / "checkpoints" / "geometry.pt").exists() and running.exists():
+                    killed["pid"] = json.loads(running.read_text())["pid"]
+                    os.kill(killed["pid"], signal.SIGKILL)
+                    return
+            time.sleep(0.02)
+
+    killer = threading.Thread(target=kill_the_worker_after_a_checkpoint)
+    killer.start()
+    try:
+        assert main(["sweep", str(sweep), "--backend", "ray"]) == 0
+    finally:
+        killer.join()
+    assert "pid" in killed, "the trial never wrote a checkpoint"
+    (record,) = records(out)
+    assert record["status"] == "ok" and record["resumed"] is True
+    assert record["pid"] != killed["pid"]  # finished by the retry, in another worker
+    local = tmp_path / "local"
+    assert main(["sweep", str(three_trials(tmp_path, local, cases=cases))]) == 0
+    assert metrics_by_trial(out) == metrics_by_trial(local)
