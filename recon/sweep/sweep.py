@@ -85,6 +85,8 @@ def run_sweep(
         raise ReconError(f"--backend: expected one of {', '.join(BACKENDS)}, got {backend!r}")
     if address and backend != "ray":
         raise ReconError("--address: only with --backend ray")
+    if num_cpus is not None and (backend != "ray" or address):
+        raise ReconError("--num-cpus: only for a local Ray (--backend ray without --address)")
     if max_concurrent is not None and max_concurrent < 1:
         raise ReconError(f"--max-concurrent: expected N >= 1, got {max_concurrent}")
     spec = load_sweep(sweep_path)

@@ -12,6 +12,7 @@ import itertools
 import json
 from dataclasses import asdict, dataclass, field
 
+from recon.errors import ConfigError
 from recon.sweep.spec import SweepSpec
 
 
@@ -93,8 +94,6 @@ def expand(spec: SweepSpec) -> list[Trial]:
     seen = {}
     for trial in trials:
         if trial.trial_id in seen:
-            from recon.errors import ConfigError
-
             raise ConfigError(
                 f"sweep: two trials are the same run ({trial.parameters} and "
                 f"{seen[trial.trial_id].parameters}); remove the repeated value"

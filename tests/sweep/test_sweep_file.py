@@ -55,6 +55,12 @@ def test_an_existing_sweep_folder_needs_resume(tmp_path, capsys):
     assert (out / "notes.txt").read_text() == "mine"
     assert main(["sweep", str(sweep), "--backend", "local", "--address", "x:1"]) == 2
     assert "--address: only with --backend ray" in capsys.readouterr().err
+    assert (
+        main(["sweep", str(sweep), "--backend", "ray", "--address", "x:1", "--num-cpus", "2"]) == 2
+    )
+    assert "--num-cpus: only for a local Ray" in capsys.readouterr().err
+    assert main(["sweep", str(sweep), "--max-concurrent", "0"]) == 2
+    assert "--max-concurrent: expected N >= 1, got 0" in capsys.readouterr().err
 
 
 def test_trial_ids_are_stable_when_the_grid_grows(tmp_path):
