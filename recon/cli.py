@@ -15,6 +15,7 @@ from recon import __version__, cli_info
 from recon.config import load_config
 from recon.config.run_config import RunConfig
 from recon.errors import ReconError, describe_os_error
+from recon.sweep.command import add_sweep_parser, run_sweep_command
 
 DESCRIPTION = """\
 Inverse-rendering reconstruction with its own differentiable rasterizer: synthesise captures
@@ -132,6 +133,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--force", action="store_true", help="with --write: replace an existing baseline file"
     )
     cli_info.add_commands(commands)
+    add_sweep_parser(commands)
     return parser
 
 
@@ -308,6 +310,8 @@ def _run_command(arguments) -> int:
         return _diagnose(arguments)
     if command == "diagnose-bench":
         return _diagnose_bench(arguments)
+    if command == "sweep":
+        return run_sweep_command(arguments)
     if command in ("evaluate", "report"):
         paths = pipeline.run_stage_on(arguments.run, command, arguments.device, arguments.overrides)
     elif getattr(arguments, "resume", None):
