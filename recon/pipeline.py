@@ -25,7 +25,7 @@ from recon import __version__
 from recon.config import config_hash, dump_resolved, load_config
 from recon.config.run_config import RunConfig
 from recon.errors import ReconError, WriteError
-from recon.io.atomic import append_json_line, atomic_write_json
+from recon.io.atomic import append_json_line, atomic_write_json, remove_stale_temporaries
 from recon.io.run_folder import NewRunFolder, RunPaths, open_run_folder, start_run_folder
 from recon.preflight import check_new_run, check_writable
 
@@ -199,6 +199,9 @@ def resume(
     config = load_config(Path(run_folder) / "config.resolved.yaml", RunConfig)
     paths = open_run_folder(run_folder, config.data)
     resolved_device = resolve_device(device or config.device)
+    # A process killed mid-write leaves atomic_path's temporary file behind: it was never a
+    # result, so it goes before the stages continue.
+    remove_stale_temporaries(paths.root)
     chosen = _stages_to_run(config, stages)
     if "synth" in chosen and "synth" in _completed_stages(paths):
         chosen.remove("synth")

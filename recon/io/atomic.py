@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -116,3 +117,21 @@ def append_json_line(path: str | os.PathLike, record: Any, allow_nan: bool = Fal
             os.fsync(handle.fileno())
     except OSError as error:
         raise WriteError(f"cannot write {describe_os_error(error, target)}") from error
+
+
+# mkstemp's names: '.' + the target's stem + '.' + 8 random characters + '.tmp' + the suffix.
+_TEMPORARY_NAME = re.compile(r"^\..+\.[A-Za-z0-9_]{8}\.tmp(\.[^.]+)?$")
+
+
+def remove_stale_temporaries(folder: str | os.PathLike) -> list[Path]:
+    """Delete the temporary files atomic_path leaves when its process is killed mid-write.
+
+    Only names of atomic_path's own pattern are touched, and only under `folder`, which must be
+    a folder recon created (a run folder being resumed). Returns the deleted paths.
+    """
+    removed = []
+    for path in Path(folder).rglob(".*.tmp*"):
+        if path.is_file() and not path.is_symlink() and _TEMPORARY_NAME.match(path.name):
+            path.unlink()
+            removed.append(path)
+    return removed

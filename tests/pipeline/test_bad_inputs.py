@@ -320,6 +320,7 @@ def test_later_stage_overrides_never_rewrite_the_fit_record(tiny_run, tmp_path):
 def test_diagnose_refreshes_the_report(tiny_run, tmp_path, capsys):
     run = tmp_path / "run"
     shutil.copytree(tiny_run, run)
+    (run / "diagnosis.json").unlink(missing_ok=True)  # other tests diagnose tiny_run in place
     assert main(["report", str(run), "--device", "cpu"]) == 0
     assert "Gap diagnosis" not in (run / "report.md").read_text()
     assert main(["diagnose", str(run), "--refit", "none", "--device", "cpu"]) == 0
