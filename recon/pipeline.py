@@ -136,7 +136,9 @@ def run(
         chosen,
         out,
         config_file=config_file,
-        withhold=int(synth_options.get("withhold", 0) or 0),
+        # withhold_effects: the blind benchmark and sweeps name the withheld effects.
+        withhold=int(synth_options.get("withhold", 0) or 0)
+        or len(synth_options.get("withhold_effects") or ()),
         truth_out=synth_options.get("truth_out"),
         force=force,
     )
