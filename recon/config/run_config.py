@@ -334,6 +334,49 @@ class TextureStageConfig:
 
 
 @dataclass
+class PbrFitConfig:
+    """The `pbr` material's settings (used only with fit.material: pbr): textures base colour +
+    roughness + metalness and an optimised lat-long environment light (recon.render.pbr)."""
+
+    # Environment map [height, width] that the fit optimises (lat-long, row 0 looks up).
+    environment_size: list[int] = field(default_factory=lambda: [16, 32])
+    # Pre-filtered roughness levels besides the map itself (roughness linspace(0, 1, n + 1)).
+    prefilter_levels: int = 6
+    # Starting roughness and metalness of every texel.
+    initial_roughness: float = 0.5
+    initial_metalness: float = 0.0
+    # Dielectric reflectance at normal incidence is 0.08 x this (0.5 gives the usual 0.04).
+    specular_level: float = 0.5
+    # Adam learning rates of the roughness/metalness texture and of the environment texels.
+    material_learning_rate: float = 0.02
+    environment_learning_rate: float = 0.03
+    # Total variation of the roughness/metalness texture (keeps unseen texels quiet).
+    material_smoothness_weight: float = 0.01
+    # Total variation of the environment map (neighbouring texels alike).
+    environment_smoothness_weight: float = 0.01
+    # Pull of each environment texel toward grey (its channel mean): light colour and base
+    # colour are otherwise interchangeable.
+    environment_whiteness_weight: float = 0.01
+
+    def __post_init__(self) -> None:
+        _check_vector(self.environment_size, "environment_size", length=2)
+        for value, key in zip(self.environment_size, ("height", "width"), strict=True):
+            check_range(value, f"environment_size {key}", low=2, high=512)
+        check_range(self.prefilter_levels, "prefilter_levels", low=1, high=16)
+        check_range(self.initial_roughness, "initial_roughness", low=0.0, high=1.0)
+        check_range(self.initial_metalness, "initial_metalness", low=0.0, high=1.0)
+        check_range(self.specular_level, "specular_level", low=0.0, high=1.0)
+        for key in (
+            "material_learning_rate",
+            "environment_learning_rate",
+            "material_smoothness_weight",
+            "environment_smoothness_weight",
+            "environment_whiteness_weight",
+        ):
+            check_range(getattr(self, key), key, low=0.0)
+
+
+@dataclass
 class FitConfig:
     """The reconstruction recipe (two passes, nvdiffrec style)."""
 
@@ -344,6 +387,10 @@ class FitConfig:
     texture: TextureStageConfig = field(default_factory=TextureStageConfig)
     checkpoint_every: int = 50
     effects: list[str] = field(default_factory=list)
+    # Appearance model of the texture stage: 'lambert' (albedo under SH + sun) or 'pbr' (base
+    # colour, roughness, metalness under an optimised environment map, split-sum GGX).
+    material: Literal["lambert", "pbr"] = "lambert"
+    pbr: PbrFitConfig = field(default_factory=PbrFitConfig)
 
     def __post_init__(self) -> None:
         check_range(self.hull_resolution, "hull_resolution", low=8, high=512)
