@@ -20,7 +20,11 @@ from tqdm import tqdm
 from recon.config.run_config import FitConfig
 from recon.effects.forward import apply_camera_effects, apply_image_effects
 from recon.errors import ReconError
+from recon.io.atomic import atomic_write_json
 from recon.io.datasets import CaptureSet
+from recon.io.images import write_exr
+from recon.io.meshes import save_mesh
+from recon.io.run_folder import RunPaths
 from recon.mesh.mesh import Mesh
 from recon.mesh.uv import dilate
 from recon.optimize.checkpoint import (
@@ -116,6 +120,35 @@ def light_from_environment(environment: torch.Tensor) -> LightModel:
     with torch.no_grad():
         light.sh.copy_(project_to_sh(environment.detach()))
     return light
+
+
+def write_pbr_result(paths: RunPaths, result: PbrTextureResult) -> dict:
+    """Write the `pbr` fit into the run folder: mesh/model.obj (+ base colour, roughness and
+    metallic PNGs, map_Kd / map_Pr / map_Pm), mesh/model.glb (metallic-roughness material),
+    light/environment.exr (the fitted environment itself) and light/light.json (its order-2 SH,
+    for Lambertian consumers, plus the pbr settings and the environment's file name)."""
+    paths.mesh_folder.mkdir(parents=True, exist_ok=True)
+    mesh = result.mesh.to("cpu")
+    maps = result.material.detach().cpu()
+    save_mesh(paths.fitted_mesh, mesh, material_maps=maps)
+    save_mesh(paths.mesh_folder / "model.glb", mesh, material_maps=maps)
+    paths.light_folder.mkdir(parents=True, exist_ok=True)
+    record = result.light.to_json()
+    record.update(
+        {
+            "material": "pbr",
+            "environment_file": "environment.exr",
+            "specular_level": result.specular_level,
+            "prefilter_levels": result.prefilter_levels,
+        }
+    )
+    atomic_write_json(paths.fitted_light, record)
+    write_exr(paths.light_folder / "environment.exr", result.environment.detach().cpu())
+    return {
+        "faces": int(mesh.faces.shape[0]),
+        "vertices": int(mesh.verts.shape[0]),
+        "material": "pbr",
+    }
 
 
 def run_pbr_texture_stage(
