@@ -9,6 +9,7 @@ a small lobe of the same irradiance.
 
 from __future__ import annotations
 
+import json
 import math
 import time
 from dataclasses import dataclass
@@ -22,8 +23,8 @@ from recon.effects.forward import apply_camera_effects, apply_image_effects
 from recon.errors import ReconError
 from recon.io.atomic import atomic_write_json
 from recon.io.datasets import CaptureSet
-from recon.io.images import write_exr
-from recon.io.meshes import save_mesh
+from recon.io.images import read_exr, write_exr
+from recon.io.meshes import load_material_maps, load_mesh, save_mesh
 from recon.io.run_folder import RunPaths
 from recon.mesh.mesh import Mesh
 from recon.mesh.uv import dilate
@@ -149,6 +150,35 @@ def write_pbr_result(paths: RunPaths, result: PbrTextureResult) -> dict:
         "vertices": int(mesh.verts.shape[0]),
         "material": "pbr",
     }
+
+
+def load_pbr_result(paths: RunPaths, device: torch.device | str = "cpu"):
+    """The `pbr` fit of a run folder (write_pbr_result's files) as a PbrTextureResult, or None
+    when the run fitted the Lambertian material (its light.json names no 'pbr')."""
+    if not paths.fitted_light.exists():
+        return None
+    record = json.loads(paths.fitted_light.read_text())
+    if record.get("material") != "pbr":
+        return None
+    maps = load_material_maps(paths.fitted_mesh)
+    environment_path = paths.light_folder / record["environment_file"]
+    if maps is None or not environment_path.exists():
+        raise ReconError(
+            f"{paths.fitted_light}: names the pbr material, but "
+            + ("the roughness/metallic maps of " + str(paths.fitted_mesh) if maps is None else "")
+            + (str(environment_path) if maps is not None else "")
+            + " are missing (rerun the fit stage)"
+        )
+    mesh = load_mesh(paths.fitted_mesh).to(device)
+    environment = read_exr(environment_path)[..., :3].to(device)
+    return PbrTextureResult(
+        mesh,
+        maps.to(device),
+        environment,
+        light_from_environment(environment),
+        float(record["specular_level"]),
+        int(record["prefilter_levels"]),
+    )
 
 
 def run_pbr_texture_stage(
