@@ -1,5 +1,5 @@
-"""`recon fit` with fit.material: pbr writes the material maps and environment, and the
-evaluate stage renders the PBR model (not the Lambertian one) from them."""
+"""`recon fit` with fit.material: pbr writes the material maps and environment, the evaluate
+stage renders the PBR model (not the Lambertian one) from them, and the report shows them."""
 
 from __future__ import annotations
 
@@ -48,3 +48,8 @@ def test_fit_with_the_pbr_material_writes_and_evaluates_it(tmp_path):
     assert json.loads((run / "light" / "light.json").read_text())["material"] == "pbr"
     metrics = json.loads((run / "metrics.json").read_text())
     assert metrics["image"]["psnr"] > 10
+    # The report shows the material channels and the environment.
+    report = (run / "report.md").read_text()
+    assert "Fitted material and environment (pbr)" in report
+    link = report.split("Fitted material and environment (pbr)](")[1].split(")")[0]
+    assert (run / link).stat().st_size > 0
