@@ -247,3 +247,20 @@ def test_rough_dielectric_without_specular_is_close_to_lambertian():
     relative = ((found - expected) / expected).abs()
     assert float(relative.mean()) < 0.05
     assert float(relative.max()) < 0.25
+
+
+def test_shading_follows_the_input_device(device):
+    """The table, the pre-filter weights and the shading live on the inputs' device and agree
+    with the CPU result."""
+    normals, to_viewer, base, roughness, metalness, environment = (
+        tensor.float() for tensor in _gradient_scene()
+    )
+
+    def shade(on):
+        material = PbrMaterial(base.to(on), roughness.to(on), metalness.to(on))
+        prefiltered = prefilter_environment(environment.to(on), 4)
+        return pbr_shade(material, normals.to(on), to_viewer.to(on), prefiltered)
+
+    found = shade(device)
+    assert found.device.type == device.type
+    torch.testing.assert_close(found.cpu(), shade(torch.device("cpu")), rtol=1e-4, atol=1e-5)
