@@ -162,12 +162,15 @@ def load_pbr_result(paths: RunPaths, device: torch.device | str = "cpu"):
         return None
     maps = load_material_maps(paths.fitted_mesh)
     environment_path = paths.light_folder / record["environment_file"]
-    if maps is None or not environment_path.exists():
+    missing = []
+    if maps is None:
+        missing.append(f"the roughness/metallic maps (map_Pr, map_Pm) of {paths.fitted_mesh}")
+    if not environment_path.exists():
+        missing.append(str(environment_path))
+    if missing:
         raise ReconError(
-            f"{paths.fitted_light}: names the pbr material, but "
-            + ("the roughness/metallic maps of " + str(paths.fitted_mesh) if maps is None else "")
-            + (str(environment_path) if maps is not None else "")
-            + " are missing (rerun the fit stage)"
+            f"{paths.fitted_light}: names the pbr material, but {' and '.join(missing)} "
+            "are missing (rerun the fit stage)"
         )
     mesh = load_mesh(paths.fitted_mesh).to(device)
     environment = read_exr(environment_path)[..., :3].to(device)

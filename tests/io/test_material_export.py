@@ -69,3 +69,21 @@ def test_write_pbr_result_writes_mesh_maps_environment_and_light(tmp_path):
     assert len(record["sh_coefficients"]) == 9
     assert load_material_maps(paths.fitted_mesh) is not None
     assert load_material_maps(paths.mesh_folder / "model.glb") is not None
+
+
+def test_a_pbr_run_with_its_environment_missing_is_named(tmp_path):
+    from recon.optimize.material_stage import load_pbr_result
+
+    mesh, maps = _textured_quad()
+    environment = torch.ones(4, 8, 3)
+    paths = RunPaths(tmp_path)
+    write_pbr_result(
+        paths,
+        PbrTextureResult(mesh, maps, environment, light_from_environment(environment), 0.5, 4),
+    )
+    loaded = load_pbr_result(paths)
+    torch.testing.assert_close(loaded.environment, environment)
+    assert loaded.prefilter_levels == 4 and loaded.material.shape == (8, 8, 2)
+    (paths.light_folder / "environment.exr").unlink()
+    with pytest.raises(ReconError, match=r"light.json: names the pbr material, but .*environment"):
+        load_pbr_result(paths)
