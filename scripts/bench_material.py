@@ -87,6 +87,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--geometry-steps", type=int, default=None)
     parser.add_argument("--texture-steps", type=int, default=None)
     parser.add_argument("--spp", type=int, default=None, help="Mitsuba samples per pixel")
+    parser.add_argument("--materials", nargs="+", default=["lambert", "pbr"])
     parser.add_argument("--set", dest="overrides", action="append", default=[])
     arguments = parser.parse_args(argv)
     overrides = []
@@ -110,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
     config = (REPO_ROOT / arguments.config).resolve()
     results = [
         run_material(material, config, Path(arguments.out).resolve(), overrides)
-        for material in ("lambert", "pbr")
+        for material in arguments.materials
     ]
     print(
         json.dumps(
