@@ -347,6 +347,9 @@ class PbrFitConfig:
     initial_metalness: float = 0.0
     # Dielectric reflectance at normal incidence is 0.08 x this (0.5 gives the usual 0.04).
     specular_level: float = 0.5
+    # 'none': diffuse = base (1 - metalness) / pi x irradiance (Karis; Mitsuba's principled);
+    # 'specular_albedo': times 1 - the specular lobe's albedo (never exceeds a white furnace).
+    diffuse_weighting: Literal["none", "specular_albedo"] = "none"
     # Adam learning rates of the roughness/metalness texture and of the environment texels.
     material_learning_rate: float = 0.02
     environment_learning_rate: float = 0.03

@@ -67,7 +67,7 @@ class PbrTextureResult:
     material: [h, w, 2] roughness, metalness on the same UVs.
     environment: [he, we, 3] lat-long radiance of the fitted light.
     light: an SH light equivalent to the environment (for Lambertian consumers).
-    specular_level, prefilter_levels: the shading settings the fit used.
+    specular_level, prefilter_levels, diffuse_weighting: the shading settings the fit used.
     """
 
     mesh: Mesh
@@ -77,6 +77,7 @@ class PbrTextureResult:
     specular_level: float
     prefilter_levels: int
     effects: FitEffects | None = None
+    diffuse_weighting: str = "none"
 
     def material_texture(self) -> torch.Tensor:
         """[h, w, 5] base colour, roughness, metalness: what Renderer.shade_pbr samples."""
@@ -94,6 +95,7 @@ class PbrTextureResult:
             specular_level=self.specular_level,
             background=background,
             mip_pyramid=build_mip_pyramid(texture),
+            diffuse_weighting=self.diffuse_weighting,
         )
 
 
@@ -141,6 +143,7 @@ def write_pbr_result(paths: RunPaths, result: PbrTextureResult) -> dict:
             "environment_file": "environment.exr",
             "specular_level": result.specular_level,
             "prefilter_levels": result.prefilter_levels,
+            "diffuse_weighting": result.diffuse_weighting,
         }
     )
     atomic_write_json(paths.fitted_light, record)
@@ -181,6 +184,7 @@ def load_pbr_result(paths: RunPaths, device: torch.device | str = "cpu"):
         light_from_environment(environment),
         float(record["specular_level"]),
         int(record["prefilter_levels"]),
+        diffuse_weighting=record.get("diffuse_weighting", "none"),
     )
 
 
@@ -305,6 +309,7 @@ def run_pbr_texture_stage(
             prefilter_environment(environment, pbr.prefilter_levels),
             specular_level=pbr.specular_level,
             mip_pyramid=build_mip_pyramid(texture),
+            diffuse_weighting=pbr.diffuse_weighting,
         )
         color, alpha = apply_image_effects(
             effects.modules, output.color, output.alpha, batch_cameras, views
@@ -369,4 +374,5 @@ def run_pbr_texture_stage(
         pbr.specular_level,
         pbr.prefilter_levels,
         effects,
+        pbr.diffuse_weighting,
     )

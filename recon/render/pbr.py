@@ -5,12 +5,15 @@ Outgoing radiance at a point with base colour b, roughness r, metalness m, norma
 direction to the viewer v, reflection direction R = 2 (n.v) n - v:
 
     specular = prefiltered(R, r) (F0 A(n.v, r) + B(n.v, r)),      F0 = mix(0.08 s, b, m)
-    diffuse  = b (1 - m) / pi E(n) (1 - (F0 A + B))
+    diffuse  = b (1 - m) / pi E(n)                     (diffuse_weighting 'none', the default)
+    diffuse  = b (1 - m) / pi E(n) (1 - (F0 A + B))    (diffuse_weighting 'specular_albedo')
 
-The diffuse lobe is weighted by what the specular lobe does not reflect (1 - its directional
-albedo), so a white material under a white furnace never reflects more than it receives. With
-roughness 1, metalness 0 and specular level 0 the specular share is a few percent and the
-result is close to lambertian() under the same light.
+'none' is Karis' and Mitsuba's principled BSDF's choice (data_synth renders glossy scenes with
+the latter; tests/data_synth/test_pbr_vs_mitsuba.py measures the agreement); it can reflect a
+few percent more than it receives at grazing angles. 'specular_albedo' gives the diffuse lobe
+only what the specular lobe does not reflect, so a white material under a white furnace never
+exceeds 1. With roughness 1, metalness 0 and specular level 0 either is close to lambertian()
+under the same light.
 """
 
 from __future__ import annotations
@@ -30,15 +33,21 @@ from recon.render.shading import DirectionalLight
 @dataclass
 class PbrMaterial:
     """Per-point material [N, ...]: base_color [N, C], roughness [N, 1], metalness [N, 1] (all
-    in [0, 1]); specular_level scales the dielectric F0 (0.5 gives 0.04)."""
+    in [0, 1]); specular_level scales the dielectric F0 (0.5 gives 0.04); diffuse_weighting
+    'none' or 'specular_albedo' (see the module docstring)."""
 
     base_color: torch.Tensor
     roughness: torch.Tensor
     metalness: torch.Tensor
     specular_level: float = 0.5
+    diffuse_weighting: str = "none"
 
     @staticmethod
-    def from_channels(channels: torch.Tensor, specular_level: float = 0.5) -> PbrMaterial:
+    def from_channels(
+        channels: torch.Tensor,
+        specular_level: float = 0.5,
+        diffuse_weighting: str = "none",
+    ) -> PbrMaterial:
         """From packed channels [N, 5]: base colour (3), roughness, metalness."""
         if channels.shape[-1] != 5:
             raise ReconError(
@@ -46,7 +55,11 @@ class PbrMaterial:
                 f"{tuple(channels.shape)}"
             )
         return PbrMaterial(
-            channels[..., :3], channels[..., 3:4], channels[..., 4:5], specular_level
+            channels[..., :3],
+            channels[..., 3:4],
+            channels[..., 4:5],
+            specular_level,
+            diffuse_weighting,
         )
 
 
@@ -69,7 +82,14 @@ def pbr_shade(
     n_dot_v = (normals * to_viewer).sum(-1, keepdim=True).clamp(MINIMUM_COSINE, 1)
     scale_bias = lookup_split_sum(n_dot_v, roughness)
     specular_albedo = f0 * scale_bias[..., 0:1] + scale_bias[..., 1:2]
-    diffuse_albedo = base * (1 - metalness) * (1 - specular_albedo)
+    diffuse_albedo = base * (1 - metalness)
+    if material.diffuse_weighting == "specular_albedo":
+        diffuse_albedo = diffuse_albedo * (1 - specular_albedo)
+    elif material.diffuse_weighting != "none":
+        raise ReconError(
+            "PbrMaterial.diffuse_weighting: expected 'specular_albedo' or 'none', got "
+            f"{material.diffuse_weighting!r}"
+        )
     radiance = torch.zeros_like(base)
     if environment is not None:
         reflected = F.normalize(2 * n_dot_v * normals - to_viewer, dim=-1, eps=1e-12)

@@ -183,6 +183,7 @@ class Renderer:
         background: torch.Tensor | float = 0.0,
         mip_pyramid: list[torch.Tensor] | None = None,
         antialias_edges: bool = True,
+        diffuse_weighting: str = "none",
     ) -> RenderOutput:
         """Texture, shade with the metallic-roughness model (recon.render.pbr), composite and
         antialias: the `pbr` material's counterpart of shade().
@@ -191,6 +192,7 @@ class Renderer:
         material_texture: [h, w, 5] base colour (3), roughness, metalness on the buffers' UVs.
         environment: the pre-filtered environment light (None: directional lights only).
         mip_pyramid: build_mip_pyramid(material_texture), to reuse across calls.
+        diffuse_weighting: 'specular_albedo' or 'none' (PbrMaterial).
         RenderOutput.albedo holds the base colour.
         """
         mesh, fragments = buffers.mesh, buffers.fragments
@@ -212,7 +214,7 @@ class Renderer:
             self.texture_boundary,
             mip_pyramid,
         )
-        material = PbrMaterial.from_channels(channels, specular_level)
+        material = PbrMaterial.from_channels(channels, specular_level, diffuse_weighting)
         positions = interpolate_packed(mesh.verts, fragments, mesh.faces)
         centers = camera_centers.to(positions.dtype)[fragments.covered_batch]
         to_viewer = torch.nn.functional.normalize(centers - positions, dim=-1, eps=1e-12)

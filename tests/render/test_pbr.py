@@ -77,14 +77,20 @@ def test_white_furnace_specular_lobe_never_creates_energy(n_dot_v, roughness):
 
 
 def test_white_furnace_split_sum_material_reflects_at_most_the_light():
-    """A white (or metallic) material under a constant unit environment: outgoing <= 1."""
+    """A white (or metallic) material under a constant unit environment: outgoing <= 1 with
+    the energy-weighted diffuse lobe."""
     environment = prefilter_environment(torch.ones(8, 16, 3, dtype=torch.float64), 4)
     grid = torch.linspace(0, 1, 11, dtype=torch.float64)
     n_dot_v, roughness, metalness = torch.meshgrid(grid.clamp_min(0.02), grid, grid, indexing="ij")
     n_dot_v, roughness, metalness = (t.reshape(-1, 1) for t in (n_dot_v, roughness, metalness))
     count = n_dot_v.shape[0]
     viewer = torch.cat([torch.sqrt(1 - n_dot_v**2), torch.zeros_like(n_dot_v), n_dot_v], -1)
-    material = PbrMaterial(torch.ones(count, 3, dtype=torch.float64), roughness, metalness)
+    material = PbrMaterial(
+        torch.ones(count, 3, dtype=torch.float64),
+        roughness,
+        metalness,
+        diffuse_weighting="specular_albedo",
+    )
     radiance = pbr_shade(material, NORMAL.expand(count, 3), viewer, environment)
     assert float(radiance.max()) <= 1.0 + 1e-3
     # Not black either: rough metals lose up to ~70 % to the single-scattering Smith model.
