@@ -81,11 +81,11 @@ def test_pbr_shading_is_closer_to_the_path_tracer_than_lambert():
         error = (image - traced).abs().mean(-1)[inside].mean()
         return float(error / traced.mean(-1)[inside].mean())
 
-    # Measured: pbr 4.4 %, lambert 9.0 %; the path tracer's own noise at 128 spp (and
-    # Burley's diffuse) leave about 4.5 % even for a diffuse sphere, so that is the floor.
-    assert relative_error(pbr) < 0.06
-    assert relative_error(lambert) > 0.075
-    # The highlight's energy: the means agree within 2 %, Lambert's is 8 % short.
+    # Measured here (128 spp): pbr 5.3 %, lambert 9.5 %. The path tracer's noise (and Burley's
+    # diffuse) leave about 5 % even for a diffuse sphere, so that is the floor.
+    assert relative_error(pbr) < 0.065
+    assert relative_error(pbr) < 0.7 * relative_error(lambert)
+    # The highlight's energy: the means agree within 2 % (measured 0.4 %), Lambert's is 8 % short.
     traced_mean = float(traced[inside].mean())
     assert abs(float(pbr[inside].mean()) / traced_mean - 1) < 0.02
     assert float(lambert[inside].mean()) / traced_mean < 0.95
