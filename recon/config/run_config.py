@@ -459,6 +459,62 @@ class TextureStageConfig:
 
 
 @dataclass
+class PbrFitConfig:
+    """The `pbr` material's settings (used only with fit.material: pbr): textures base colour +
+    roughness + metalness and an optimised lat-long environment light (recon.render.pbr)."""
+
+    environment_size: list[int] = setting(
+        factory=lambda: [16, 32],
+        doc="Environment map [height, width] the fit optimises (lat-long, row 0 looks up).",
+    )
+    prefilter_levels: int = setting(
+        6, "Pre-filtered roughness levels besides the map itself (roughness linspace(0, 1, n + 1))."
+    )
+    initial_roughness: float = setting(0.5, "Starting roughness of every texel.")
+    initial_metalness: float = setting(0.0, "Starting metalness of every texel.")
+    specular_level: float = setting(
+        0.5, "Dielectric reflectance at normal incidence is 0.08 x this (0.5 gives the usual 0.04)."
+    )
+    diffuse_weighting: Literal["none", "specular_albedo"] = setting(
+        "none",
+        "none: diffuse = base (1 - metalness) / pi x irradiance (Karis; Mitsuba's principled); specular_albedo: times 1 - the specular lobe's albedo (never exceeds a white furnace).",
+    )
+    material_learning_rate: float = setting(
+        0.02, "Adam learning rate of the roughness/metalness texture."
+    )
+    environment_learning_rate: float = setting(
+        0.03, "Adam learning rate of the environment texels."
+    )
+    material_smoothness_weight: float = setting(
+        0.01, "Total variation of the roughness/metalness texture (keeps unseen texels quiet)."
+    )
+    environment_smoothness_weight: float = setting(
+        0.01, "Total variation of the environment map (neighbouring texels alike)."
+    )
+    environment_whiteness_weight: float = setting(
+        0.01,
+        "Pull of each environment texel toward grey (its channel mean): light colour and base colour are otherwise interchangeable.",
+    )
+
+    def __post_init__(self) -> None:
+        _check_vector(self.environment_size, "environment_size", length=2)
+        for value, key in zip(self.environment_size, ("height", "width"), strict=True):
+            check_range(value, f"environment_size {key}", low=2, high=512)
+        check_range(self.prefilter_levels, "prefilter_levels", low=1, high=16)
+        check_range(self.initial_roughness, "initial_roughness", low=0.0, high=1.0)
+        check_range(self.initial_metalness, "initial_metalness", low=0.0, high=1.0)
+        check_range(self.specular_level, "specular_level", low=0.0, high=1.0)
+        for key in (
+            "material_learning_rate",
+            "environment_learning_rate",
+            "material_smoothness_weight",
+            "environment_smoothness_weight",
+            "environment_whiteness_weight",
+        ):
+            check_range(getattr(self, key), key, low=0.0)
+
+
+@dataclass
 class FitConfig:
     """The reconstruction recipe (two passes, nvdiffrec style)."""
 
@@ -483,6 +539,13 @@ class FitConfig:
     effects: list[str] = setting(
         factory=list,
         doc="Model-side effect modules to fit with the scene (names from `recon effects`; none by default).",
+    )
+    material: Literal["lambert", "pbr"] = setting(
+        "lambert",
+        "Appearance model of the texture stage: lambert (albedo under SH + sun) or pbr (base colour, roughness, metalness under an optimised environment map, split-sum GGX).",
+    )
+    pbr: PbrFitConfig = setting(
+        factory=PbrFitConfig, doc="Settings of the pbr material (used only with material: pbr)."
     )
 
     def __post_init__(self) -> None:

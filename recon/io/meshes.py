@@ -31,6 +31,7 @@ from recon.io.images import (
     _pillow_pixels,
     linear_to_srgb,
     read_image,
+    read_png,
     srgb_to_linear,
     write_png,
 )
@@ -253,19 +254,35 @@ def _format_rows(line_format: str, rows: np.ndarray) -> list[str]:
     return [line_format % tuple(row) for row in rows.tolist()]
 
 
-def _save_obj(path: Path, mesh: Mesh, texture_bits: int) -> None:
-    """OBJ (+ STEM.mtl and STEM_texture.png when textured). The texture and MTL are written first,
-    so the OBJ never names a file that does not exist yet."""
+def _save_obj(
+    path: Path, mesh: Mesh, texture_bits: int, material_maps: torch.Tensor | None = None
+) -> None:
+    """OBJ (+ STEM.mtl and STEM_texture.png when textured; + STEM_roughness.png and
+    STEM_metallic.png as map_Pr / map_Pm, the MTL's PBR extension, with material_maps). The
+    textures and MTL are written first, so the OBJ never names a file that does not exist yet."""
     verts = mesh.verts.detach().cpu().double().numpy()
     faces = mesh.faces.detach().cpu().numpy() + 1  # OBJ indices start at 1
     lines = ["# written by recon.io.save_mesh"]
     if mesh.texture is not None:
         texture_name = f"{path.stem}_texture.png"
         write_png(path.parent / texture_name, mesh.texture, bits=texture_bits)
+        pbr_lines = ""
+        if material_maps is not None:
+            maps = material_maps.detach().cpu().float()
+            for channel, (key, suffix) in enumerate((("Pr", "roughness"), ("Pm", "metallic"))):
+                name = f"{path.stem}_{suffix}.png"
+                # Roughness and metalness are data, not colour: stored linearly.
+                write_png(
+                    path.parent / name,
+                    maps[..., channel : channel + 1],
+                    bits=texture_bits,
+                    encode_srgb=False,
+                )
+                pbr_lines += f"{key} 1\nmap_{key} {name}\n"
         atomic_write_text(
             path.parent / f"{path.stem}.mtl",
             f"newmtl {_MATERIAL_NAME}\nKa 0 0 0\nKd 1 1 1\nKs 0 0 0\nd 1\nillum 1\n"
-            f"map_Kd {texture_name}\n",
+            f"map_Kd {texture_name}\n{pbr_lines}",
         )
         lines.append(f"mtllib {path.stem}.mtl")
     # %.9g round-trips float32 exactly; colours are sRGB-coded like textures.
@@ -290,9 +307,11 @@ def _save_obj(path: Path, mesh: Mesh, texture_bits: int) -> None:
     atomic_write_text(path, "\n".join(lines) + "\n")
 
 
-def _save_glb(path: Path, mesh: Mesh) -> None:
+def _save_glb(path: Path, mesh: Mesh, material_maps: torch.Tensor | None = None) -> None:
     """Binary glTF. glTF has one UV per vertex, so vertices are split where a position is used
-    with several UVs; the texture (sRGB PNG inside the GLB) wins over vertex colours."""
+    with several UVs; the texture (sRGB PNG inside the GLB) wins over vertex colours.
+    material_maps [h, w, 2] (roughness, metalness) become the metallic-roughness texture
+    (glTF: green = roughness, blue = metalness, linear)."""
     verts = mesh.verts.detach().cpu().float().numpy()
     faces = mesh.faces.detach().cpu().numpy()
     if mesh.uvs is not None:
@@ -315,8 +334,18 @@ def _save_glb(path: Path, mesh: Mesh) -> None:
             texture[..., :colour] = linear_to_srgb(texture[..., :colour])
             pixels = torch.round(texture * 255).numpy().astype(np.uint8)
             image = Image.fromarray(pixels[..., 0] if pixels.shape[-1] == 1 else pixels)
+            pbr_maps = {"metallicFactor": 0.0, "roughnessFactor": 1.0}
+            if material_maps is not None:
+                maps = material_maps.detach().cpu().float().clamp(0, 1).numpy()
+                packed = np.zeros((*maps.shape[:2], 3), dtype=np.uint8)
+                packed[..., 1:] = np.round(maps * 255).astype(np.uint8)
+                pbr_maps = {
+                    "metallicFactor": 1.0,
+                    "roughnessFactor": 1.0,
+                    "metallicRoughnessTexture": Image.fromarray(packed),
+                }
             material = trimesh.visual.material.PBRMaterial(
-                name=_MATERIAL_NAME, baseColorTexture=image, metallicFactor=0.0, roughnessFactor=1.0
+                name=_MATERIAL_NAME, baseColorTexture=image, **pbr_maps
             )
         visual = trimesh.visual.TextureVisuals(uv=uvs, material=material)
         result = trimesh.Trimesh(
@@ -331,18 +360,60 @@ def _save_glb(path: Path, mesh: Mesh) -> None:
     atomic_write_bytes(path, result.export(file_type="glb"))
 
 
-def save_mesh(path: str | os.PathLike, mesh: Mesh, texture_bits: int = 8) -> None:
+def save_mesh(
+    path: str | os.PathLike,
+    mesh: Mesh,
+    texture_bits: int = 8,
+    material_maps: torch.Tensor | None = None,
+) -> None:
     """Write a Mesh as OBJ (with MTL and STEM_texture.png when textured) or GLB, atomically.
 
     OBJ keeps the shared positions and the separate UV indices (`f v/vt`), flips v back to OBJ's
     bottom-up convention and writes vertex colours as sRGB `v x y z r g b`. GLB splits vertices at
     UV seams (glTF has one index buffer). texture_bits (8 or 16) is the OBJ texture PNG depth.
+    material_maps: [h, w, 2] roughness and metalness on the texture's UVs (the `pbr` material;
+    needs mesh.texture as base colour): OBJ map_Pr / map_Pm, GLB metallicRoughnessTexture.
     """
     path = Path(path)
     suffix = path.suffix.lower()
+    if material_maps is not None and (
+        mesh.texture is None or material_maps.ndim != 3 or material_maps.shape[-1] != 2
+    ):
+        raise ReconError(
+            f"{path}: material_maps: expected [h, w, 2] (roughness, metalness) with a textured "
+            f"mesh, got {tuple(material_maps.shape)} (texture: {mesh.texture is not None})"
+        )
     if suffix == ".obj":
-        _save_obj(path, mesh, texture_bits)
+        _save_obj(path, mesh, texture_bits, material_maps)
     elif suffix == ".glb":
-        _save_glb(path, mesh)
+        _save_glb(path, mesh, material_maps)
     else:
         raise ReconError(f"{path}: save_mesh writes .obj or .glb, got {suffix!r}")
+
+
+def load_material_maps(path: str | os.PathLike) -> torch.Tensor | None:
+    """Roughness and metalness [h, w, 2] (float32, linear) that save_mesh wrote with
+    material_maps: OBJ's map_Pr / map_Pm, GLB's metallicRoughnessTexture (green, blue). None
+    when the file has none."""
+    path = Path(path)
+    if path.suffix.lower() == ".glb":
+        scene = trimesh.load(path, force="scene")
+        for geometry in scene.geometry.values():
+            material = getattr(geometry.visual, "material", None)
+            image = getattr(material, "metallicRoughnessTexture", None)
+            if image is not None:
+                pixels = np.asarray(image.convert("RGB"), dtype=np.float32) / 255.0
+                return torch.from_numpy(pixels[..., 1:3].copy())
+        return None
+    maps: dict[str, Path] = {}
+    library = path.with_suffix(".mtl")
+    if not library.is_file():
+        return None
+    for line in library.read_text(encoding="utf-8", errors="replace").splitlines():
+        tokens = line.split()
+        if len(tokens) > 1 and tokens[0] in ("map_Pr", "map_Pm"):
+            maps[tokens[0]] = library.parent / tokens[-1]
+    if set(maps) != {"map_Pr", "map_Pm"}:
+        return None
+    channels = [read_png(maps[key], decode_srgb=False)[..., :1] for key in ("map_Pr", "map_Pm")]
+    return torch.cat(channels, dim=-1).float()

@@ -20,6 +20,7 @@ from recon.io.run_folder import RunPaths
 from recon.metrics.geometry import geometry_metrics, mesh_stats
 from recon.metrics.image import image_metrics
 from recon.optimize.fit import load_fitted_light
+from recon.optimize.material_stage import load_pbr_result
 from recon.render.renderer import Renderer
 
 matplotlib.use("Agg")
@@ -31,13 +32,17 @@ def render_fitted(paths: RunPaths, cameras, device: torch.device):
     """Premultiplied colour [B, H, W, 3] and alpha [B, H, W, 1] of the fitted scene."""
     mesh = load_mesh(paths.fitted_mesh).to(device)
     lighting = load_fitted_light(paths, device)
+    # A run fitted with fit.material: pbr renders with its material maps and environment.
+    pbr = load_pbr_result(paths, device)
     renderer = Renderer(texture_filter="linear-mipmap-linear", texture_boundary="clamp")
     colors, alphas = [], []
     with torch.no_grad():
         for start in range(0, len(cameras), VIEWS_PER_BATCH):
-            output = renderer.render(
-                mesh, cameras[start : start + VIEWS_PER_BATCH].to(device), lighting
-            )
+            batch = cameras[start : start + VIEWS_PER_BATCH].to(device)
+            if pbr is not None:
+                output = pbr.render(renderer, batch)
+            else:
+                output = renderer.render(mesh, batch, lighting)
             colors.append(output.color.cpu())
             alphas.append(output.alpha.cpu())
     return mesh, torch.cat(colors), torch.cat(alphas)

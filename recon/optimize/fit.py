@@ -62,6 +62,22 @@ def fit_stage(
     geometry = run_geometry_stage(
         captures, config.fit, device, config.seed, geometry_checkpoint, history, resume=resume
     )
+    if config.fit.material == "pbr":
+        # The pbr material (base colour, roughness, metalness, environment map): its own stage
+        # and writer, recon/optimize/material_stage.py.
+        from recon.optimize.material_stage import run_pbr_texture_stage, write_pbr_result
+
+        pbr_result = run_pbr_texture_stage(
+            captures,
+            geometry,
+            config.fit,
+            device,
+            config.seed,
+            texture_checkpoint,
+            history,
+            resume=resume and texture_checkpoint.exists(),
+        )
+        return write_pbr_result(paths, pbr_result)
     result = run_texture_stage(
         captures,
         geometry,

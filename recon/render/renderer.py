@@ -10,9 +10,11 @@ from recon.camera.cameras import Cameras
 from recon.errors import ReconError
 from recon.mesh.mesh import Mesh, validate_mesh_tensors, vertex_normals
 from recon.render.antialias import EdgeTopology, antialias, build_topology
+from recon.render.environment import PrefilteredEnvironment
 from recon.render.interpolate import interpolate_packed
+from recon.render.pbr import PbrMaterial, pbr_shade
 from recon.render.rasterize import Fragments, rasterize, scatter_to_image
-from recon.render.shading import Lighting, lambertian
+from recon.render.shading import DirectionalLight, Lighting, lambertian
 from recon.render.texture import texture as sample_texture
 
 
@@ -147,8 +149,6 @@ class Renderer:
         """
         mesh, fragments = buffers.mesh, buffers.fragments
         faces = mesh.faces
-        height, width = buffers.image_size
-        batch = fragments.mask.shape[0]
         texture = mesh.texture if texture is None else texture
         if buffers.uv is not None and texture is not None:
             filter_mode = self.texture_filter
@@ -170,6 +170,70 @@ class Renderer:
             )
         positions = interpolate_packed(mesh.verts, fragments, faces) if lighting.points else None
         radiance = lambertian(albedo, buffers.normals, lighting, positions)
+        return self._composite(buffers, radiance, albedo, background, antialias_edges)
+
+    def shade_pbr(
+        self,
+        buffers: SurfaceBuffers,
+        camera_centers: torch.Tensor,
+        material_texture: torch.Tensor,
+        environment: PrefilteredEnvironment | None,
+        directional: list[DirectionalLight] | None = None,
+        specular_level: float = 0.5,
+        background: torch.Tensor | float = 0.0,
+        mip_pyramid: list[torch.Tensor] | None = None,
+        antialias_edges: bool = True,
+        diffuse_weighting: str = "none",
+    ) -> RenderOutput:
+        """Texture, shade with the metallic-roughness model (recon.render.pbr), composite and
+        antialias: the `pbr` material's counterpart of shade().
+
+        camera_centers: [B, 3] world positions of the batch's cameras (the view directions).
+        material_texture: [h, w, 5] base colour (3), roughness, metalness on the buffers' UVs.
+        environment: the pre-filtered environment light (None: directional lights only).
+        mip_pyramid: build_mip_pyramid(material_texture), to reuse across calls.
+        diffuse_weighting: 'specular_albedo' or 'none' (PbrMaterial).
+        RenderOutput.albedo holds the base colour.
+        """
+        mesh, fragments = buffers.mesh, buffers.fragments
+        if buffers.uv is None:
+            raise ReconError("shade_pbr: the mesh has no UVs to look the material texture up")
+        if material_texture.ndim != 3 or material_texture.shape[-1] != 5:
+            raise ReconError(
+                "shade_pbr: material_texture: expected [h, w, 5] (base colour, roughness, "
+                f"metalness), got {tuple(material_texture.shape)}"
+            )
+        filter_mode = self.texture_filter
+        if filter_mode == "linear-mipmap-linear" and buffers.uv_derivatives is None:
+            filter_mode = "linear"
+        channels = _texture_packed(
+            material_texture,
+            buffers.uv,
+            buffers.uv_derivatives,
+            filter_mode,
+            self.texture_boundary,
+            mip_pyramid,
+        )
+        material = PbrMaterial.from_channels(channels, specular_level, diffuse_weighting)
+        positions = interpolate_packed(mesh.verts, fragments, mesh.faces)
+        centers = camera_centers.to(positions.dtype)[fragments.covered_batch]
+        to_viewer = torch.nn.functional.normalize(centers - positions, dim=-1, eps=1e-12)
+        radiance = pbr_shade(material, buffers.normals, to_viewer, environment, directional)
+        return self._composite(buffers, radiance, material.base_color, background, antialias_edges)
+
+    def _composite(
+        self,
+        buffers: SurfaceBuffers,
+        radiance: torch.Tensor,
+        albedo: torch.Tensor,
+        background: torch.Tensor | float,
+        antialias_edges: bool,
+    ) -> RenderOutput:
+        """Scatter packed radiance [N, C] to images, composite over the background and
+        antialias (shared by the Lambertian and the PBR shading)."""
+        fragments, faces = buffers.fragments, buffers.mesh.faces
+        height, width = buffers.image_size
+        batch = fragments.mask.shape[0]
         channels = radiance.shape[-1]
         covered = fragments.covered_index
         radiance_image = scatter_to_image(radiance, covered, batch, height, width)

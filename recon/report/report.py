@@ -19,8 +19,10 @@ from recon.io.run_folder import RunPaths
 from recon.mesh.mesh import Mesh
 from recon.optimize.checkpoint import History
 from recon.optimize.fit import load_fitted_light
+from recon.optimize.material_stage import load_pbr_result
 from recon.render.renderer import Renderer
 from recon.render.shading import Lighting
+from recon.report.material_figure import material_figure
 
 matplotlib.use("Agg")
 
@@ -106,6 +108,12 @@ def report_stage(config: RunConfig, paths: RunPaths, device: torch.device) -> di
         lighting = load_fitted_light(paths, device)
         turntable(mesh, lighting, paths.figures / "turntable.png", device)
         figures.append(("Fitted mesh, turntable", paths.figures / "turntable.png"))
+        pbr = load_pbr_result(paths)
+        if pbr is not None:
+            material_figure(pbr, paths.figures / "material.png")
+            figures.append(
+                ("Fitted material and environment (pbr)", paths.figures / "material.png")
+            )
         if paths.reference_mesh.exists():
             geometry_error_figure(
                 mesh, load_mesh(paths.reference_mesh), paths.figures / "geometry_error.png", device

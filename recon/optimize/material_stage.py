@@ -1,0 +1,378 @@
+"""Stage 2 with the `pbr` material (fit.material: pbr): after simplify + unwrap + bake, optimise
+base colour, roughness and metalness textures, an environment map and the vertex positions on
+the fixed topology, shading with the split-sum GGX model (recon.render.pbr).
+
+The geometry stage stays Lambertian (its per-vertex albedo absorbs highlights; the silhouettes
+drive the shape); its light seeds the environment map: the SH radiance plus the sun spread over
+a small lobe of the same irradiance.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from tqdm import tqdm
+
+from recon.config.run_config import FitConfig
+from recon.effects.forward import apply_camera_effects, apply_image_effects
+from recon.errors import ReconError
+from recon.io.atomic import atomic_write_json
+from recon.io.datasets import CaptureSet
+from recon.io.images import read_exr, write_exr
+from recon.io.meshes import load_material_maps, load_mesh, save_mesh
+from recon.io.run_folder import RunPaths
+from recon.mesh.mesh import Mesh
+from recon.mesh.uv import dilate
+from recon.optimize.checkpoint import (
+    History,
+    load_checkpoint,
+    random_states,
+    restore_random_states,
+    save_checkpoint,
+)
+from recon.optimize.geometry_stage import GeometryResult
+from recon.optimize.large_steps import LaplacianPreconditioner, UniformAdam
+from recon.optimize.scene_model import (
+    FitEffects,
+    LightModel,
+    TrainingPyramid,
+    image_loss,
+    sample_views,
+    step_record,
+    texture_total_variation,
+)
+from recon.optimize.texture_stage import LOG_EVERY, simplify_and_unwrap
+from recon.render.antialias import build_topology
+from recon.render.environment import latlong_directions, prefilter_environment, project_to_sh
+from recon.render.renderer import Renderer, RenderOutput
+from recon.render.shading import sh_basis
+from recon.render.texture import build_mip_pyramid
+
+# Roughness below this is a mirror narrower than any texel of the environment a fit can afford.
+MINIMUM_ROUGHNESS = 0.04
+# The geometry stage's sun is spread over a lobe this many environment texels wide.
+SUN_LOBE_TEXELS = 1.5
+
+
+@dataclass
+class PbrTextureResult:
+    """The `pbr` texture stage's result.
+
+    mesh: the final mesh; mesh.texture is the base colour [h, w, 3].
+    material: [h, w, 2] roughness, metalness on the same UVs.
+    environment: [he, we, 3] lat-long radiance of the fitted light.
+    light: an SH light equivalent to the environment (for Lambertian consumers).
+    specular_level, prefilter_levels, diffuse_weighting: the shading settings the fit used.
+    """
+
+    mesh: Mesh
+    material: torch.Tensor
+    environment: torch.Tensor
+    light: LightModel
+    specular_level: float
+    prefilter_levels: int
+    effects: FitEffects | None = None
+    diffuse_weighting: str = "none"
+
+    def material_texture(self) -> torch.Tensor:
+        """[h, w, 5] base colour, roughness, metalness: what Renderer.shade_pbr samples."""
+        return torch.cat([self.mesh.texture, self.material], dim=-1)
+
+    def render(self, renderer: Renderer, cameras, background: float = 0.0) -> RenderOutput:
+        """Render the fitted scene (no effects) from cameras, e.g. held-out views."""
+        buffers = renderer.surface_buffers(self.mesh, cameras)
+        texture = self.material_texture()
+        return renderer.shade_pbr(
+            buffers,
+            cameras.centers(),
+            texture,
+            prefilter_environment(self.environment, self.prefilter_levels),
+            specular_level=self.specular_level,
+            background=background,
+            mip_pyramid=build_mip_pyramid(texture),
+            diffuse_weighting=self.diffuse_weighting,
+        )
+
+
+def environment_from_light(light: LightModel, size: tuple[int, int]) -> torch.Tensor:
+    """A lat-long map [h, w, 3] of a SH (+ sun) light: the SH radiance, clamped at 0, plus the
+    sun as a narrow lobe whose integral over solid angle is the sun's irradiance."""
+    device = light.sh.device
+    directions, solid_angle = latlong_directions(*size, device=device)
+    flat = directions.reshape(-1, 3)
+    radiance = (sh_basis(flat) @ light.sh.detach()).clamp_min(0)
+    if light.with_sun:
+        lighting = light.lighting()
+        sun = lighting.directional[0]
+        width = SUN_LOBE_TEXELS * math.pi / size[0]
+        cosine = flat @ sun.direction_to_light.detach()
+        lobe = torch.exp((cosine - 1) / (width * width))
+        lobe = lobe / (lobe * solid_angle.reshape(-1)).sum()
+        radiance = radiance + lobe[:, None] * sun.irradiance.detach()
+    return radiance.reshape(*size, 3)
+
+
+def light_from_environment(environment: torch.Tensor) -> LightModel:
+    """An SH-only LightModel with the environment's order-2 projection."""
+    light = LightModel(with_sun=False).to(environment.device)
+    with torch.no_grad():
+        light.sh.copy_(project_to_sh(environment.detach()))
+    return light
+
+
+def write_pbr_result(paths: RunPaths, result: PbrTextureResult) -> dict:
+    """Write the `pbr` fit into the run folder: mesh/model.obj (+ base colour, roughness and
+    metallic PNGs, map_Kd / map_Pr / map_Pm), mesh/model.glb (metallic-roughness material),
+    light/environment.exr (the fitted environment itself) and light/light.json (its order-2 SH,
+    for Lambertian consumers, plus the pbr settings and the environment's file name)."""
+    paths.mesh_folder.mkdir(parents=True, exist_ok=True)
+    mesh = result.mesh.to("cpu")
+    maps = result.material.detach().cpu()
+    save_mesh(paths.fitted_mesh, mesh, material_maps=maps)
+    save_mesh(paths.mesh_folder / "model.glb", mesh, material_maps=maps)
+    paths.light_folder.mkdir(parents=True, exist_ok=True)
+    record = result.light.to_json()
+    record.update(
+        {
+            "material": "pbr",
+            "environment_file": "environment.exr",
+            "specular_level": result.specular_level,
+            "prefilter_levels": result.prefilter_levels,
+            "diffuse_weighting": result.diffuse_weighting,
+        }
+    )
+    atomic_write_json(paths.fitted_light, record)
+    write_exr(paths.light_folder / "environment.exr", result.environment.detach().cpu())
+    return {
+        "faces": int(mesh.faces.shape[0]),
+        "vertices": int(mesh.verts.shape[0]),
+        "material": "pbr",
+    }
+
+
+def load_pbr_result(paths: RunPaths, device: torch.device | str = "cpu"):
+    """The `pbr` fit of a run folder (write_pbr_result's files) as a PbrTextureResult, or None
+    when the run fitted the Lambertian material (its light.json names no 'pbr')."""
+    if not paths.fitted_light.exists():
+        return None
+    record = json.loads(paths.fitted_light.read_text())
+    if record.get("material") != "pbr":
+        return None
+    maps = load_material_maps(paths.fitted_mesh)
+    environment_path = paths.light_folder / record["environment_file"]
+    missing = []
+    if maps is None:
+        missing.append(f"the roughness/metallic maps (map_Pr, map_Pm) of {paths.fitted_mesh}")
+    if not environment_path.exists():
+        missing.append(str(environment_path))
+    if missing:
+        raise ReconError(
+            f"{paths.fitted_light}: names the pbr material, but {' and '.join(missing)} "
+            "are missing (rerun the fit stage)"
+        )
+    mesh = load_mesh(paths.fitted_mesh).to(device)
+    environment = read_exr(environment_path)[..., :3].to(device)
+    return PbrTextureResult(
+        mesh,
+        maps.to(device),
+        environment,
+        light_from_environment(environment),
+        float(record["specular_level"]),
+        int(record["prefilter_levels"]),
+        diffuse_weighting=record.get("diffuse_weighting", "none"),
+    )
+
+
+def run_pbr_texture_stage(
+    captures: CaptureSet,
+    geometry: GeometryResult,
+    config: FitConfig,
+    device: torch.device,
+    seed: int,
+    checkpoint_path: Path,
+    history: History,
+    resume: bool = False,
+    effects: FitEffects | None = None,
+    resolution: int | None = None,
+) -> PbrTextureResult:
+    """The `pbr` counterpart of run_texture_stage (same steps, views, learning rates and
+    checkpoint cadence from config.texture; material and light settings from config.pbr).
+    Camera and image effects apply around the render; shading effects are Lambertian add-ons
+    and are refused."""
+    settings, pbr = config.texture, config.pbr
+    if effects is None:
+        effects = geometry.effects or FitEffects(config.effects, len(captures.cameras), device)
+    shading_effects = [module.name for module in effects.modules if module.stage == "shading"]
+    if shading_effects:
+        raise ReconError(
+            f"fit.effects: {shading_effects} are shading effects of the Lambertian model; "
+            "fit.material 'pbr' models specular reflection itself (drop them or use 'lambert')"
+        )
+    generator = torch.Generator().manual_seed(seed + 1)
+    checkpoint = load_checkpoint(checkpoint_path) if resume else None
+    if checkpoint is not None:
+        mesh = Mesh(
+            checkpoint["verts"].to(device),
+            checkpoint["faces"].to(device),
+            uvs=checkpoint["uvs"].to(device),
+            uv_faces=checkpoint["uv_faces"].to(device),
+            texture=checkpoint["texture"].to(device),
+        )
+        coverage = checkpoint["coverage"].to(device)
+        start_step = checkpoint["step"]
+    else:
+        mesh, coverage = simplify_and_unwrap(geometry, config)
+        start_step = 0
+    size = tuple(pbr.environment_size)
+    resolution = resolution or max(captures.cameras.image_size)
+    pyramid = TrainingPyramid.build(captures, [resolution], device)
+    cameras, images, masks = pyramid.levels[-1]
+    renderer = Renderer(texture_filter="linear-mipmap-linear", texture_boundary="clamp")
+    topology = build_topology(mesh.faces, mesh.verts.shape[0])
+    preconditioner = LaplacianPreconditioner(
+        mesh.faces, mesh.verts.shape[0], settings.large_steps_lambda
+    )
+    latent = torch.nn.Parameter(preconditioner.to_latent(mesh.verts))
+    base_color = torch.nn.Parameter(mesh.texture.clone())
+    height, width = mesh.texture.shape[:2]
+    initial = [max(pbr.initial_roughness, MINIMUM_ROUGHNESS), pbr.initial_metalness]
+    material = torch.nn.Parameter(
+        torch.tensor(initial, device=device).expand(height, width, 2).clone()
+    )
+    environment = torch.nn.Parameter(environment_from_light(geometry.light, size).to(device))
+    position_optimizer = UniformAdam([latent], lr=settings.learning_rate)
+    texture_optimizer = torch.optim.Adam(
+        [
+            {"params": [base_color], "lr": settings.texture_learning_rate},
+            {"params": [material], "lr": pbr.material_learning_rate},
+        ]
+    )
+    light_optimizer = torch.optim.Adam([environment], lr=pbr.environment_learning_rate)
+    if checkpoint is not None:
+        latent.data.copy_(checkpoint["latent"].to(device))
+        material.data.copy_(checkpoint["material"].to(device))
+        environment.data.copy_(checkpoint["environment"].to(device))
+        effects.load_state_dict(checkpoint["effects"])
+        position_optimizer.load_state_dict(checkpoint["position_optimizer"])
+        texture_optimizer.load_state_dict(checkpoint["texture_optimizer"])
+        light_optimizer.load_state_dict(checkpoint["light_optimizer"])
+        restore_random_states(checkpoint["random"], generator)
+
+    def save(step: int, stage: str = "texture") -> None:
+        save_checkpoint(
+            checkpoint_path,
+            {
+                "stage": stage,
+                "step": step,
+                "material_model": "pbr",
+                "verts": preconditioner.from_latent(latent).detach().cpu(),
+                "latent": latent.detach().cpu(),
+                "faces": mesh.faces.cpu(),
+                "uvs": mesh.uvs.cpu(),
+                "uv_faces": mesh.uv_faces.cpu(),
+                "texture": base_color.detach().cpu(),
+                "material": material.detach().cpu(),
+                "environment": environment.detach().cpu(),
+                "coverage": coverage.cpu(),
+                "position_optimizer": position_optimizer.state_dict(),
+                "texture_optimizer": texture_optimizer.state_dict(),
+                "light_optimizer": light_optimizer.state_dict(),
+                "effects": effects.state_dict(),
+                "random": random_states(generator),
+            },
+        )
+
+    started = time.perf_counter()
+    bar = tqdm(
+        range(start_step, settings.steps),
+        desc="fit pbr texture",
+        initial=start_step,
+        total=settings.steps,
+        unit="step",
+    )
+    for step in bar:
+        views = sample_views(len(cameras), settings.views_per_step, generator).to(device)
+        verts = preconditioner.from_latent(latent)
+        current = Mesh(verts, mesh.faces, uvs=mesh.uvs, uv_faces=mesh.uv_faces, texture=base_color)
+        batch_cameras = apply_camera_effects(effects.modules, cameras[views], views)
+        buffers = renderer.surface_buffers(current, batch_cameras, topology)
+        texture = torch.cat([base_color, material], dim=-1)
+        output = renderer.shade_pbr(
+            buffers,
+            batch_cameras.centers(),
+            texture,
+            prefilter_environment(environment, pbr.prefilter_levels),
+            specular_level=pbr.specular_level,
+            mip_pyramid=build_mip_pyramid(texture),
+            diffuse_weighting=pbr.diffuse_weighting,
+        )
+        color, alpha = apply_image_effects(
+            effects.modules, output.color, output.alpha, batch_cameras, views
+        )
+        color_loss = image_loss(color, images[views])
+        mask_loss = (alpha - masks[views]).abs().mean()
+        regulariser = (
+            settings.smoothness_weight * texture_total_variation(base_color)
+            + pbr.material_smoothness_weight * texture_total_variation(material)
+            + pbr.environment_smoothness_weight * texture_total_variation(environment)
+            + pbr.environment_whiteness_weight
+            * (environment - environment.mean(-1, keepdim=True)).abs().mean()
+        )
+        loss = color_loss + settings.mask_weight * mask_loss + regulariser
+        position_optimizer.zero_grad()
+        texture_optimizer.zero_grad()
+        light_optimizer.zero_grad()
+        effects.zero_grad()
+        loss.backward()
+        position_optimizer.step()
+        texture_optimizer.step()
+        light_optimizer.step()
+        effects.step(1.0)
+        with torch.no_grad():
+            base_color.clamp_(0, 1)
+            material[..., 0].clamp_(MINIMUM_ROUGHNESS, 1)
+            material[..., 1].clamp_(0, 1)
+            environment.clamp_min_(0)
+        if step % LOG_EVERY == 0 or step == settings.steps - 1:
+            record = step_record(
+                "texture",
+                step,
+                {"loss": loss, "color_loss": color_loss, "mask_loss": mask_loss},
+                color,
+                images[views],
+                cameras.image_size,
+                int(mesh.faces.shape[0]),
+                time.perf_counter() - started,
+            )
+            history.log(record)
+            bar.set_postfix(loss=f"{record['loss']:.4f}")
+        if (step + 1) % config.checkpoint_every == 0:
+            save(step + 1)
+    bar.close()
+    with torch.no_grad():
+        final_base = dilate(base_color.detach(), coverage)
+        final_material = dilate(material.detach(), coverage)
+        final_environment = environment.detach().clone()
+    final = Mesh(
+        preconditioner.from_latent(latent).detach(),
+        mesh.faces,
+        uvs=mesh.uvs,
+        uv_faces=mesh.uv_faces,
+        texture=final_base,
+    )
+    save(settings.steps, stage="texture_done")
+    return PbrTextureResult(
+        final,
+        final_material,
+        final_environment,
+        light_from_environment(final_environment),
+        pbr.specular_level,
+        pbr.prefilter_levels,
+        effects,
+        pbr.diffuse_weighting,
+    )
