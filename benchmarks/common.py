@@ -1,9 +1,9 @@
 """Shared helpers of the benchmarks (timing, environment, workers, output).
 
 Benchmarks print their JSON result to stdout and progress to stderr. Each measured configuration
-runs in a fresh worker subprocess (the same module, `python -m MODULE --worker`), so that its peak RSS
-(ru_maxrss) belongs to that configuration alone and a configuration that runs out of time or
-memory can be killed and recorded as skipped without taking the whole run down.
+runs in a fresh worker subprocess (the same module, `python -m MODULE --worker`), so that its
+peak RSS (ru_maxrss) belongs to that configuration alone and a configuration that runs out of
+time or memory can be killed and recorded as skipped without taking the whole run down.
 """
 
 from __future__ import annotations
