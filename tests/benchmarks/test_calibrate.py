@@ -9,8 +9,6 @@ import pytest
 
 from benchmarks import calibrate
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
-
 
 def _run(
     folder: Path, pose: float, vignetting_absorption: float, share: float, relight: float

@@ -4,12 +4,9 @@ refit measured against its control and against the fit."""
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 from benchmarks import diagnosis_costs
 from recon.effects.registry import MODEL_EFFECTS
-
-REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_every_probe_is_timed_and_the_lens_refit_is_measured_both_ways(tiny_run, capsys):

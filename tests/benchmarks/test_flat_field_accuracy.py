@@ -4,11 +4,8 @@ falloff, with and without sensor noise."""
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 from benchmarks import flat_field_accuracy
-
-REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_the_measured_corner_falloff_matches_the_world_s(capsys):

@@ -4,7 +4,6 @@ scripts/add_flat_field.py, which completes older runs with them: tests/scripts/.
 from __future__ import annotations
 
 from dataclasses import replace
-from pathlib import Path
 
 import pytest
 import torch
@@ -16,7 +15,6 @@ from recon.config.run_config import CameraRigConfig, CaptureConfig, EffectConfig
 from recon.diagnose.flat_field import measure_flat_field
 from tests.data_synth.test_synth_stage import effects_record, read_split, synth
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
 SIZE = 48
 CAPTURE = CaptureConfig(
     cameras=CameraRigConfig(rig="fibonacci", distance=3.0, fov_deg=40.0, resolution=[SIZE, SIZE]),
