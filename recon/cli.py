@@ -97,30 +97,6 @@ def build_parser() -> argparse.ArgumentParser:
         "--effects", default="all", help="candidates: 'all' or a comma-separated list"
     )
     diagnose_parser.add_argument("--device", choices=["auto", "cpu", "cuda"])
-    bench_parser = commands.add_parser(
-        "diagnose-bench", help="blind check: withheld effects -> fit -> diagnose -> score"
-    )
-    bench_parser.add_argument("config", help="the scene/fit config of every case")
-    bench_parser.add_argument("--out", required=True, help="benchmark folder")
-    bench_parser.add_argument("--effects", default="all", help="'all' or a comma-separated list")
-    bench_parser.add_argument("--seeds", default="0,1,2", help="comma-separated seeds")
-    bench_parser.add_argument("--clean", type=int, default=3, help="clean datasets")
-    bench_parser.add_argument("--no-pairs", action="store_true", help="skip two-effect cases")
-    bench_parser.add_argument("--refit", choices=["none", "top", "greedy"], default="top")
-    bench_parser.add_argument(
-        "--reuse-fits",
-        action="store_true",
-        help="keep cases whose fit finished under the same config (rediagnose the same data)",
-    )
-    bench_parser.add_argument(
-        "--fits-only", action="store_true", help="synthesise and fit every case, then stop"
-    )
-    bench_parser.add_argument(
-        "--rescore",
-        action="store_true",
-        help="with --reuse-fits: re-decide stored diagnoses with the current thresholds",
-    )
-    _add_common(bench_parser)
     compare_parser = commands.add_parser(
         "compare", help="compare a run's metrics with a baseline; exit 1 on a regression"
     )
@@ -276,28 +252,6 @@ def _diagnose(arguments) -> int:
     return 0
 
 
-def _diagnose_bench(arguments) -> int:
-    from recon import pipeline
-    from recon.diagnose_bench import diagnose_bench
-
-    summary = diagnose_bench(
-        arguments.config,
-        arguments.out,
-        pipeline.resolve_device(arguments.device or "auto"),
-        effects=None if arguments.effects == "all" else arguments.effects.split(","),
-        seeds=[int(seed) for seed in arguments.seeds.split(",")],
-        pairs=[] if arguments.no_pairs else None,
-        clean=arguments.clean,
-        refit=arguments.refit,
-        overrides=arguments.overrides,
-        reuse_fits=arguments.reuse_fits,
-        fits_only=arguments.fits_only,
-        rescore=arguments.rescore,
-    )
-    print(json.dumps(summary, indent=2))
-    return 0
-
-
 def _run_command(arguments) -> int:
     command = arguments.command
     if command in cli_info.COMMANDS:
@@ -308,8 +262,6 @@ def _run_command(arguments) -> int:
         return _compare(arguments)
     if command == "diagnose":
         return _diagnose(arguments)
-    if command == "diagnose-bench":
-        return _diagnose_bench(arguments)
     if command == "sweep":
         return run_sweep_command(arguments)
     if command in ("evaluate", "report"):

@@ -5,18 +5,18 @@
 This is data_synth's (the world's) side, not the diagnosis': for each RUN it reads
 RUN/config.resolved.yaml, sets capture.flat_field.views, and renders the frames through the
 run's effects (the config's, plus the withheld ones from the truth file TRUTH_DIR/RUN_NAME.json,
-by default RUN/../truth as recon diagnose-bench lays it out) with data_synth.flat_field, the
+by default RUN/../truth as recon-bench diagnose-blind lays it out) with data_synth.flat_field, the
 function the synth stage calls: the frames draw from their own seeded streams, so they are the
 frames a fresh synth with the new config writes (tests/data_synth/test_flat_field.py checks
 this). It then writes RUN/dataset/flat_field, adds the realised parameters to the truth file
 (withheld effects) or ground_truth/effects.json (the others), rewrites config.resolved.yaml,
-and updates a diagnose-bench case's bench_fit.json to the new config's hash: the fit never reads
+and updates a blind benchmark case's bench_fit.json to the new config's hash: the fit never reads
 the flat-field split, so the stored fit is the one the new config makes.
 
 How the README's benchmark figures with flat fields were made (fits from before the frames):
 
     python scripts/add_flat_field.py runs/bench_diagnose/*/*_seed*
-    python scripts/bench_diagnose.py --reuse-fits --clean 6
+    recon-bench diagnose --reuse-fits --clean 6
 """
 
 from __future__ import annotations

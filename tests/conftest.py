@@ -32,7 +32,7 @@ def shared_meshes() -> Path:
 @pytest.fixture(scope="session")
 def tiny_run(tmp_path_factory) -> Path:
     """A real run folder, synthesised and fitted at 32 px in a few steps (the quickstart scene):
-    for the diagnosis and the scripts that read fitted runs. Tests may diagnose it in place;
+    for the diagnosis and the benchmarks that read fitted runs. Tests may diagnose it in place;
     copy it to change anything else."""
     import yaml
 

@@ -6,7 +6,7 @@ all: a per-view pose refinement or a blur always "helps" a little on held-out vi
 probe's held-out reduction is therefore compared with what that probe reaches on clean data,
 its null allowance, not with zero.
 
-The allowances were measured with ``scripts/calibrate_diagnosis.py`` on clean calibration
+The allowances were measured with ``recon-bench calibrate`` on clean calibration
 datasets (the benchmark config at 128², default scene and spot, seeds 103-105: fits that the
 blind benchmark's scored cases never use) as twice the largest reduction seen, floored at
 MINIMUM_SHARE; the script prints the table below from fresh fits (the benchmark fits: 128³

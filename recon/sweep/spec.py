@@ -35,7 +35,7 @@ METRIC_SOURCES = ("metrics", "fit", "score")
 @dataclass
 class DiagnoseSpec:
     """Diagnosis sweeps: each trial is fitted without effects, diagnosed blind, then scored
-    against the withheld truth (recon.diagnose_bench's scoring)."""
+    against the withheld truth (recon.sweep.scoring)."""
 
     refit: Literal["none", "top", "greedy"] = "top"
     # Candidate effects of the diagnosis: empty = all registered.

@@ -151,7 +151,7 @@ def _run(trial: dict, folder: Path, run_folder: Path, settings: dict, record: di
 def _diagnose(trial: dict, paths, truth_path: Path, settings: dict) -> dict:
     """Diagnose the fitted trial blind, then (only then) read the truth and score it."""
     from recon.diagnose.diagnose import diagnose_run
-    from recon.diagnose_bench import BenchCase, score_case
+    from recon.sweep.scoring import BenchCase, score_case
 
     config = load_config(paths.resolved_config, RunConfig)
     device = pipeline.resolve_device(settings["device"])

@@ -1,12 +1,9 @@
-"""Flat-field frames: a uniformly lit card through the capture's camera chain (data_synth), and
-scripts/add_flat_field.py completing a run made before the config asked for them."""
+"""Flat-field frames: a uniformly lit card through the capture's camera chain (data_synth).
+scripts/add_flat_field.py, which completes older runs with them: tests/scripts/."""
 
 from __future__ import annotations
 
-import importlib.util
-import json
 from dataclasses import replace
-from pathlib import Path
 
 import pytest
 import torch
@@ -18,7 +15,6 @@ from recon.config.run_config import CameraRigConfig, CaptureConfig, EffectConfig
 from recon.diagnose.flat_field import measure_flat_field
 from tests.data_synth.test_synth_stage import effects_record, read_split, synth
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
 SIZE = 48
 CAPTURE = CaptureConfig(
     cameras=CameraRigConfig(rig="fibonacci", distance=3.0, fov_deg=40.0, resolution=[SIZE, SIZE]),
@@ -88,58 +84,6 @@ def test_synth_writes_the_split_without_moving_the_views(tmp_path):
     assert float(frames.images[:, 0, 0].mean()) < 0.95 * float(centre)
     realised = effects_record(with_frames)["realised"]["flat_field"]
     assert [item["name"] for item in realised] == ["vignetting"]
-
-
-def _script():
-    spec = importlib.util.spec_from_file_location(
-        "add_flat_field", REPO_ROOT / "scripts" / "add_flat_field.py"
-    )
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_added_frames_are_the_frames_a_fresh_synth_writes(tmp_path):
-    """Withheld effects come from the truth file (seed 2 withholds vignetting, which darkens the
-    card, and lens distortion, which does not); the config hash of a bench fit follows."""
-    from recon.config import config_hash, load_config
-    from recon.config.run_config import RunConfig
-
-    before = synth(
-        tmp_path,
-        "case",
-        {"seed": 2, "capture": {"train_views": 2}},
-        "--withhold",
-        "2",
-        "--truth-out",
-        str(tmp_path / "truth" / "case.json"),
-    )
-    (before / "bench_fit.json").write_text(json.dumps({"config_hash": "old", "fit_seconds": 1.0}))
-    fresh = synth(
-        tmp_path,
-        "fresh",
-        {"seed": 2, "capture": {"train_views": 2, "flat_field": {"views": 2}}},
-        "--withhold",
-        "2",
-        "--truth-out",
-        str(tmp_path / "fresh_truth.json"),
-    )
-    script = _script()
-    assert script.main([str(before)]) == 0
-    added = read_split(before, "flat_field").images
-    assert torch.equal(added, read_split(fresh, "flat_field").images)
-    truth = json.loads((tmp_path / "truth" / "case.json").read_text())
-    fresh_truth = json.loads((tmp_path / "fresh_truth.json").read_text())
-    assert [item["name"] for item in truth["realised"]["flat_field"]] == ["vignetting"]
-    assert truth["realised"]["flat_field"] == fresh_truth["realised"]["flat_field"]
-    assert float(added[:, 0, 0].mean()) < 0.95 * float(added[:, 15:17, 15:17].mean())
-    config = load_config(before / "config.resolved.yaml", RunConfig)
-    assert config.capture.flat_field.views == 2
-    assert json.loads((before / "bench_fit.json").read_text())["config_hash"] == config_hash(config)
-    # A second time only with --force; a folder that is no run is refused by name.
-    assert script.main([str(before)]) == 2
-    assert script.main([str(before), "--force"]) == 0
-    assert script.main([str(tmp_path / "nowhere")]) == 2
 
 
 def test_flat_field_config_is_checked():

@@ -9,10 +9,8 @@ rule, and a round trip of the written dataset through read_nerf_synthetic.
 from __future__ import annotations
 
 import copy
-import importlib.util
 import json
 import math
-import sys
 from pathlib import Path
 
 import pytest
@@ -447,37 +445,6 @@ def test_dataset_round_trips_through_the_reader(tmp_path):
         assert float(difference.max()) < 0.008
     png = read_image(out / "dataset" / "train" / "r_0.png")
     assert png.shape == (SIZE, SIZE, 4)
-
-
-# ------------------------------------------------------------------------------------------------
-# scripts/bench_synth.py --quick (smoke test)
-
-
-def test_bench_synth_quick_mode_runs(tmp_path, capsys):
-    script = REPO_ROOT / "scripts" / "bench_synth.py"
-    spec = importlib.util.spec_from_file_location("bench_synth", script)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["bench_synth"] = module
-    try:
-        spec.loader.exec_module(module)
-        threads = torch.get_num_threads()
-        try:
-            report = module.main(["--quick", "--out", str(tmp_path / "bench.json")])
-        finally:
-            torch.set_num_threads(threads)
-    finally:
-        sys.modules.pop("bench_synth", None)
-    printed = json.loads(capsys.readouterr().out)
-    assert printed == report == json.loads((tmp_path / "bench.json").read_text())
-    own = report["own"]
-    assert own["views"] == 3 and own["wall_s"] > 0 and own["runs"] == 1
-    assert set(own["split_s_of_median_run"]) == {"render", "effects", "writing", "other"}
-    assert own["split_s_of_median_run"]["render"] > 0
-    assert own["split_s_of_median_run"]["effects"] > 0
-    mitsuba = report["mitsuba"]
-    if "skipped" not in mitsuba:
-        assert mitsuba["render_s_per_view"] > 0 and mitsuba["sample"]["mitsuba_render_s"] > 0
-        assert mitsuba["full_run"]["views"] == 2
 
 
 def test_a_relight_split_moves_the_shadows_sun_to_its_own_light():

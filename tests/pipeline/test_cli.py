@@ -77,8 +77,9 @@ def test_config_errors_name_file_key_and_suggestion(tmp_path, capsys):
 
 # The layering of recon's top-level modules and packages, lowest first; a module may import
 # its own layer and the layers below. io sits above camera and mesh because its readers build
-# Cameras and Meshes; diagnose_bench (the blind benchmark, to move out of the package) drives
-# whole runs; sweep schedules runs; the CLI modules sit on top.
+# Cameras and Meshes; sweep schedules runs (and scores blind diagnoses, recon.sweep.scoring);
+# the CLI modules sit on top. The benchmarks are a package of their own above recon and
+# data_synth (test_benchmarks_sit_above_everything_and_scripts_use_public_names).
 LAYERS = [
     ["errors"],
     ["config"],
@@ -90,7 +91,6 @@ LAYERS = [
     ["diagnose", "report"],
     ["preflight"],
     ["pipeline"],
-    ["diagnose_bench"],
     ["sweep"],
     ["cli_info"],
     ["cli"],
@@ -127,6 +127,43 @@ def test_imports_point_one_way():
                 target = parts[1]
                 assert target in rank, f"{path} imports {name}, which has no layer"
                 assert rank[target] <= rank[own], f"{path} ({own}) imports {name}"
+
+
+# The packages whose private names (a leading underscore) scripts/ must not import.
+OWN_PACKAGES = ("recon", "data_synth", "benchmarks")
+
+
+def _imports(path: Path) -> list[tuple[str, list[str]]]:
+    """(module, imported names) of every absolute import in a file; names is empty for
+    `import module`."""
+    found = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            found += [(alias.name, []) for alias in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            found.append((node.module, [alias.name for alias in node.names]))
+    return found
+
+
+def test_benchmarks_sit_above_everything_and_scripts_use_public_names():
+    """benchmarks/ may import anything and nothing imports it: not recon, not data_synth. The
+    one-off maintenance scripts in scripts/ use only public names of recon, data_synth and
+    benchmarks (a private function a script needs belongs in a public API or in benchmarks)."""
+    for package in ("recon", "data_synth"):
+        for path in (REPO_ROOT / package).rglob("*.py"):
+            for module, _ in _imports(path):
+                assert module.split(".")[0] != "benchmarks", f"{path} imports {module}"
+    assert (REPO_ROOT / "benchmarks" / "__init__.py").exists()
+    scripts = sorted((REPO_ROOT / "scripts").glob("*.py"))
+    assert scripts, "scripts/ holds the one-off maintenance scripts"
+    for path in scripts:
+        for module, names in _imports(path):
+            parts = module.split(".")
+            if parts[0] not in OWN_PACKAGES:
+                continue
+            private = [part for part in parts[1:] if part.startswith("_")]
+            private += [name for name in names if name.startswith("_")]
+            assert not private, f"{path} imports private {private} from {module}"
 
 
 def test_fit_an_external_dataset_then_compare_with_a_baseline(tmp_path, capsys):

@@ -1,7 +1,7 @@
 """How closely the diagnosis' flat-field measurement reads a vignetting's corner and half-way
 falloff, with and without sensor noise, on frames data_synth renders; prints JSON.
 
-    python scripts/flat_field_accuracy.py [--draws 8] [--views 2] [--config configs/bench/diagnose.yaml]
+    recon-bench flat-field-accuracy [--draws 8] [--views 2] [--config configs/bench/diagnose.yaml]
 
 Each draw samples a vignetting (data_synth's plausible strengths for the config's camera),
 exposure and white balance, and renders the config's flat-field frames through them, once

@@ -1,9 +1,9 @@
-"""Shared helpers for the benchmark scripts in scripts/ (timing, environment, workers, output).
+"""Shared helpers of the benchmarks (timing, environment, workers, output).
 
 Benchmarks print their JSON result to stdout and progress to stderr. Each measured configuration
-runs in a fresh worker subprocess (the same script, called with --worker), so that its peak RSS
-(ru_maxrss) belongs to that configuration alone and a configuration that runs out of time or
-memory can be killed and recorded as skipped without taking the whole run down.
+runs in a fresh worker subprocess (the same module, `python -m MODULE --worker`), so that its
+peak RSS (ru_maxrss) belongs to that configuration alone and a configuration that runs out of
+time or memory can be killed and recorded as skipped without taking the whole run down.
 """
 
 from __future__ import annotations
@@ -185,13 +185,13 @@ def _cpu_model() -> str | None:
     return platform.processor() or None
 
 
-def run_worker(script: Path, job: dict, timeout_s: float) -> dict:
-    """Run `python script --worker JSON` in a fresh process and return its result dict.
+def run_worker(module: str, job: dict, timeout_s: float) -> dict:
+    """Run `python -m module --worker JSON` in a fresh process and return its result dict.
 
     Returns {"skipped": reason} when the worker exceeds timeout_s, is killed (typically by the
     OOM killer) or exits without a result; the worker's stderr passes through as progress.
     """
-    command = [sys.executable, str(script), "--worker", json.dumps(job)]
+    command = [sys.executable, "-m", module, "--worker", json.dumps(job)]
     environment_variables = dict(os.environ)
     python_path = environment_variables.get("PYTHONPATH", "")
     environment_variables["PYTHONPATH"] = os.pathsep.join(

@@ -1,6 +1,6 @@
 """How well can the model's vignetting polynomial know the corner from the object's pixels?
 
-For every vignetting case of a blind benchmark folder (``scripts/bench_diagnose.py --out OUT``):
+For every vignetting case of a blind benchmark folder (``recon-bench diagnose --out OUT``):
 the world's true falloff (data_synth's Vignetting with the withheld parameters, relative to the
 image centre) on the pixels the object covers in the held-out views, the best least-squares fit
 of the model's 1 + a r^2 + b r^4 to it there, and that fit's corner value against the true
@@ -8,7 +8,7 @@ corner falloff. The error is what no diagnosis can beat: the corners lie outside
 The same fit over every pixel of the frame (as if a backdrop or a frame-filling object covered
 the corners) shows what is left of it once the corners are seen. Prints JSON.
 
-    python scripts/vignetting_extrapolation.py OUT/default OUT/spot
+    recon-bench vignetting-extrapolation OUT/default OUT/spot
 """
 
 from __future__ import annotations

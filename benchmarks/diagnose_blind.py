@@ -1,4 +1,4 @@
-"""recon diagnose-bench: the blind check of the gap diagnosis.
+"""recon-bench diagnose-blind: the blind check of the gap diagnosis.
 
 For every case (one effect, two effects, or none) a dataset is synthesised with the effects
 withheld (random plausible strengths; the truth goes to a file outside the run folder), the
@@ -6,14 +6,20 @@ scene is fitted without effects, diagnosed without reading the truth, and only t
 top-1 accuracy (single effects), both-found rate (pairs), false-positive rate (clean), gap
 closed by the refit, and parameter recovery for exposure, vignetting and the response curve.
 Writes bench.json, confusion.png and bench.md.
+
+    recon-bench diagnose-blind CONFIG --out DIR [--effects all] [--seeds 0,1,2] [--clean 3]
+
+The scoring itself (BenchCase, score_case) is recon.sweep.scoring, shared with recon's
+diagnosis sweeps.
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 import statistics
+import sys
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import matplotlib
@@ -27,12 +33,11 @@ from recon.diagnose.diagnose import diagnose_run
 from recon.diagnose.which import redecide
 from recon.effects.registry import MODEL_EFFECTS
 from recon.io.atomic import atomic_path, atomic_write_json, atomic_write_text
-from recon.io.run_folder import RunPaths, open_run_folder, prepare_run_folder
-from recon.report.report import recovered_parameters
+from recon.io.run_folder import open_run_folder, prepare_run_folder
+from recon.sweep.scoring import NONE, BenchCase, score_case
 
 matplotlib.use("Agg")
 
-NONE = "none"
 # Two-effect cases: one camera-photometric + one optical, one optical + one tone, one per-view
 # colour + one light-transport, one geometric + one geometric (each pair from a different
 # family, so a pair is not two readings of one signal).
@@ -42,22 +47,6 @@ DEFAULT_PAIRS = [
     ("white_balance", "specular"),
     ("pose_error", "lens_distortion"),
 ]
-
-
-@dataclass
-class BenchCase:
-    """One dataset of the benchmark: the withheld effects (empty = clean) and a seed."""
-
-    effects: tuple[str, ...]
-    seed: int
-
-    @property
-    def label(self) -> str:
-        return "+".join(self.effects) if self.effects else NONE
-
-    @property
-    def kind(self) -> str:
-        return {0: "clean", 1: "single"}.get(len(self.effects), "pair")
 
 
 def default_cases(
@@ -128,111 +117,6 @@ def run_case(
     # Only now is the truth read: the diagnosis above never saw it.
     truth = json.loads(truth_path.read_text()) if case.effects else {"withheld": []}
     return score_case(case, diagnosis, truth, fit_seconds, diagnose_seconds, paths)
-
-
-def score_case(
-    case: BenchCase,
-    diagnosis: dict,
-    truth: dict,
-    fit_seconds: float,
-    diagnose_seconds: float,
-    paths: RunPaths,
-) -> dict:
-    significant = [item["effect"] for item in diagnosis["ranking"] if item["significant"]]
-    top = significant[0] if significant else NONE
-    record = {
-        "case": case.label,
-        "kind": case.kind,
-        "seed": case.seed,
-        "truth": list(case.effects),
-        "predicted_top": top,
-        "significant": significant,
-        "top1_correct": (top in case.effects) if case.effects else top == NONE,
-        "both_found": set(case.effects) <= set(significant[:3]) if len(case.effects) == 2 else None,
-        "false_positive": bool(significant) if not case.effects else None,
-        "closed_fraction": diagnosis["refits"][0]["closed_fraction"]
-        if diagnosis["refits"]
-        else None,
-        "relight_closed_fraction": diagnosis["refits"][0].get("relight_closed_fraction")
-        if diagnosis["refits"]
-        else None,
-        "fit_seconds": round(fit_seconds, 1),
-        "diagnose_seconds": round(diagnose_seconds, 1),
-        # Diagnosis alone (where + which) and the refit, as shares of the fit's time.
-        "diagnosis_share_of_fit": diagnosis["timings"]["diagnose_seconds"] / max(fit_seconds, 1e-9),
-        "refit_share_of_fit": diagnosis["timings"].get("refit_seconds", 0.0)
-        / max(fit_seconds, 1e-9),
-        "run_folder": str(paths.root),
-    }
-    record["parameter_error"] = parameter_errors(diagnosis, truth)
-    return record
-
-
-def parameter_errors(diagnosis: dict, truth: dict) -> dict:
-    """Recovered vs true parameters where the two are comparable: exposure ratios (relative,
-    both normalised by their geometric mean: the fit absorbed the overall scale), the vignetting
-    corner falloff and the falloff half-way to the corner (relative) and the response curve's
-    effective exponent (absolute).
-
-    Parameters come from the first refit that switched the effect on (fitted with the scene on
-    the training views, compared with the truth of those views) and otherwise from the probe
-    (fitted on the held-out views with the scene frozen, compared with theirs): a held-out
-    probe inherits whatever the fitted albedo absorbed from the training views. The response
-    curve's exponent always comes from the ranking (the relight split's estimate)."""
-    errors = {}
-    found = {
-        effect: (parameters, "train" if source == "refit" else "test")
-        for effect, source, parameters in recovered_parameters(diagnosis, significant_only=False)
-    }
-    realised_by_split = {
-        split: {item["name"]: item["parameters"] for item in items}
-        for split, items in truth.get("realised", {}).items()
-    }
-
-    def pair(name: str) -> tuple[dict, dict]:
-        parameters, split = found.get(name, ({}, "test"))
-        return parameters, realised_by_split.get(split, {}).get(name, {})
-
-    model_exposure, true_exposure = pair("exposure")
-    true_ratios = true_exposure.get("ratios")
-    model_ratios = model_exposure.get("ratios")
-    if true_ratios and model_ratios and len(true_ratios) == len(model_ratios):
-        true_log = torch.tensor(true_ratios, dtype=torch.float64).log()
-        model_log = torch.tensor(model_ratios, dtype=torch.float64).log()
-        relative = (model_log - model_log.mean() - (true_log - true_log.mean())).exp() - 1
-        errors["exposure_ratio_median"] = float(relative.abs().median())
-        errors["exposure_ratio_max"] = float(relative.abs().max())
-    model_vignetting, true_vignetting = pair("vignetting")
-    true_falloff = _mean(true_vignetting.get("corner_falloff"))
-    model_falloff = model_vignetting.get("corner_falloff")
-    if true_falloff and model_falloff:
-        errors["vignetting_corner_falloff"] = abs(model_falloff - true_falloff) / true_falloff
-    # The corners lie outside the object's pixels (an extrapolation of the fitted polynomial);
-    # half-way out is inside them in every view.
-    true_half = _mean(true_vignetting.get("half_radius_falloff"))
-    model_half = model_vignetting.get("half_radius_falloff")
-    if true_half and model_half:
-        errors["vignetting_half_radius_falloff"] = abs(model_half - true_half) / true_half
-    # Not the refit's exponent: under the training views' one light the albedo absorbs a curve,
-    # so the refit cannot pin it. The ranking's estimate comes from the relight split, the one
-    # place a curve shows (recon.diagnose.relight_probe).
-    model_response = next(
-        (item["parameters"] for item in diagnosis["ranking"] if item["effect"] == "response_curve"),
-        {},
-    )
-    true_response = realised_by_split.get("test", {}).get("response_curve", {})
-    true_gamma = true_response.get("effective_exponent")
-    model_gamma = model_response.get("effective_gamma")
-    if true_gamma and model_gamma:
-        errors["response_gamma_absolute"] = abs(model_gamma - true_gamma)
-    return errors
-
-
-def _mean(value):
-    if isinstance(value, list):
-        flat = [v for v in value if isinstance(v, (int, float))]
-        return statistics.fmean(flat) if flat else None
-    return value
 
 
 def _fraction_text(value: float | None) -> str:
@@ -344,7 +228,7 @@ def write_outputs(records: list[dict], out: Path) -> dict:
     return summary
 
 
-def diagnose_bench(
+def diagnose_blind(
     config_path: str | Path,
     out: str | Path,
     device: torch.device,
@@ -368,9 +252,73 @@ def diagnose_bench(
         clean,
     )
     records = []
-    for case in tqdm(cases, desc="diagnose-bench", unit="case"):
+    for case in tqdm(cases, desc="diagnose-blind", unit="case"):
         record = run_case(case, config, out, device, refit, reuse_fits, fits_only, rescore)
         if record is not None:
             records.append(record)
             write_outputs(records, out)  # keep partial results if interrupted
     return write_outputs(records, out) if records else {"fitted_cases": len(cases)}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The options of `recon-bench diagnose-blind` (formerly `recon diagnose-bench`)."""
+    parser = argparse.ArgumentParser(
+        description="blind check: withheld effects -> fit -> diagnose -> score"
+    )
+    parser.add_argument("config", help="the scene/fit config of every case")
+    parser.add_argument("--out", required=True, help="benchmark folder")
+    parser.add_argument("--effects", default="all", help="'all' or a comma-separated list")
+    parser.add_argument("--seeds", default="0,1,2", help="comma-separated seeds")
+    parser.add_argument("--clean", type=int, default=3, help="clean datasets")
+    parser.add_argument("--no-pairs", action="store_true", help="skip two-effect cases")
+    parser.add_argument("--refit", choices=["none", "top", "greedy"], default="top")
+    parser.add_argument(
+        "--reuse-fits",
+        action="store_true",
+        help="keep cases whose fit finished under the same config (rediagnose the same data)",
+    )
+    parser.add_argument(
+        "--fits-only", action="store_true", help="synthesise and fit every case, then stop"
+    )
+    parser.add_argument(
+        "--rescore",
+        action="store_true",
+        help="with --reuse-fits: re-decide stored diagnoses with the current thresholds",
+    )
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a config value, e.g. --set capture.train_views=8 (repeatable)",
+    )
+    parser.add_argument("--device", choices=["auto", "cpu", "cuda"], help="overrides 'device'")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the benchmark and print its summary as JSON."""
+    from recon import pipeline
+
+    arguments = build_parser().parse_args(argv)
+    summary = diagnose_blind(
+        arguments.config,
+        arguments.out,
+        pipeline.resolve_device(arguments.device or "auto"),
+        effects=None if arguments.effects == "all" else arguments.effects.split(","),
+        seeds=[int(seed) for seed in arguments.seeds.split(",")],
+        pairs=[] if arguments.no_pairs else None,
+        clean=arguments.clean,
+        refit=arguments.refit,
+        overrides=arguments.overrides,
+        reuse_fits=arguments.reuse_fits,
+        fits_only=arguments.fits_only,
+        rescore=arguments.rescore,
+    )
+    print(json.dumps(summary, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

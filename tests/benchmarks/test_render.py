@@ -1,29 +1,16 @@
-"""Smoke test of scripts/bench_render.py in its tiniest mode (one 1k-face 64x64 config)."""
+"""Smoke test of benchmarks/render.py in its tiniest mode (one 1k-face 64x64 config)."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "bench_render.py"
+from benchmarks import render as bench
 
 
-@pytest.fixture(scope="module")
-def bench():
-    spec = importlib.util.spec_from_file_location("bench_render", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["bench_render"] = module
-    spec.loader.exec_module(module)
-    yield module
-    sys.modules.pop("bench_render", None)
-
-
-def test_tiniest_run_reports_positive_times(bench, tmp_path, capsys):
+def test_tiniest_run_reports_positive_times(tmp_path, capsys):
     out = tmp_path / "bench.json"
     report = bench.main(
         [
@@ -55,7 +42,7 @@ def test_tiniest_run_reports_positive_times(bench, tmp_path, capsys):
     assert entry["covered_pixels"] > 0 and entry["gradient_ok"]
 
 
-def test_config_over_timeout_is_skipped(bench, capsys):
+def test_config_over_timeout_is_skipped(capsys):
     report = bench.main(
         [
             "--configs",
@@ -76,7 +63,7 @@ def test_config_over_timeout_is_skipped(bench, capsys):
 
 
 @pytest.mark.parametrize("faces", [1000, 10000])
-def test_sphere_has_exact_face_count_and_is_closed(bench, faces):
+def test_sphere_has_exact_face_count_and_is_closed(faces):
     verts, tris, uvs, uv_faces = bench.latlong_sphere(faces)
     assert tris.shape == uv_faces.shape == (faces, 3)
     # Closed and consistently oriented: every directed edge appears once, its reverse once.
@@ -89,7 +76,7 @@ def test_sphere_has_exact_face_count_and_is_closed(bench, faces):
     assert uvs.min() >= 0 and uvs.max() <= 1
 
 
-def test_midpoint_subdivision_keeps_uv_faces_in_step(bench):
+def test_midpoint_subdivision_keeps_uv_faces_in_step():
     points = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], dtype=np.float32)
     faces = np.array([[0, 1, 2], [2, 1, 3]])
     new_points, new_faces = bench.midpoint_subdivide(points, faces)

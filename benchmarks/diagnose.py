@@ -2,18 +2,18 @@
 seeds per effect, clean datasets and pairs; prints one JSON object per scene with top-1 accuracy,
 both-found rate, false-positive rate, gap closed and the cost of diagnosis relative to the fit.
 
-    python scripts/bench_diagnose.py [--scenes default spot] [--seeds 0,1,2] [--out runs/bench_diagnose]
+    recon-bench diagnose [--scenes default spot] [--seeds 0,1,2] [--out runs/bench_diagnose]
 
-Each scene's folder also gets bench.md and confusion.png (recon diagnose-bench writes them);
+Each scene's folder also gets bench.md and confusion.png (recon-bench diagnose-blind writes them);
 with both scenes the pooled cases go to OUT/bench.md, OUT/bench.json and OUT/confusion.png.
 
 How the README's figures were made (clean seeds 103-105 calibrate, 100-102 are scored):
 
-    python scripts/bench_diagnose.py --fits-only --clean 6           # synthesise and fit
-    python scripts/calibrate_diagnosis.py OUT/*/none_seed10[345]
+    recon-bench diagnose --fits-only --clean 6           # synthesise and fit
+    recon-bench calibrate OUT/*/none_seed10[345]
     # -> the allowances in recon/diagnose/calibration.py, before any scored case is diagnosed
-    python scripts/bench_diagnose.py --reuse-fits --clean 6          # diagnose every case
-    python scripts/bench_diagnose.py --reuse-fits --rescore --clean 3  # pooled, 100-102 scored
+    recon-bench diagnose --reuse-fits --clean 6          # diagnose every case
+    recon-bench diagnose --reuse-fits --rescore --clean 3  # pooled, 100-102 scored
 
 The fits of the current figures predate the flat-field frames; they were added to every case
 with scripts/add_flat_field.py (the fit never reads them) before the --reuse-fits run.
@@ -38,7 +38,7 @@ SPOT_OVERRIDES = [
 def main(argv: list[str] | None = None) -> int:
     import torch
 
-    from recon.diagnose_bench import diagnose_bench, summarise, write_outputs
+    from benchmarks.diagnose_blind import diagnose_blind, summarise, write_outputs
 
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--scenes", nargs="+", default=["default", "spot"])
@@ -57,7 +57,7 @@ def main(argv: list[str] | None = None) -> int:
         if scene == "spot" and not (REPO_ROOT.parent / "shared" / "meshes").is_dir():
             results[scene] = {"skipped": "../shared/meshes is absent"}
             continue
-        results[scene] = diagnose_bench(
+        results[scene] = diagnose_blind(
             REPO_ROOT / "configs" / "bench" / "diagnose.yaml",
             Path(arguments.out) / scene,
             torch.device("cpu"),

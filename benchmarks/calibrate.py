@@ -5,13 +5,13 @@ effect, the largest held-out reduction its probe and its absorption refit reache
 allowance recon.diagnose.calibration uses (twice that, floored at MINIMUM_SHARE), plus the
 visibility fingerprint's largest share. The runs must not be cases the blind benchmark scores.
 
-    python scripts/calibrate_diagnosis.py RUN [RUN ...]
+    recon-bench calibrate RUN [RUN ...]
 
 For example the clean calibration seeds of the benchmark (fitted with
-``python scripts/bench_diagnose.py --fits-only --clean 6``; seeds 103-105 calibrate,
+``recon-bench diagnose --fits-only --clean 6``; seeds 103-105 calibrate,
 100-102 are scored):
 
-    python scripts/calibrate_diagnosis.py runs/bench_diagnose/*/none_seed10[345]
+    recon-bench calibrate runs/bench_diagnose/*/none_seed10[345]
 """
 
 from __future__ import annotations

@@ -1,23 +1,13 @@
-"""scripts/calibrate_diagnosis.py: allowances are twice the largest clean reduction, floored."""
+"""benchmarks/calibrate.py: allowances are twice the largest clean reduction, floored."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
 import pytest
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
-
-
-@pytest.fixture(scope="module")
-def calibrate():
-    path = REPO_ROOT / "scripts" / "calibrate_diagnosis.py"
-    spec = importlib.util.spec_from_file_location("calibrate_diagnosis", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+from benchmarks import calibrate
 
 
 def _run(
@@ -40,7 +30,7 @@ def _run(
     return folder
 
 
-def test_allowances_from_stored_diagnoses(calibrate, tmp_path, capsys):
+def test_allowances_from_stored_diagnoses(tmp_path, capsys):
     runs = [
         _run(tmp_path / "a", pose=0.05, vignetting_absorption=0.004, share=0.03, relight=0.03),
         _run(tmp_path / "b", pose=0.08, vignetting_absorption=0.012, share=-0.02, relight=0.001),

@@ -14,7 +14,7 @@ Figures (each the median over --repeats):
   overhead_per_trial     Ray's slot time not spent inside a trial: (ray_seconds x cpus -
                          sum of the trials' own seconds) / trials
 
-Usage: python scripts/bench_sweep.py [--trials 8] [--repeats 3] [--cpus 2] [--steps 12]
+Usage: recon-bench sweep [--trials 8] [--repeats 3] [--cpus 2] [--steps 12]
 """
 
 from __future__ import annotations
@@ -84,13 +84,13 @@ def commit() -> str:
         return "unknown"
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--trials", type=int, default=8)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--cpus", type=int, default=2, help="CPUs of the local Ray")
     parser.add_argument("--steps", type=int, default=12, help="geometry steps per fit")
-    arguments = parser.parse_args()
+    arguments = parser.parse_args(argv)
 
     import ray
     import torch
@@ -163,7 +163,7 @@ def main() -> None:
         "torch": torch.__version__,
         "ray": ray.__version__,
         "commit": commit(),
-        "command": "python " + " ".join(["scripts/bench_sweep.py", *sys.argv[1:]]),
+        "command": " ".join(["recon-bench sweep", *(sys.argv[1:] if argv is None else argv)]),
     }
     print(json.dumps(report, indent=2))
 

@@ -3,14 +3,14 @@ on the held-out views and on the relight split with the vertices' step size and 
 curve's exponent (held at the relight probe's estimate, or free from 1) chosen here rather than
 by recon.diagnose.diagnose. Prints one JSON record per setting.
 
-    python scripts/refit_settings.py RUN EFFECT [--position-rates 0.002,0.01]
+    recon-bench refit-settings RUN EFFECT [--position-rates 0.002,0.01]
         [--response-exponent relight|free]
 
-For example, on the benchmark's fits (scripts/bench_diagnose.py):
+For example, on the benchmark's fits (recon-bench diagnose):
 
-    python scripts/refit_settings.py OUT/default/lens_distortion_seed2 lens_distortion
-    python scripts/refit_settings.py OUT/default/vignetting_seed0 vignetting
-    python scripts/refit_settings.py OUT/default/response_curve_seed0 response_curve \\
+    recon-bench refit-settings OUT/default/lens_distortion_seed2 lens_distortion
+    recon-bench refit-settings OUT/default/vignetting_seed0 vignetting
+    recon-bench refit-settings OUT/default/response_curve_seed0 response_curve \\
         --position-rates 0.002 --response-exponent free
 """
 

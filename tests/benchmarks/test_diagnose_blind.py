@@ -10,9 +10,10 @@ import pytest
 import torch
 import yaml
 
+from benchmarks.diagnose_blind import run_case, summarise
 from recon.config import load_config
 from recon.config.run_config import RunConfig
-from recon.diagnose_bench import BenchCase, run_case, summarise
+from recon.sweep.scoring import BenchCase
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
@@ -71,55 +72,6 @@ def test_blind_exposure_is_found_and_clean_is_clean(tiny_config, tmp_path):
     for path in run_folder.rglob("*.json"):
         if path.name != "diagnosis.json" and "refit" not in path.parts:
             assert '"exposure"' not in path.read_text(), path
-
-
-def test_parameter_errors_compare_like_with_like():
-    from recon.diagnose_bench import parameter_errors
-
-    true_train = [1.0, 2.0, 0.5, 1.0]
-    truth = {
-        "realised": {
-            "train": [{"name": "exposure", "parameters": {"ratios": true_train}}],
-            "test": [
-                {
-                    "name": "vignetting",
-                    "parameters": {"corner_falloff": [0.6, 0.6], "half_radius_falloff": [0.9, 0.9]},
-                },
-                {"name": "response_curve", "parameters": {"effective_exponent": 0.8}},
-            ],
-        }
-    }
-    # The refit's ratios are the truth up to a common scale (the fit absorbed it) and one view
-    # 10 % off; the probe's vignetting and gamma come from the held-out views.
-    refit_ratios = [3 * value for value in true_train]
-    refit_ratios[1] *= 1.1
-    diagnosis = {
-        "ranking": [
-            {"effect": "exposure", "parameters": {"ratios": [9.0, 9.0, 9.0, 9.0]}},
-            {
-                "effect": "vignetting",
-                "parameters": {"corner_falloff": 0.63, "half_radius_falloff": 0.891},
-            },
-            {"effect": "response_curve", "parameters": {"effective_gamma": 0.85}},
-        ],
-        "refits": [
-            {
-                "effects": ["exposure", "response_curve"],
-                # Under one light the refit cannot pin a curve: its exponent is not scored.
-                "parameters": {
-                    "exposure": {"ratios": refit_ratios},
-                    "response_curve": {"effective_gamma": 1.0},
-                },
-            }
-        ],
-    }
-    errors = parameter_errors(diagnosis, truth)
-    # Normalised by the geometric mean, the 10 % view error spreads to ~2.4 % on the others.
-    assert errors["exposure_ratio_max"] == pytest.approx(1.1**0.75 - 1, rel=1e-6)
-    assert errors["exposure_ratio_median"] == pytest.approx(1 - 1.1**-0.25, rel=1e-6)
-    assert errors["vignetting_corner_falloff"] == pytest.approx(0.05)
-    assert errors["vignetting_half_radius_falloff"] == pytest.approx(0.01)
-    assert errors["response_gamma_absolute"] == pytest.approx(0.05)
 
 
 def test_blind_vignetting_is_measured_out_to_the_corners(tiny_config, tmp_path):

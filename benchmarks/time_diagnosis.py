@@ -1,16 +1,16 @@
 """The diagnosis' cost against the fit's, measured back to back in one process.
 
 For each benchmark case folder (a run with synthesised data, e.g. from
-``scripts/bench_diagnose.py --fits-only``): copy its config and dataset to OUT, run the fit
+``recon-bench diagnose --fits-only``): copy its config and dataset to OUT, run the fit
 stage, then ``diagnose_run`` with the top-effect refit, and print JSON with the three times and
 their ratios. Measuring both in the same process, one after the other, keeps the ratio free of
 the machine's drift between a benchmark's fit and its diagnosis.
 
-    python scripts/time_diagnosis.py RUN [RUN ...] [--out /tmp/time_diagnosis] [--threads 2]
+    recon-bench time-diagnosis RUN [RUN ...] [--out /tmp/time_diagnosis] [--threads 2]
 
 The README's table: one case of every kind from a benchmark folder B (nothing else running):
 
-    python scripts/time_diagnosis.py B/default/exposure_seed1 B/default/lens_distortion_seed0 \
+    recon-bench time-diagnosis B/default/exposure_seed1 B/default/lens_distortion_seed0 \
         B/default/vignetting_seed1 B/spot/none_seed100 B/default/white_balance_seed1 \
         B/default/pose_error_seed1 B/default/motion_blur_seed2 B/spot/defocus_blur_seed0 \
         B/spot/response_curve_seed2 B/default/shadows_seed1 B/spot/specular_seed0 \

@@ -13,14 +13,14 @@ Sections (--sections, default all of them):
           16 spp, llvm_ad_rgb), and the ratio mitsuba_ms / recon_ms.
   memory  peak RSS of recon's fwd + bwd at 512x512 with 8 views of the 1M-face sphere (< 8 GB).
 
-Every measurement runs in a fresh worker process (this script with --worker), so each peak RSS
+Every measurement runs in a fresh worker process (this module with --worker), so each peak RSS
 belongs to one configuration and a configuration that exceeds --timeout-per-config or runs out of
 memory is recorded as {"skipped": reason}.
 
 Examples:
-  python scripts/bench_render.py --quick                    # 1k/10k faces, 128/256 px, 1 view
-  python scripts/bench_render.py --spot-only --out spot.json
-  python scripts/bench_render.py --configs 100k:512:8,1M:512:1 --runs 3
+  recon-bench render --quick                    # 1k/10k faces, 128/256 px, 1 view
+  recon-bench render --spot-only --out spot.json
+  recon-bench render --configs 100k:512:8,1M:512:1 --runs 3
 """
 
 from __future__ import annotations
@@ -29,16 +29,13 @@ import argparse
 import json
 import math
 import os
-import sys
 import time
 import traceback
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import _bench_common as common  # noqa: E402
+from benchmarks import common
 
-SCRIPT = Path(__file__).resolve()
-SHARED_MESHES = SCRIPT.parents[1].parent / "shared" / "meshes"
+MODULE = "benchmarks.render"
+SHARED_MESHES = common.REPO_ROOT.parent / "shared" / "meshes"
 SPOT_OBJ = "spot_triangulated.obj"
 SPOT_TEXTURE = "spot_texture.png"
 
@@ -638,7 +635,6 @@ def camera_check(mi, make_mesh, sensor, emitter, mesh, cameras) -> dict:
 
 def worker_main(job: dict) -> None:
     common.limit_address_space(job.get("memory_limit_mb"))
-    sys.path.insert(0, str(SCRIPT.parents[1]))
     try:
         result = mitsuba_worker(job) if job["kind"] == "mitsuba" else recon_worker(job)
     except FileNotFoundError as error:
@@ -719,7 +715,7 @@ def run_grid(args, device: str) -> list[dict]:
         tag = f"grid {label} {resolution}^2 x{views}"
         common.log(f"{tag}: starting")
         result = common.run_worker(
-            SCRIPT,
+            MODULE,
             recon_job(
                 args,
                 device,
@@ -759,7 +755,7 @@ def run_spot(args, device: str) -> dict:
         tag = f"spot {key}"
         common.log(f"{tag}: starting")
         result = common.run_worker(
-            SCRIPT,
+            MODULE,
             recon_job(
                 args,
                 device,
@@ -806,7 +802,7 @@ def run_peer(args, device: str, spot: dict | None) -> dict | str:
         tag = f"mitsuba {name}"
         common.log(f"{tag}: starting")
         result = common.run_worker(
-            SCRIPT,
+            MODULE,
             {
                 "kind": "mitsuba",
                 "integrator": name,
@@ -860,7 +856,7 @@ def run_memory_check(args, device: str, grid: list[dict]) -> dict:
         tag = "memory check 1M 512^2 x8"
         common.log(f"{tag}: starting")
         result = common.run_worker(
-            SCRIPT,
+            MODULE,
             recon_job(
                 args,
                 device,

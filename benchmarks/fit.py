@@ -5,7 +5,7 @@ Runs `recon run configs/bench/fit_<scene>.yaml` for each scene in a fresh proces
 scene's time is the whole pipeline's) and prints one JSON object with the metrics and the
 issue's targets side by side. Run from the repository root:
 
-    python scripts/bench_fit.py [--scenes spot bob default] [--out runs/bench_fit] [--set k=v ...]
+    recon-bench fit [--scenes spot bob default] [--out runs/bench_fit] [--set k=v ...]
 """
 
 from __future__ import annotations

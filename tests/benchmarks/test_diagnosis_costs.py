@@ -1,23 +1,16 @@
-"""scripts/diagnosis_costs.py: the diagnosis' pieces timed on a fitted run, and the lens
+"""benchmarks/diagnosis_costs.py: the diagnosis' pieces timed on a fitted run, and the lens
 refit measured against its control and against the fit."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
+from benchmarks import diagnosis_costs
 from recon.effects.registry import MODEL_EFFECTS
-
-REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_every_probe_is_timed_and_the_lens_refit_is_measured_both_ways(tiny_run, capsys):
-    path = REPO_ROOT / "scripts" / "diagnosis_costs.py"
-    spec = importlib.util.spec_from_file_location("diagnosis_costs", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    assert module.main([str(tiny_run), "--lens-control", "--threads", "1"]) == 0
+    assert diagnosis_costs.main([str(tiny_run), "--lens-control", "--threads", "1"]) == 0
     (record,) = json.loads(capsys.readouterr().out)
     assert set(record["probes"]) == set(MODEL_EFFECTS)
     # One column per parameter element, a per-view parameter counted once: the response curve

@@ -7,9 +7,9 @@ lens absorption evidence measured two ways: against the control refit (what the 
 does) and against the fit itself (half the refits), with the control's own change over the
 fit; the README's "tried and not kept" figures come from
 
-    python scripts/diagnosis_costs.py B/*/lens_distortion_seed* --lens-control
+    recon-bench diagnosis-costs B/*/lens_distortion_seed* --lens-control
 
-over the benchmark folder B (scripts/bench_diagnose.py).
+over the benchmark folder B (recon-bench diagnose).
 """
 
 from __future__ import annotations

@@ -27,9 +27,9 @@ own pool. `cores_used` (CPU seconds / wall seconds) and the load average show wh
 processes competed for the cores: when they did, the times are inflated.
 
 Examples:
-  python scripts/bench_synth.py                       # both sections, 3 runs of the own one
-  python scripts/bench_synth.py --sections own --runs 5 --out synth.json
-  python scripts/bench_synth.py --quick               # smoke test: tiny images, a few views
+  recon-bench synth                       # both sections, 3 runs of the own one
+  recon-bench synth --sections own --runs 5 --out synth.json
+  recon-bench synth --quick               # smoke test: tiny images, a few views
 """
 
 from __future__ import annotations
@@ -38,16 +38,13 @@ import argparse
 import contextlib
 import json
 import math
-import sys
 import tempfile
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import _bench_common as common  # noqa: E402
+from benchmarks import common
 
-SCRIPT = Path(__file__).resolve()
-REPO_ROOT = SCRIPT.parents[1]
+REPO_ROOT = common.REPO_ROOT
 OWN_CONFIG = REPO_ROOT / "configs" / "bench" / "synth_own.yaml"
 MITSUBA_CONFIG = REPO_ROOT / "configs" / "bench" / "synth_mitsuba.yaml"
 SECTIONS = ("own", "mitsuba")

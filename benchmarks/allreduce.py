@@ -6,7 +6,7 @@ positions (V x 3), an RGBA texture (T x T x 4), and both flattened into one buff
 data-parallel step would send them: one call per step). Prints JSON: the median seconds per
 call over --repeats calls after --warmup calls, and the bandwidth (bytes / second).
 
-Usage: python scripts/measure_allreduce.py [--processes 2] [--repeats 20]
+Usage: recon-bench allreduce [--processes 2] [--repeats 20]
 """
 
 from __future__ import annotations
@@ -72,12 +72,12 @@ def worker(rank: int, world: int, port: int, warmup: int, repeats: int, result_p
     distributed.destroy_process_group()
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--processes", type=int, default=2)
     parser.add_argument("--warmup", type=int, default=3)
     parser.add_argument("--repeats", type=int, default=20)
-    arguments = parser.parse_args()
+    arguments = parser.parse_args(argv)
     with tempfile.TemporaryDirectory() as scratch:
         result_path = os.path.join(scratch, "allreduce.json")
         multiprocessing.spawn(
@@ -104,7 +104,7 @@ def main() -> None:
                 "machine": f"{platform.machine()}, {os.cpu_count()} cores",
                 "load_average_1min_at_end": round(os.getloadavg()[0], 2),
                 "torch": torch.__version__,
-                "command": "python scripts/measure_allreduce.py",
+                "command": "recon-bench allreduce",
             },
             indent=2,
         )

@@ -1,0 +1,144 @@
+"""Scoring of a blind diagnosis against the withheld truth, read only after the diagnosis.
+
+One case is a dataset with some effects withheld (none = clean) and a seed; its record says
+whether the diagnosis named the withheld effect first (top-1), found both of a pair, stayed
+silent on clean data, how much of the gap the refit closed, and how close the recovered
+parameters came to the true ones. recon's diagnosis sweeps score every trial with it
+(recon/sweep/trial.py), and so does the blind benchmark (benchmarks/diagnose_blind.py): it
+lives here, below both, because recon never imports benchmarks.
+"""
+
+from __future__ import annotations
+
+import statistics
+from dataclasses import dataclass
+
+import torch
+
+from recon.io.run_folder import RunPaths
+from recon.report.report import recovered_parameters
+
+# The label of a case with nothing withheld, and the prediction of a diagnosis that names
+# nothing significant.
+NONE = "none"
+
+
+@dataclass
+class BenchCase:
+    """One dataset of the benchmark: the withheld effects (empty = clean) and a seed."""
+
+    effects: tuple[str, ...]
+    seed: int
+
+    @property
+    def label(self) -> str:
+        return "+".join(self.effects) if self.effects else NONE
+
+    @property
+    def kind(self) -> str:
+        return {0: "clean", 1: "single"}.get(len(self.effects), "pair")
+
+
+def score_case(
+    case: BenchCase,
+    diagnosis: dict,
+    truth: dict,
+    fit_seconds: float,
+    diagnose_seconds: float,
+    paths: RunPaths,
+) -> dict:
+    significant = [item["effect"] for item in diagnosis["ranking"] if item["significant"]]
+    top = significant[0] if significant else NONE
+    record = {
+        "case": case.label,
+        "kind": case.kind,
+        "seed": case.seed,
+        "truth": list(case.effects),
+        "predicted_top": top,
+        "significant": significant,
+        "top1_correct": (top in case.effects) if case.effects else top == NONE,
+        "both_found": set(case.effects) <= set(significant[:3]) if len(case.effects) == 2 else None,
+        "false_positive": bool(significant) if not case.effects else None,
+        "closed_fraction": diagnosis["refits"][0]["closed_fraction"]
+        if diagnosis["refits"]
+        else None,
+        "relight_closed_fraction": diagnosis["refits"][0].get("relight_closed_fraction")
+        if diagnosis["refits"]
+        else None,
+        "fit_seconds": round(fit_seconds, 1),
+        "diagnose_seconds": round(diagnose_seconds, 1),
+        # Diagnosis alone (where + which) and the refit, as shares of the fit's time.
+        "diagnosis_share_of_fit": diagnosis["timings"]["diagnose_seconds"] / max(fit_seconds, 1e-9),
+        "refit_share_of_fit": diagnosis["timings"].get("refit_seconds", 0.0)
+        / max(fit_seconds, 1e-9),
+        "run_folder": str(paths.root),
+    }
+    record["parameter_error"] = parameter_errors(diagnosis, truth)
+    return record
+
+
+def parameter_errors(diagnosis: dict, truth: dict) -> dict:
+    """Recovered vs true parameters where the two are comparable: exposure ratios (relative,
+    both normalised by their geometric mean: the fit absorbed the overall scale), the vignetting
+    corner falloff and the falloff half-way to the corner (relative) and the response curve's
+    effective exponent (absolute).
+
+    Parameters come from the first refit that switched the effect on (fitted with the scene on
+    the training views, compared with the truth of those views) and otherwise from the probe
+    (fitted on the held-out views with the scene frozen, compared with theirs): a held-out
+    probe inherits whatever the fitted albedo absorbed from the training views. The response
+    curve's exponent always comes from the ranking (the relight split's estimate)."""
+    errors = {}
+    found = {
+        effect: (parameters, "train" if source == "refit" else "test")
+        for effect, source, parameters in recovered_parameters(diagnosis, significant_only=False)
+    }
+    realised_by_split = {
+        split: {item["name"]: item["parameters"] for item in items}
+        for split, items in truth.get("realised", {}).items()
+    }
+
+    def pair(name: str) -> tuple[dict, dict]:
+        parameters, split = found.get(name, ({}, "test"))
+        return parameters, realised_by_split.get(split, {}).get(name, {})
+
+    model_exposure, true_exposure = pair("exposure")
+    true_ratios = true_exposure.get("ratios")
+    model_ratios = model_exposure.get("ratios")
+    if true_ratios and model_ratios and len(true_ratios) == len(model_ratios):
+        true_log = torch.tensor(true_ratios, dtype=torch.float64).log()
+        model_log = torch.tensor(model_ratios, dtype=torch.float64).log()
+        relative = (model_log - model_log.mean() - (true_log - true_log.mean())).exp() - 1
+        errors["exposure_ratio_median"] = float(relative.abs().median())
+        errors["exposure_ratio_max"] = float(relative.abs().max())
+    model_vignetting, true_vignetting = pair("vignetting")
+    true_falloff = _mean(true_vignetting.get("corner_falloff"))
+    model_falloff = model_vignetting.get("corner_falloff")
+    if true_falloff and model_falloff:
+        errors["vignetting_corner_falloff"] = abs(model_falloff - true_falloff) / true_falloff
+    # The corners lie outside the object's pixels (an extrapolation of the fitted polynomial);
+    # half-way out is inside them in every view.
+    true_half = _mean(true_vignetting.get("half_radius_falloff"))
+    model_half = model_vignetting.get("half_radius_falloff")
+    if true_half and model_half:
+        errors["vignetting_half_radius_falloff"] = abs(model_half - true_half) / true_half
+    # Not the refit's exponent: under the training views' one light the albedo absorbs a curve,
+    # so the refit cannot pin it. The ranking's estimate comes from the relight split, the one
+    # place a curve shows (recon.diagnose.relight_probe).
+    model_response = next(
+        (item["parameters"] for item in diagnosis["ranking"] if item["effect"] == "response_curve"),
+        {},
+    )
+    true_response = realised_by_split.get("test", {}).get("response_curve", {})
+    true_gamma = true_response.get("effective_exponent")
+    model_gamma = model_response.get("effective_gamma")
+    if true_gamma and model_gamma:
+        errors["response_gamma_absolute"] = abs(model_gamma - true_gamma)
+    return errors
+
+
+def _mean(value):
+    if isinstance(value, list):
+        flat = [v for v in value if isinstance(v, (int, float))]
+        return statistics.fmean(flat) if flat else None
+    return value
