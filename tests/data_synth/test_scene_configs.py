@@ -20,7 +20,12 @@ from recon.config import load_config
 from recon.config.run_config import RunConfig
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
-CONFIGS = sorted((REPO_ROOT / "configs").rglob("*.yaml"))
+# Run configs; configs/sweeps/ holds sweep files (another schema, checked in tests/sweep/).
+CONFIGS = sorted(
+    path
+    for path in (REPO_ROOT / "configs").rglob("*.yaml")
+    if "sweeps" not in path.relative_to(REPO_ROOT / "configs").parts
+)
 SCENES = REPO_ROOT / "configs" / "scenes"
 SHARED_MESHES = REPO_ROOT.parent / "shared" / "meshes"
 EXAMPLE_SCENES = (
