@@ -213,7 +213,7 @@ def _position_learning_rate(names: list[str], config: RunConfig) -> float:
     that bends the geometry is switched on (a lens distortion the fit absorbed must be bent
     back: on the benchmark's default lens seed 2, 0.12 of the gap closed at 0.002, 0.39 at
     0.01), else the refit's small default (on default vignetting seed 0 the larger step let the
-    vertices chase the residual: 0.34 closed at 0.002, 0.28 at 0.01). scripts/refit_settings.py
+    vertices chase the residual: 0.34 closed at 0.002, 0.28 at 0.01). `recon-bench refit-settings`
     measures both."""
     if any(name in GEOMETRY_ABSORBABLE for name in names):
         return config.fit.texture.learning_rate
@@ -280,7 +280,7 @@ def covered_radius(data: DiagnosisData) -> float:
     A falloff is only seen on covered pixels: beyond this radius, and at the corners (radius
     about 1) unless it is near 1, the fitted vignetting is an extrapolation of its polynomial.
     On the benchmark the object reaches 0.57-0.61, and even the best fit of the polynomial to
-    the true falloff there misses the corner by 13-24 % (scripts/vignetting_extrapolation.py).
+    the true falloff there misses the corner by 13-24 % (`recon-bench vignetting-extrapolation`).
     """
     _, height, width, _ = data.observed.shape
     radius = normalised_radius(data.cameras, height, width, data.observed)

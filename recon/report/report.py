@@ -247,7 +247,7 @@ def recovered_parameters(
     """(effect, source, parameters) per ranked effect (the significant ones only, by default):
     from the first refit that switched it on ("refit": fitted with the scene on the training
     views) when there is one, else from the deciding evidence (its name: held-out views, scene
-    frozen). The blind benchmark scores the same choice (recon.diagnose_bench)."""
+    frozen). The blind benchmark scores the same choice (recon.sweep.scoring)."""
     from_refits: dict = {}
     for refit in reversed(diagnosis.get("refits", [])):
         from_refits.update(refit.get("parameters", {}))
