@@ -11,3 +11,11 @@ class ConfigError(ReconError):
 
 class DatasetError(ReconError):
     """A dataset folder or one of its files is invalid."""
+
+
+def warn_user(message: str, kind: str = "warning") -> None:
+    """Tell the user something on stderr as 'recon: warning: ...' (or another kind, e.g.
+    'note'): a problem that does not stop the run but that they should act on."""
+    import sys
+
+    print(f"recon: {kind}: {message}", file=sys.stderr, flush=True)

@@ -334,6 +334,73 @@ class TextureStageConfig:
 
 
 @dataclass
+class FitLightConfig:
+    """The fit's light model. frame 'world': the light is fixed in the scene (the default);
+    'camera': it is fixed to the camera (OpenCV camera axes), as in turntable captures where the
+    object turns under studio lights, so that in the object's frame the light turns with the
+    view."""
+
+    frame: Literal["world", "camera"] = "world"
+
+
+@dataclass
+class NormalizeConfig:
+    """Recentring and rescaling of a dataset's cameras before the fit (the fit works in the
+    normalised frame; meshes and lights are written in the dataset's own frame too).
+
+    enabled: estimate the object's centre and size from the cameras and masks (a coarse carving
+        around the cameras' common look-at point) and move it to the origin.
+    radius: half the longest side of the object's box in the normalised frame.
+    grid: voxels per side of the coarse carving grid.
+    image_size: longer side of the masks the coarse carving reads (downsampled).
+    up: the scene's up axis for figures: 'auto' (the cameras' mean up), or 'x', 'y', 'z',
+        '-x', '-y', '-z' in the dataset's frame.
+    """
+
+    enabled: bool = True
+    radius: float = 1.0
+    grid: int = 48
+    image_size: int = 128
+    up: Literal["auto", "x", "y", "z", "-x", "-y", "-z"] = "auto"
+
+    def __post_init__(self) -> None:
+        check_range(self.radius, "radius", low=0.0, low_inclusive=False)
+        check_range(self.grid, "grid", low=8, high=256)
+        check_range(self.image_size, "image_size", low=16, high=4096)
+
+
+@dataclass
+class DatasetConfig:
+    """How a dataset folder (config key 'data', or the synth stage's dataset) is read.
+
+    max_resolution: the longer image side after loading; larger photos are downsampled on load
+        (antialiased, intrinsics scaled) with a printed message. None keeps the stored size.
+    background_key: for photos without masks or alpha: a linear RGB background colour; pixels
+        within background_tolerance of it (max channel difference) are background. None: a
+        dataset without masks and alpha is an error.
+    holdout_every: datasets without splits (LLFF, COLMAP, plain folders) hold out every N-th
+        image as the test split.
+    exposure: 'exif' divides every photo by its EXIF exposure (time x ISO / f-number^2)
+        relative to the median, a known per-view gain; 'none' uses the pixels as they are.
+    """
+
+    max_resolution: int | None = 1024
+    background_key: list[float] | None = None
+    background_tolerance: float = 0.08
+    holdout_every: int = 8
+    exposure: Literal["none", "exif"] = "none"
+    normalize: NormalizeConfig = field(default_factory=NormalizeConfig)
+
+    def __post_init__(self) -> None:
+        if self.max_resolution is not None:
+            check_range(self.max_resolution, "max_resolution", low=8, high=16384)
+        if self.background_key is not None:
+            _check_vector(self.background_key, "background_key")
+        check_range(self.background_tolerance, "background_tolerance", low=0.0, high=1.0)
+        check_range(self.holdout_every, "holdout_every", low=2)
+
+
+@dataclass
 class FitConfig:
     """The reconstruction recipe (two passes, nvdiffrec style)."""
 
@@ -344,6 +411,7 @@ class FitConfig:
     texture: TextureStageConfig = field(default_factory=TextureStageConfig)
     checkpoint_every: int = 50
     effects: list[str] = field(default_factory=list)
+    light: FitLightConfig = field(default_factory=FitLightConfig)
 
     def __post_init__(self) -> None:
         check_range(self.hull_resolution, "hull_resolution", low=8, high=512)
@@ -365,6 +433,7 @@ class RunConfig:
     scene: SceneConfig = field(default_factory=SceneConfig)
     capture: CaptureConfig = field(default_factory=CaptureConfig)
     fit: FitConfig = field(default_factory=FitConfig)
+    dataset: DatasetConfig = field(default_factory=DatasetConfig)
 
     def __post_init__(self) -> None:
         if not self.name or any(character in self.name for character in "/\\:"):

@@ -17,6 +17,7 @@ import trimesh
 from tqdm import tqdm
 
 from recon.config.run_config import FitConfig
+from recon.errors import warn_user
 from recon.io.datasets import CaptureSet
 from recon.mesh.mesh import Mesh
 from recon.optimize.checkpoint import (
@@ -40,6 +41,8 @@ from recon.render.antialias import build_topology
 from recon.render.renderer import Renderer
 
 LOG_EVERY = 10
+# A remeshed face count above this multiple of the simplification target is warned about.
+FACE_WARNING_FACTOR = 10
 
 
 @dataclass
@@ -53,10 +56,13 @@ class GeometryResult:
     effects: FitEffects | None = None
 
 
-def initial_mesh(captures: CaptureSet, config: FitConfig, device: torch.device) -> Mesh:
-    """The visual hull of the masks, or an icosphere filling the hull's bounds."""
+def initial_mesh(
+    captures: CaptureSet, config: FitConfig, device: torch.device, radius: float | None = None
+) -> Mesh:
+    """The visual hull of the masks, or an icosphere filling the hull's bounds. radius: the
+    carving grid's half-size (default: visual_hull's, from the camera distances)."""
     hull = visual_hull(
-        captures.cameras.to(device), captures.masks.to(device), config.hull_resolution
+        captures.cameras.to(device), captures.masks.to(device), config.hull_resolution, radius
     )
     if config.init == "visual_hull":
         return hull
@@ -121,7 +127,9 @@ def run_geometry_stage(
     checkpoint_path: Path,
     history: History,
     resume: bool = False,
+    hull_radius: float | None = None,
 ) -> GeometryResult:
+    """hull_radius: half-size of the visual hull's carving grid (None: visual_hull's default)."""
     geometry = config.geometry
     generator = torch.Generator().manual_seed(seed)
     pyramid = TrainingPyramid.build(captures, geometry.resolutions, device)
@@ -137,7 +145,7 @@ def run_geometry_stage(
         diagonal = checkpoint["diagonal"]
         start_step = checkpoint["step"]
     else:
-        mesh = initial_mesh(captures, config, device)
+        mesh = initial_mesh(captures, config, device, hull_radius)
         diagonal = _diagonal(mesh.verts)
         verts, faces = mesh.verts, mesh.faces
         if geometry.remesh_every > 0:
@@ -188,6 +196,7 @@ def run_geometry_stage(
             },
         )
 
+    warned_faces = False
     started = time.perf_counter()
     bar = tqdm(
         range(start_step, geometry.steps),
@@ -243,6 +252,17 @@ def run_geometry_stage(
             positions, albedo, albedo_optimizer = _remesh_state(
                 positions, albedo, albedo_optimizer, config, progress, diagonal
             )
+            faces_now = int(positions.faces.shape[0])
+            if not warned_faces and faces_now > FACE_WARNING_FACTOR * config.simplify.target_faces:
+                warned_faces = True
+                warn_user(
+                    f"fit: remeshing grew the mesh to {faces_now} faces, over "
+                    f"{FACE_WARNING_FACTOR} x fit.simplify.target_faces "
+                    f"({config.simplify.target_faces}); each step slows down with it. The "
+                    "initial hull is probably much larger than the object (keep "
+                    "dataset.normalize.enabled true, check the masks), or raise "
+                    "fit.geometry.edge_length_end"
+                )
         if (step + 1) % config.checkpoint_every == 0:
             save(step + 1)
     bar.close()
