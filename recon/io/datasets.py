@@ -719,6 +719,7 @@ def read_llff(
     near: float | None = None,
     far: float | None = None,
     max_resolution: int | None = None,
+    premultiply: bool = False,
 ) -> CaptureSet:
     """Read an LLFF / NeRD folder: poses_bounds.npy + images/ (+ masks/).
 
@@ -731,6 +732,8 @@ def read_llff(
         without masks/, the images' alpha, else 1 (mask_source 'none').
     max_resolution: shrink every image as it is read (antialiased) so that its longer side is at
         most this; the intrinsics follow.
+    premultiply: return colour x mask (multiplied before shrinking, as a coarser sensor would
+        integrate the object's radiance) instead of the photos' straight colour.
     near, far: default to 0.9 x the smallest near bound and 1.1 x the largest far bound.
     Raises DatasetError naming the file and the problem.
     """
@@ -821,7 +824,7 @@ def read_llff(
             sources.add("none" if alpha is None else "alpha")
         if alpha is None:
             alpha = torch.ones_like(colour[..., :1])
-        images[index] = shrink_image(colour, target)
+        images[index] = shrink_image(colour * alpha if premultiply else colour, target)
         mask_tensor[index] = shrink_image(alpha.clamp(0.0, 1.0), target)
     height, width = target
     if len(sources) > 1:
@@ -955,7 +958,7 @@ def read_captures(folder: str | os.PathLike, split: str, options: Any = None) ->
             raise DatasetError(
                 f"{folder}: LLFF datasets have only 'train' and 'test' splits, got {split!r}"
             )
-        captures = read_llff(folder, max_resolution=max_resolution)
+        captures = read_llff(folder, max_resolution=max_resolution, premultiply=True)
         index = torch.arange(len(captures.cameras))
         held_out = index % holdout_every == 0
         chosen = held_out if split == "test" else ~held_out
@@ -970,24 +973,19 @@ def read_captures(folder: str | os.PathLike, split: str, options: Any = None) ->
             mask_source=captures.mask_source,
             metadata=None if metadata is None else [metadata[i] for i in selected.tolist()],
         )
-        straight = True
     else:
         captures = read_nerf_synthetic(
             folder, split, background=None, prefer_exr=True, max_resolution=max_resolution
         )
-        straight = False
-    captures = _apply_background_key(captures, folder, options, straight)
-    if straight:
-        captures.images = captures.images * captures.masks
+    captures = _apply_background_key(captures, folder, options)
     if getattr(options, "exposure", "none") == "exif":
         captures.images = captures.images / exif_gains(captures, folder)[:, None, None, None]
     return captures
 
 
-def _apply_background_key(
-    captures: CaptureSet, folder: Path, options: Any, straight: bool
-) -> CaptureSet:
-    """Masks from options.background_key where the images have none; DatasetError without."""
+def _apply_background_key(captures: CaptureSet, folder: Path, options: Any) -> CaptureSet:
+    """Masks from options.background_key where the images have none (their colour is then
+    straight), and the colour premultiplied by them; DatasetError without a key."""
     if captures.mask_source != "none":
         return captures
     key = getattr(options, "background_key", None)
@@ -998,12 +996,11 @@ def _apply_background_key(
             "file stem, white = object), or set dataset.background_key to the background's "
             "linear RGB colour (e.g. [1, 1, 1]) in the run config"
         )
-    if not straight:
-        raise DatasetError(f"{folder}: dataset.background_key needs straight (not EXR) images")
     colour = torch.tensor(key, dtype=captures.images.dtype)
     difference = (captures.images - colour).abs().amax(-1, keepdim=True)
     tolerance = getattr(options, "background_tolerance", 0.08)
     captures.masks = (difference > tolerance).to(captures.images.dtype)
+    captures.images = captures.images * captures.masks
     captures.mask_source = "key"
     return captures
 

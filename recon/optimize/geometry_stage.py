@@ -136,7 +136,7 @@ def run_geometry_stage(
     renderer = Renderer()
     checkpoint = load_checkpoint(checkpoint_path) if resume else None
     if checkpoint is not None and checkpoint.get("stage") == "geometry_done":
-        return _result_from_checkpoint(checkpoint, device)
+        return _result_from_checkpoint(checkpoint, device, config.light.frame)
 
     if checkpoint is not None:
         verts = checkpoint["verts"].to(device)
@@ -158,9 +158,11 @@ def run_geometry_stage(
     masks_all = pyramid.levels[-1][2]
     images_all = pyramid.levels[-1][1]
     mean_radiance = float(images_all.sum() / (masks_all.sum() * 3).clamp_min(1))
-    light = LightModel(ambient=mean_radiance / 0.5 * 0.7, with_sun=geometry.directional_light).to(
-        device
-    )
+    light = LightModel(
+        ambient=mean_radiance / 0.5 * 0.7,
+        with_sun=geometry.directional_light,
+        frame=config.light.frame,
+    ).to(device)
     albedo = torch.nn.Parameter(albedo_values)
     positions = _PositionOptimizer(verts, faces, config)
     albedo_optimizer = torch.optim.Adam([albedo], lr=geometry.albedo_learning_rate)
@@ -304,8 +306,10 @@ def _remesh_state(positions, albedo, albedo_optimizer, config, progress, diagona
     return new_positions, new_albedo, new_albedo_optimizer
 
 
-def _result_from_checkpoint(checkpoint: dict, device: torch.device) -> GeometryResult:
-    light = LightModel()
+def _result_from_checkpoint(
+    checkpoint: dict, device: torch.device, frame: str = "world"
+) -> GeometryResult:
+    light = LightModel(frame=frame)
     light.load_state_dict(checkpoint["light"])
     return GeometryResult(
         checkpoint["verts"].to(device),
