@@ -913,15 +913,20 @@ LLFF_HOLDOUT_EVERY = 8
 
 
 def dataset_layout(folder: str | os.PathLike) -> str:
-    """'llff' (poses_bounds.npy) or 'nerf_synthetic' (transforms_*.json); DatasetError else."""
+    """'llff' (poses_bounds.npy), 'nerf_synthetic' (transforms_*.json) or 'colmap' (a sparse
+    model in sparse/0/, sparse/ or the folder); DatasetError else."""
+    from recon.io.colmap import colmap_model_folder
+
     folder = Path(folder)
     if (folder / "poses_bounds.npy").exists():
         return "llff"
     if any(folder.glob("transforms_*.json")):
         return "nerf_synthetic"
+    if colmap_model_folder(folder) is not None:
+        return "colmap"
     raise DatasetError(
         f"{folder}: not a dataset recon reads (expected poses_bounds.npy with images/ (LLFF), "
-        "or transforms_train.json (NeRF-synthetic))"
+        "transforms_train.json (NeRF-synthetic), or a COLMAP model in sparse/0/ with images/)"
     )
 
 
@@ -929,7 +934,7 @@ def has_split(folder: str | os.PathLike, split: str) -> bool:
     """Whether read_captures can read this split: LLFF has 'train' and 'test' (held out by
     index); NeRF-synthetic the splits it has transforms files for."""
     folder = Path(folder)
-    if dataset_layout(folder) == "llff":
+    if dataset_layout(folder) in ("llff", "colmap"):
         return split in ("train", "test")
     return (folder / f"transforms_{split}.json").exists()
 
@@ -943,8 +948,9 @@ def read_captures(folder: str | os.PathLike, split: str, options: Any = None) ->
     """One split of a dataset in either layout, as a fit needs it: linear colour premultiplied
     by coverage (background removed), masks from alpha, mask images or a background key.
 
-    NeRF-synthetic: transforms_{split}.json (EXR preferred when present). LLFF/NeRD:
-    poses_bounds.npy, with 'test' = every holdout_every-th image and 'train' the rest.
+    NeRF-synthetic: transforms_{split}.json (EXR preferred when present). LLFF/NeRD
+    (poses_bounds.npy) and COLMAP (recon.io.colmap): 'test' = every holdout_every-th image and
+    'train' the rest.
     options: a recon.config.run_config.DatasetConfig (max_resolution, background_key,
         holdout_every, exposure); None reads at the stored size with LLFF_HOLDOUT_EVERY.
     Photos with neither masks nor alpha are a DatasetError unless options.background_key is
@@ -953,12 +959,19 @@ def read_captures(folder: str | os.PathLike, split: str, options: Any = None) ->
     folder = Path(folder)
     max_resolution = getattr(options, "max_resolution", None)
     holdout_every = getattr(options, "holdout_every", LLFF_HOLDOUT_EVERY)
-    if dataset_layout(folder) == "llff":
+    layout = dataset_layout(folder)
+    if layout in ("llff", "colmap"):
         if split not in ("train", "test"):
             raise DatasetError(
-                f"{folder}: LLFF datasets have only 'train' and 'test' splits, got {split!r}"
+                f"{folder}: {layout.upper()} datasets have only 'train' and 'test' splits, "
+                f"got {split!r}"
             )
-        captures = read_llff(folder, max_resolution=max_resolution, premultiply=True)
+        if layout == "llff":
+            captures = read_llff(folder, max_resolution=max_resolution, premultiply=True)
+        else:
+            from recon.io.colmap import read_colmap
+
+            captures = read_colmap(folder, max_resolution=max_resolution, premultiply=True)
         index = torch.arange(len(captures.cameras))
         held_out = index % holdout_every == 0
         chosen = held_out if split == "test" else ~held_out

@@ -16,7 +16,7 @@ import torch
 from recon.config.run_config import RunConfig
 from recon.errors import ReconError
 from recon.io.atomic import atomic_write_json
-from recon.io.datasets import read_captures
+from recon.io.datasets import has_split, read_captures
 from recon.io.images import write_exr
 from recon.io.meshes import save_mesh
 from recon.io.run_folder import RunPaths
@@ -50,10 +50,7 @@ def fit_stage(
 ) -> dict:
     """Entry point 'fit' of the recon.stages group: reads paths.dataset, writes the fitted
     scene, history and checkpoints into the run folder."""
-    if (
-        not (paths.dataset / "transforms_train.json").exists()
-        and not (paths.dataset / "poses_bounds.npy").exists()
-    ):
+    if not paths.dataset.is_dir() or not has_split(paths.dataset, "train"):
         raise ReconError(
             f"fit: no training split in {paths.dataset} (run the synth stage first, or point "
             "the run at a dataset)"

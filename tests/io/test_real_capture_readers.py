@@ -13,15 +13,25 @@ import pytest
 import torch
 from PIL import Image
 
-from recon.camera import look_at
+from recon.camera import look_at, rigid_inverse
 from recon.config.run_config import DatasetConfig
 from recon.errors import DatasetError
 from recon.io.datasets import held_out_split, read_captures, read_llff, read_nerf_synthetic
 from recon.io.exif import exposure_value, read_exif
 from recon.io.images import srgb_to_linear
-from tests.io.test_io_datasets import llff_rows
 
 EXIF_IFD = 0x8769
+
+
+def llff_rows(
+    world_to_cam: torch.Tensor, size: tuple[int, int], focal: float, bounds: np.ndarray
+) -> np.ndarray:
+    """poses_bounds.npy rows [N, 17]: LLFF columns [down, right, back] from OpenCV cameras."""
+    cam_to_world = rigid_inverse(world_to_cam.double()).numpy()
+    right, down, forward, centre = (cam_to_world[:, :3, column] for column in range(4))
+    hwf = np.tile([size[0], size[1], focal], (len(cam_to_world), 1))
+    pose = np.stack([down, right, -forward, centre, hwf], axis=-1)
+    return np.concatenate([pose.reshape(-1, 15), bounds], axis=1)
 
 
 def write_jpeg(path: Path, rgb: np.ndarray, exif: dict | None = None) -> None:
