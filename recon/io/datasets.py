@@ -914,7 +914,8 @@ LLFF_HOLDOUT_EVERY = 8
 
 def dataset_layout(folder: str | os.PathLike) -> str:
     """'llff' (poses_bounds.npy), 'nerf_synthetic' (transforms_*.json) or 'colmap' (a sparse
-    model in sparse/0/, sparse/ or the folder); DatasetError else."""
+    model in sparse/0/, sparse/ or the folder), or 'photos' (images/ without poses: read_captures
+    estimates them, recon.io.sfm); DatasetError else."""
     from recon.io.colmap import colmap_model_folder
 
     folder = Path(folder)
@@ -924,6 +925,10 @@ def dataset_layout(folder: str | os.PathLike) -> str:
         return "nerf_synthetic"
     if colmap_model_folder(folder) is not None:
         return "colmap"
+    from recon.io.sfm import has_plain_photos
+
+    if has_plain_photos(folder):
+        return "photos"
     raise DatasetError(
         f"{folder}: not a dataset recon reads (expected poses_bounds.npy with images/ (LLFF), "
         "transforms_train.json (NeRF-synthetic), or a COLMAP model in sparse/0/ with images/)"
@@ -934,7 +939,7 @@ def has_split(folder: str | os.PathLike, split: str) -> bool:
     """Whether read_captures can read this split: LLFF has 'train' and 'test' (held out by
     index); NeRF-synthetic the splits it has transforms files for."""
     folder = Path(folder)
-    if dataset_layout(folder) in ("llff", "colmap"):
+    if dataset_layout(folder) in ("llff", "colmap", "photos"):
         return split in ("train", "test")
     return (folder / f"transforms_{split}.json").exists()
 
@@ -960,6 +965,11 @@ def read_captures(folder: str | os.PathLike, split: str, options: Any = None) ->
     max_resolution = getattr(options, "max_resolution", None)
     holdout_every = getattr(options, "holdout_every", LLFF_HOLDOUT_EVERY)
     layout = dataset_layout(folder)
+    if layout == "photos":
+        from recon.io.sfm import estimate_poses
+
+        estimate_poses(folder)
+        layout = "colmap"
     if layout in ("llff", "colmap"):
         if split not in ("train", "test"):
             raise DatasetError(
