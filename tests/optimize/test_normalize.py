@@ -141,3 +141,16 @@ def test_an_off_centre_capture_gives_the_same_fit_as_the_centred_one(tmp_path: P
     assert torch.allclose(torch.tensor(record["centre"]), OFFSET, atol=0.15 * SCALE)
     environment = json.loads((moved / "env.json").read_text())
     assert environment["peak_memory_mb"]["fit"] > 10
+
+
+def test_a_hull_cut_off_by_its_grid_is_a_warning(capsys) -> None:
+    from recon.optimize.visual_hull import visual_hull
+
+    mesh = blob()
+    cameras = orbit_cameras(8, (32, 32), distance=3.0)
+    masks = Renderer().render(mesh, cameras, Lighting.constant()).alpha
+    visual_hull(cameras, masks, resolution=24, radius=1.2)
+    assert "cut off" not in capsys.readouterr().err
+    visual_hull(cameras, masks, resolution=24, radius=0.4)  # smaller than the blob
+    err = capsys.readouterr().err
+    assert "recon: warning: visual hull" in err and "cut off" in err
