@@ -349,7 +349,9 @@ class NormalizeConfig:
     normalised frame; meshes and lights are written in the dataset's own frame too).
 
     enabled: estimate the object's centre and size from the cameras and masks (a coarse carving
-        around the cameras' common look-at point) and move it to the origin.
+        around the cameras' common look-at point) and move it to the origin. null (auto): for
+        datasets given with 'data' (photos, published poses), not for the synth stage's own
+        (its scenes sit at the origin by construction).
     radius: half the longest side of the object's box in the normalised frame.
     grid: voxels per side of the coarse carving grid.
     image_size: longer side of the masks the coarse carving reads (downsampled).
@@ -357,7 +359,7 @@ class NormalizeConfig:
         '-x', '-y', '-z' in the dataset's frame.
     """
 
-    enabled: bool = True
+    enabled: bool | None = None
     radius: float = 1.0
     grid: int = 48
     image_size: int = 128

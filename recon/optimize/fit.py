@@ -58,7 +58,10 @@ def fit_stage(
     captures = read_captures(paths.dataset, "train", config.dataset)
     transform = None
     hull_radius = None
-    if config.dataset.normalize.enabled:
+    normalize = config.dataset.normalize.enabled
+    if normalize is None:
+        normalize = config.data is not None
+    if normalize:
         if resume and paths.normalization.exists():
             transform = SceneTransform.read(paths.normalization)
         else:
