@@ -28,6 +28,7 @@ def relative_angles(world_to_cam: torch.Tensor) -> torch.Tensor:
     return torch.rad2deg(torch.arccos(((trace - 1) / 2).clamp(-1, 1)))
 
 
+@pytest.mark.shared
 def test_plain_photos_get_poses_by_structure_from_motion(
     tmp_path: Path, shared_captures: Path, capsys
 ) -> None:

@@ -37,6 +37,8 @@ def subset(source: Path, target: Path) -> Path:
     return target
 
 
+@pytest.mark.slow
+@pytest.mark.shared
 def test_real_capture_fits_evaluates_reports_and_diagnoses(
     tmp_path: Path, shared_captures: Path, capsys
 ) -> None:
