@@ -323,6 +323,8 @@ class TextureStageConfig:
     large_steps_lambda: float = 20.0
     smoothness_weight: float = 0.01
     mask_weight: float = 1.0
+    # As fit.geometry.image_loss: 'log_srgb_l1' weighs dark regions as the sRGB metrics do.
+    image_loss: Literal["l1", "log_srgb_l1"] = "l1"
 
     def __post_init__(self) -> None:
         check_range(self.steps, "steps", low=0)
