@@ -81,6 +81,9 @@ def main() -> int:
     ]
     for override in arguments.set:
         command += ["--set", override]
+    # The commit the run starts from (HEAD may move while it runs).
+    commit = _commit()
+    started_at = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     started = time.perf_counter()
     completed = subprocess.run(command, env=environment, capture_output=True, text=True)
     seconds = time.perf_counter() - started
@@ -93,8 +96,8 @@ def main() -> int:
     normalization = json.loads((run / "normalization.json").read_text())
     notes = [line for line in completed.stderr.splitlines() if line.startswith("recon: ")]
     result = {
-        "date": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
-        "commit": _commit(),
+        "date": started_at,
+        "commit": commit,
         "data": str(data),
         "command": " ".join(command[2:]),
         "threads": arguments.threads,
