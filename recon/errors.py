@@ -37,3 +37,11 @@ def describe_os_error(error: OSError, path: object = None) -> str:
 
 class WriteError(ReconError):
     """A file recon writes could not be written (read-only folder, full disk, permissions)."""
+
+
+def warn_user(message: str, kind: str = "warning") -> None:
+    """Tell the user something on stderr as 'recon: warning: ...' (or another kind, e.g.
+    'note'): a problem that does not stop the run but that they should act on."""
+    import sys
+
+    print(f"recon: {kind}: {message}", file=sys.stderr, flush=True)

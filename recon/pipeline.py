@@ -73,6 +73,16 @@ def find_stage(name: str) -> Stage:
     return found[name].load()
 
 
+def peak_memory_mb() -> float:
+    """The process's peak resident set size in MiB (resource.getrusage's ru_maxrss: KiB on
+    Linux, bytes on macOS)."""
+    import resource
+    import sys
+
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return round(peak / (1024 * 1024 if sys.platform == "darwin" else 1024), 1)
+
+
 def default_run_folder(config: RunConfig) -> Path:
     stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M%S")
     return Path("runs") / config.name / stamp
@@ -261,21 +271,13 @@ def run_stages(
             options["resume"] = True
         find_stage(name)(config, paths, device, **options)
         environment["stage_seconds"][name] = round(time.perf_counter() - started, 3)
-        environment["peak_memory_mb"] = peak_memory_mb()
+        # The process's peak resident memory so far (Linux: ru_maxrss in KiB).
+        environment.setdefault("peak_memory_mb", {})[name] = peak_memory_mb()
         atomic_write_json(paths.environment, environment)
         if on_first_stage_done is not None:
             on_first_stage_done()
             on_first_stage_done = None
     return paths
-
-
-def peak_memory_mb() -> float:
-    """This process's peak resident memory so far, in MiB (ru_maxrss is KiB on Linux)."""
-    import resource
-
-    usage = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    scale = 1 / (1024 * 1024) if sys.platform == "darwin" else 1 / 1024
-    return round(usage * scale, 1)
 
 
 def describe(paths: RunPaths) -> str:

@@ -9,6 +9,7 @@ import torch
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_MESHES = REPO_ROOT.parent / "shared" / "meshes"
+SHARED_CAPTURES = REPO_ROOT.parent / "shared" / "captures"
 
 DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)]
 
@@ -27,6 +28,15 @@ def shared_meshes() -> Path:
     if not SHARED_MESHES.is_dir():
         pytest.skip("../shared/meshes is absent")
     return SHARED_MESHES
+
+
+@pytest.fixture
+def shared_captures() -> Path:
+    """../shared/captures beside the checkout (real photos, not part of the project: read in
+    place, never copied into it); tests that need it skip cleanly without it."""
+    if not (SHARED_CAPTURES / "ethiopian_head" / "poses_bounds.npy").is_file():
+        pytest.skip("../shared/captures/ethiopian_head is absent")
+    return SHARED_CAPTURES
 
 
 @pytest.fixture(scope="session")

@@ -144,6 +144,35 @@ class Cameras:
         return world_to_cam_to_opengl_cam_to_world(self.world_to_cam)
 
 
+def similarity_transformed(cameras: Cameras, scale: float, centre: torch.Tensor) -> Cameras:
+    """The same cameras in the frame x' = scale * (x - centre) (a recentred, rescaled world).
+
+    A camera point p = R x + t becomes scale * p = R x' + scale * (R centre + t): the rotation
+    is kept, the camera frame scales with the world (projection is unchanged), near and far scale.
+    centre: [3] in the old world frame; scale > 0.
+    """
+    if not scale > 0:
+        raise ReconError(f"scale: expected a positive number, got {scale}")
+    centre = torch.as_tensor(centre, dtype=cameras.world_to_cam.dtype, device=cameras.device)
+    rotation = cameras.world_to_cam[:, :3, :3]
+    translation = cameras.world_to_cam[:, :3, 3]
+    world_to_cam = cameras.world_to_cam.clone()
+    world_to_cam[:, :3, 3] = scale * ((rotation @ centre) + translation)
+    return replace(
+        cameras, world_to_cam=world_to_cam, near=cameras.near * scale, far=cameras.far * scale
+    )
+
+
+def camera_up_directions(cameras: Cameras) -> torch.Tensor:
+    """Each camera's up direction in world space [B, 3] (OpenCV's -y axis)."""
+    return -cameras.world_to_cam[:, 1, :3]
+
+
+def camera_forward_directions(cameras: Cameras) -> torch.Tensor:
+    """Each camera's viewing direction in world space [B, 3] (OpenCV's +z axis)."""
+    return cameras.world_to_cam[:, 2, :3]
+
+
 def look_at(
     eyes: torch.Tensor,
     targets: torch.Tensor | None = None,

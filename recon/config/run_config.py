@@ -448,6 +448,10 @@ class TextureStageConfig:
     mask_weight: float = setting(
         1.0, "Weight of the L1 loss of the antialiased coverage against the masks."
     )
+    image_loss: Literal["l1", "log_srgb_l1"] = setting(
+        "l1",
+        "As fit.geometry.image_loss: log_srgb_l1 weighs dark regions as the sRGB metrics do.",
+    )
 
     def __post_init__(self) -> None:
         check_range(self.steps, "steps", low=0)
@@ -515,6 +519,82 @@ class PbrFitConfig:
 
 
 @dataclass
+class FitLightConfig:
+    """The fit's light model. frame 'world': the light is fixed in the scene (the default);
+    'camera': it is fixed to the camera (OpenCV camera axes), as in turntable captures where the
+    object turns under studio lights, so that in the object's frame the light turns with the
+    view."""
+
+    frame: Literal["world", "camera"] = setting(
+        "world",
+        "world: the light is fixed in the scene; camera: fixed to the camera (turntable captures, where the object turns under studio lights).",
+    )
+
+
+@dataclass
+class NormalizeConfig:
+    """Recentring and rescaling of a dataset's cameras before the fit (the fit works in the
+    normalised frame; meshes and lights are written in the dataset's own frame too)."""
+
+    enabled: bool | None = setting(
+        None,
+        "Move the object (centre and size from the cameras' look-at point and a coarse carving of the masks) to the origin; null: on for datasets given with 'data', off for the synth stage's own.",
+    )
+    radius: float = setting(
+        1.0, "Half the longest side of the object's box in the normalised frame."
+    )
+    grid: int = setting(48, "Voxels per side of the coarse carving grid.")
+    image_size: int = setting(
+        128, "Longer side of the masks the coarse carving reads (downsampled)."
+    )
+    up: Literal["auto", "x", "y", "z", "-x", "-y", "-z"] = setting(
+        "auto",
+        "The scene's up axis for figures: auto (the cameras' mean up) or an axis of the dataset's frame.",
+    )
+
+    def __post_init__(self) -> None:
+        check_range(self.radius, "radius", low=0.0, low_inclusive=False)
+        check_range(self.grid, "grid", low=8, high=256)
+        check_range(self.image_size, "image_size", low=16, high=4096)
+
+
+@dataclass
+class DatasetConfig:
+    """How a dataset folder (config key 'data', or the synth stage's dataset) is read."""
+
+    max_resolution: int | None = setting(
+        1024,
+        "Longer image side after loading: larger photos are downsampled on load (antialiased, intrinsics scaled) with a message; null keeps the stored size.",
+    )
+    background_key: list[float] | None = setting(
+        None,
+        "For photos without masks or alpha: a linear RGB background colour (pixels within background_tolerance are background); null: such a dataset is an error.",
+    )
+    background_tolerance: float = setting(
+        0.08, "Largest channel difference from background_key still counted as background."
+    )
+    holdout_every: int = setting(
+        8,
+        "Datasets without splits (LLFF, COLMAP, plain folders) hold out every N-th image as the test split.",
+    )
+    exposure: Literal["none", "exif"] = setting(
+        "none",
+        "exif: divide every photo by its EXIF exposure (time x ISO / f-number^2) relative to the median, a known per-view gain; none: pixels as they are.",
+    )
+    normalize: NormalizeConfig = setting(
+        factory=NormalizeConfig, doc="Recentring and rescaling of the cameras before the fit."
+    )
+
+    def __post_init__(self) -> None:
+        if self.max_resolution is not None:
+            check_range(self.max_resolution, "max_resolution", low=8, high=16384)
+        if self.background_key is not None:
+            _check_vector(self.background_key, "background_key")
+        check_range(self.background_tolerance, "background_tolerance", low=0.0, high=1.0)
+        check_range(self.holdout_every, "holdout_every", low=2)
+
+
+@dataclass
 class FitConfig:
     """The reconstruction recipe (two passes, nvdiffrec style)."""
 
@@ -546,6 +626,9 @@ class FitConfig:
     )
     pbr: PbrFitConfig = setting(
         factory=PbrFitConfig, doc="Settings of the pbr material (used only with material: pbr)."
+    )
+    light: FitLightConfig = setting(
+        factory=FitLightConfig, doc="The fit's light model (world or camera frame)."
     )
 
     def __post_init__(self) -> None:
@@ -585,6 +668,10 @@ class RunConfig:
         factory=CaptureConfig, doc="The synthetic capture: cameras, splits, effects (data_synth)."
     )
     fit: FitConfig = setting(factory=FitConfig, doc="The reconstruction recipe.")
+    dataset: DatasetConfig = setting(
+        factory=DatasetConfig,
+        doc="How a dataset folder is read: size cap, masks, held-out split, EXIF exposure, normalisation.",
+    )
 
     def __post_init__(self) -> None:
         if not self.name or any(character in self.name for character in "/\\:"):

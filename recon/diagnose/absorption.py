@@ -241,7 +241,7 @@ def absorption_probes(
         else:
             if cache.frozen is None:
                 cache.frozen = FrozenTrainingViews.build(
-                    read_captures(paths.dataset, "train"),
+                    read_captures(paths.dataset, "train", getattr(config, "dataset", None)),
                     data.mesh.to(device),
                     data.lighting.to(device),
                     renderer,
@@ -264,7 +264,9 @@ def absorption_probes(
             if not given:
                 # Its regression holds a gain per view already (a per-view photometric effect
                 # on top changes nothing): computed once, unconditionally.
-                training = load_diagnosis_data(paths, "train", device)
+                training = load_diagnosis_data(
+                    paths, "train", device, dataset_options=getattr(config, "dataset", None)
+                )
                 control, squared, module = radial_absorption(training, data)
                 _record(candidate, control, squared, module, given)
             continue

@@ -193,8 +193,11 @@ def load_diagnosis_data(
     band_pixels: int = DEFAULT_BAND_PIXELS,
     effects: Sequence[ModelEffect] | None = None,
     lighting: Lighting | None = None,
+    dataset_options=None,
 ) -> DiagnosisData:
     """The fitted scene of a run folder against one split of its dataset.
+
+    dataset_options: the run's DatasetConfig (how the dataset is read: size cap, masks).
 
     lighting: render under this light instead of the fitted one (a relight split's own light).
 
@@ -210,7 +213,7 @@ def load_diagnosis_data(
     if not paths.fitted_light.exists():
         raise ReconError(f"diagnose: no fitted light at {paths.fitted_light} (run the fit stage)")
     device = torch.device(device)
-    captures = read_captures(paths.dataset, split)
+    captures = read_captures(paths.dataset, split, dataset_options)
     if len(captures.cameras) == 0:
         raise ReconError(f"diagnose: split '{split}' of {paths.dataset} has no views")
     mesh = load_mesh(paths.fitted_mesh).to(device)

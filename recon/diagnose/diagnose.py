@@ -55,7 +55,7 @@ from recon.effects.photometric import normalised_radius
 from recon.effects.registry import MODEL_EFFECTS
 from recon.errors import ReconError
 from recon.io.atomic import atomic_path, atomic_write_json
-from recon.io.datasets import FLAT_FIELD_SPLIT, RELIGHT_LIGHTING
+from recon.io.datasets import FLAT_FIELD_SPLIT, RELIGHT_LIGHTING, held_out_split
 from recon.io.meshes import load_mesh
 from recon.io.run_folder import RunPaths
 from recon.metrics.evaluate import _plain
@@ -424,8 +424,8 @@ def diagnose_run(
     started = time.perf_counter()
     stage_seconds: dict[str, float] = {}
     lap = _Lap(stage_seconds)
-    split = "test" if (paths.dataset / "transforms_test.json").exists() else "val"
-    data = load_diagnosis_data(paths, split, device)
+    split = held_out_split(paths.dataset)
+    data = load_diagnosis_data(paths, split, device, dataset_options=config.dataset)
     gap = gap_summary(data)
     if config.fit.effects:
         gap["fit_effects_not_in_model"] = fit_effects_note(config.fit.effects)

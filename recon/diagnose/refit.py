@@ -47,7 +47,7 @@ def refit_with(
     starts the exponent at 1 ends near 1 (0.89-1.00 against truths of 0.80-0.89 on the
     benchmark) and its texture stays curved: the relight split then gains little.
     position_learning_rate: the vertices' step size."""
-    captures = read_captures(paths.dataset, "train")
+    captures = read_captures(paths.dataset, "train", config.dataset)
     mesh = load_mesh(paths.fitted_mesh).to(device)
     light = LightModel.from_lighting(load_fitted_light(paths, device))
     fit_config = replace(

@@ -16,7 +16,7 @@ from PIL import Image
 
 from recon.config.run_config import MINIMUM_VIEW_SIZE
 from recon.errors import DatasetError
-from recon.io.datasets import _frame_image_path
+from recon.io.datasets import _frame_image_path, dataset_layout
 
 SPLITS = ("train", "val", "test")
 
@@ -25,7 +25,8 @@ SPLITS = ("train", "val", "test")
 class DatasetSummary:
     """What a dataset folder holds.
 
-    layout: 'nerf_synthetic' or 'llff'. splits: split name -> number of views (LLFF: the whole
+    layout: recon.io.datasets.dataset_layout's name ('nerf_synthetic', 'llff', 'colmap',
+    'photos'). splits: split name -> number of views (LLFF: the whole
     capture under 'all'). image_size: (height, width) of the first view of each split.
     warnings: things that are legal but a user should know (e.g. evaluation falls back to 'val').
     """
@@ -39,7 +40,7 @@ class DatasetSummary:
     @property
     def heldout_split(self) -> str | None:
         """The split the evaluation scores: 'test', else 'val' (with a warning), else None."""
-        if self.layout == "llff" or self.splits.get("test"):
+        if self.layout != "nerf_synthetic" or self.splits.get("test"):
             return "test"
         return "val" if self.splits.get("val") else None
 
@@ -101,10 +102,13 @@ def check_dataset(folder: str | Path, heldout_needed: bool = False) -> DatasetSu
     folder = Path(folder)
     if not folder.is_dir():
         raise DatasetError(f"{folder}: dataset folder not found")
-    if (folder / "poses_bounds.npy").is_file():
-        summary = DatasetSummary(folder, "llff")
+    layout = dataset_layout(folder)
+    if layout != "nerf_synthetic":
+        # LLFF, COLMAP and plain photo folders hold one set of views; the readers hold every
+        # holdout_every-th out and check the images and masks as they load them.
+        summary = DatasetSummary(folder, layout)
         images = folder / "images"
-        if not images.is_dir():
+        if layout == "llff" and not images.is_dir():
             raise DatasetError(f"{images}: the LLFF folder has no images/ folder")
         return summary
     found = sorted(path.name for path in folder.glob("transforms_*.json"))

@@ -41,8 +41,9 @@ from recon.camera import (
     rigid_inverse,
     world_to_cam_to_opengl_cam_to_world,
 )
-from recon.errors import DatasetError, ReconError
+from recon.errors import DatasetError, ReconError, warn_user
 from recon.io.atomic import atomic_write_json
+from recon.io.exif import exposure_value, read_exif
 from recon.io.images import read_exr_channels, read_image, write_png
 from recon.io.images import write_exr as write_exr_file  # the writer has a write_exr flag
 
@@ -65,6 +66,11 @@ class CaptureSet:
     masks: torch.Tensor
     names: list[str]
     split: str
+    # Where the masks came from: 'alpha' (the images' alpha channel), 'masks' (mask images),
+    # 'key' (a background colour key) or 'none' (no coverage information: masks are all 1).
+    mask_source: str = "alpha"
+    # Per image: EXIF exposure_time, f_number, iso, camera_model (None where absent); or None.
+    metadata: list[dict] | None = None
 
     def __post_init__(self) -> None:
         count = len(self.cameras)
@@ -162,6 +168,76 @@ def _image_files(folder: Path) -> list[Path]:
         and not entry.name.startswith(".")
         and entry.suffix.lower() in IMAGE_SUFFIXES
     )
+
+
+def capped_size(size: tuple[int, int], max_resolution: int | None) -> tuple[int, int]:
+    """(H, W) shrunk so that the longer side is at most max_resolution (aspect kept)."""
+    height, width = size
+    if max_resolution is None or max(height, width) <= max_resolution:
+        return (height, width)
+    scale = max_resolution / max(height, width)
+    return (max(1, round(height * scale)), max(1, round(width * scale)))
+
+
+def _note_cap(size: tuple[int, int], max_resolution: int | None, where: Path) -> tuple[int, int]:
+    """capped_size, telling the user when it shrinks the images."""
+    capped = capped_size(size, max_resolution)
+    if capped != size:
+        warn_user(
+            f"{where}: images are {size[0]} x {size[1]}; reading them at {capped[0]} x "
+            f"{capped[1]} (dataset.max_resolution = {max_resolution}; set it higher or to null "
+            "for more detail at more memory and time)",
+            kind="note",
+        )
+    return capped
+
+
+def shrink_image(image: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    """[H, W, C] -> [h, w, C] with an antialiased (area-averaging) filter: every output pixel is
+    the mean of the input pixels it covers, as a coarser sensor would integrate them."""
+    return _resize(image[None], size)[0]
+
+
+def find_mask_file(masks_folder: Path, stem: str) -> Path | None:
+    """The mask image of an image stem in masks_folder (any of PNG/JPG/EXR; 'NAME.png' or the
+    image's full name plus an extension, as in 'IMG_1.jpg.png'), or None."""
+    for suffix in IMAGE_SUFFIXES + tuple(suffix.upper() for suffix in IMAGE_SUFFIXES):
+        candidate = masks_folder / f"{stem}{suffix}"
+        if candidate.is_file():
+            return candidate
+    matches = [
+        path
+        for path in masks_folder.glob(f"{stem}.*")
+        if path.suffix.lower() in IMAGE_SUFFIXES and path.is_file()
+    ]
+    return sorted(matches)[0] if matches else None
+
+
+def read_mask(path: Path, size: tuple[int, int] | None = None) -> torch.Tensor:
+    """A mask image as coverage [H, W, 1] in [0, 1]: 1 channel as it is, 3 channels averaged,
+    2 or 4 channels their alpha unless it is all opaque (then the colour). Values are read
+    without sRGB decoding. size: shrink to this (H, W) first (same aspect ratio only)."""
+    try:
+        image = read_image(path, decode_srgb=False)
+    except ReconError as error:
+        raise DatasetError(f"{path}: cannot read mask: {error}") from error
+    channels = image.shape[-1]
+    if channels in (2, 4) and bool((image[..., -1] < 1).any()):
+        mask = image[..., -1:]
+    elif channels == 1:
+        mask = image
+    else:
+        mask = image[..., : min(3, channels - 1 if channels in (2, 4) else channels)].mean(
+            -1, keepdim=True
+        )
+    if size is not None and tuple(mask.shape[:2]) != tuple(size):
+        if not _same_aspect(tuple(mask.shape[:2]), size):
+            raise DatasetError(
+                f"{path}: mask size (H, W) = {tuple(mask.shape[:2])} has another aspect ratio "
+                f"than its image ({size[0]} x {size[1]})"
+            )
+        mask = _resize(mask[None], size)[0]
+    return mask.clamp(0.0, 1.0)
 
 
 # --------------------------------------------------------------------------------------------
@@ -297,6 +373,7 @@ def read_nerf_synthetic(
     near: float | None = None,
     far: float | None = None,
     strict: bool = False,
+    max_resolution: int | None = None,
 ) -> CaptureSet:
     """Read one split of a NeRF-synthetic (Blender) folder.
 
@@ -310,6 +387,11 @@ def read_nerf_synthetic(
         camera distances to the origin (0.05 x the smallest, 10 x the largest).
     strict: also fail on image files in the frames' folders that no frame references (files
         named like a referenced frame plus '_...', such as 'r_0_depth_0000.png', are allowed).
+    max_resolution: shrink every frame on load (antialiased) so that its longer side is at most
+        this; the intrinsics follow. Applied before `scale`.
+    Images without alpha take their masks from `masks/` beside the JSON files: the frame's
+    path inside it ('masks/train/r_0.png') or its stem alone ('masks/r_0.png'), PNG or JPG, 1
+    or 3 channels; mask_source says which was used ('none': masks are all 1).
 
     Raises DatasetError naming the file and the problem.
     """
@@ -351,6 +433,8 @@ def read_nerf_synthetic(
         )
 
     images = masks = None
+    stored_size: tuple[int, int] | None = None
+    sources: set[str] = set()
     matrices, intrinsics, names, image_paths = [], [], [], []
     for index, frame in enumerate(frames):
         where = f"{json_path}: frames[{index}]"
@@ -360,7 +444,26 @@ def read_nerf_synthetic(
             raise DatasetError(f"{where}: image file {image_path} not found")
         premultiplied, alpha = _read_premultiplied(image_path, where)
         image_size = (int(premultiplied.shape[0]), int(premultiplied.shape[1]))
-        if images is None:
+        if alpha is None:
+            mask_path = _nerf_mask_path(folder, image_path)
+            if mask_path is not None:
+                alpha = read_mask(mask_path, image_size)
+                premultiplied = premultiplied * alpha
+                sources.add("masks")
+            else:
+                sources.add("none")
+        else:
+            sources.add("alpha")
+        target_size = (
+            _note_cap(image_size, max_resolution, json_path)
+            if stored_size is None
+            else capped_size(image_size, max_resolution)
+        )
+        if target_size != image_size:
+            premultiplied = shrink_image(premultiplied, target_size)
+            alpha = None if alpha is None else shrink_image(alpha, target_size)
+        if stored_size is None:
+            stored_size = image_size
             for key, expected in (("h", image_size[0]), ("w", image_size[1])):
                 if key in settings and _number(settings[key], f"{json_path}: {key}") != expected:
                     raise DatasetError(
@@ -369,12 +472,12 @@ def read_nerf_synthetic(
                     )
             # Filled frame by frame: a Blender split (100 x 800 x 800) is large enough that a
             # list of frames plus a stacked copy would double the peak memory.
-            images = torch.empty(len(frames), *image_size, 3)
-            masks = torch.empty(len(frames), *image_size, 1)
-        elif image_size != tuple(images.shape[1:3]):
+            images = torch.empty(len(frames), *target_size, 3)
+            masks = torch.empty(len(frames), *target_size, 1)
+        elif image_size != stored_size:
             raise DatasetError(
                 f"{where}: image {image_path} has size (H, W) = {image_size}, expected "
-                f"{tuple(images.shape[1:3])} like the first frame"
+                f"{stored_size} like the first frame"
             )
         images[index] = premultiplied
         masks[index] = 1.0 if alpha is None else alpha.clamp(0.0, 1.0)
@@ -393,15 +496,41 @@ def read_nerf_synthetic(
     cameras = Cameras(
         world_to_cam=opengl_cam_to_world_to_world_to_cam(cam_to_world).float(),
         intrinsics=torch.tensor(intrinsics, dtype=torch.float32),
-        image_size=size,
+        image_size=stored_size,
         near=near,
         far=far,
-    )
+    ).with_image_size(size)
     if scale is not None and scale != 1:
         new_size = (max(1, round(size[0] * scale)), max(1, round(size[1] * scale)))
         images, masks = _resize(images, new_size), _resize(masks, new_size)
         cameras = cameras.with_image_size(new_size)
-    return CaptureSet(cameras=cameras, images=images, masks=masks, names=names, split=split)
+    if len(sources) > 1:
+        raise DatasetError(
+            f"{json_path}: frames mix coverage sources {sorted(sources)} (alpha channel, mask "
+            "images, none): give every frame the same"
+        )
+    return CaptureSet(
+        cameras=cameras,
+        images=images,
+        masks=masks,
+        names=names,
+        split=split,
+        mask_source=sources.pop(),
+        metadata=[read_exif(path) for path in image_paths],
+    )
+
+
+def _nerf_mask_path(folder: Path, image_path: Path) -> Path | None:
+    """masks/<the image's path relative to folder, any image suffix>, else masks/<stem>.*"""
+    masks_folder = folder / "masks"
+    if not masks_folder.is_dir():
+        return None
+    try:
+        relative = image_path.relative_to(folder)
+    except ValueError:
+        relative = Path(image_path.name)
+    nested = find_mask_file(masks_folder / relative.parent, relative.stem)
+    return nested if nested is not None else find_mask_file(masks_folder, image_path.stem)
 
 
 def _resolve_near_far(
@@ -589,15 +718,22 @@ def read_llff(
     factor: float | None = None,
     near: float | None = None,
     far: float | None = None,
+    max_resolution: int | None = None,
+    premultiply: bool = False,
 ) -> CaptureSet:
     """Read an LLFF / NeRD folder: poses_bounds.npy + images/ (+ masks/).
 
     factor: downsampling factor (4 reads `images_4/` and `masks_4/` when they exist, else shrinks
         images/ and masks/ by area averaging). Intrinsics come from each pose's hwf (focal in
         pixels, principal point at the centre) scaled to the size of the images read.
-    Images are matched to poses in sorted file-name order (LLFF's convention), as are masks.
-    masks: the first channel of each mask image, read as linear coverage (no sRGB decoding);
-        without masks/, the images' alpha, else 1.
+    Images are matched to poses in sorted file-name order (LLFF's convention); masks to images
+    by file stem (any of PNG/JPG), or in sorted order when no stem matches.
+    masks: each mask image as linear coverage (no sRGB decoding; 1 channel as is, 3 averaged);
+        without masks/, the images' alpha, else 1 (mask_source 'none').
+    max_resolution: shrink every image as it is read (antialiased) so that its longer side is at
+        most this; the intrinsics follow.
+    premultiply: return colour x mask (multiplied before shrinking, as a coarser sensor would
+        integrate the object's radiance) instead of the photos' straight colour.
     near, far: default to 0.9 x the smallest near bound and 1.1 x the largest far bound.
     Raises DatasetError naming the file and the problem.
     """
@@ -650,14 +786,11 @@ def read_llff(
             raise DatasetError(str(error)) from error
     world_to_cam = llff_to_world_to_cam(poses[:, :, :4]).float()
 
-    mask_paths = _image_files(masks_folder) if masks_folder.is_dir() else None
-    if mask_paths is not None and len(mask_paths) != len(image_paths):
-        raise DatasetError(
-            f"{masks_folder}: {len(mask_paths)} masks but {len(image_paths)} images in {images_folder}"
-        )
-
-    colours, masks = [], []
+    mask_paths = _llff_mask_paths(masks_folder, image_paths, images_folder)
     size: tuple[int, int] | None = None
+    target: tuple[int, int] | None = None
+    images = mask_tensor = None
+    sources: set[str] = set()
     for index, image_path in enumerate(image_paths):
         try:
             colour, alpha = _split_colour_alpha(read_image(image_path))
@@ -666,35 +799,39 @@ def read_llff(
         image_size = (int(colour.shape[0]), int(colour.shape[1]))
         if size is None:
             size = image_size
+            target = size
+            if factor not in (None, 1) and images_folder.name == "images":
+                target = (max(1, round(size[0] / factor)), max(1, round(size[1] / factor)))
+            target = _note_cap(target, max_resolution, images_folder)
+            # Filled image by image, each shrunk as it is read: a full-resolution capture
+            # (119 x 3648^2) never sits in memory at its stored size.
+            images = torch.empty(len(image_paths), *target, 3)
+            mask_tensor = torch.empty(len(image_paths), *target, 1)
         elif image_size != size:
             raise DatasetError(
                 f"{image_path}: image size (H, W) = {image_size}, expected {size} like "
                 f"{image_paths[0].name}"
             )
         if mask_paths is not None:
-            mask_path = mask_paths[index]
-            try:
-                mask = read_image(mask_path, decode_srgb=False)[..., :1]
-            except ReconError as error:
-                raise DatasetError(f"{mask_path}: cannot read mask: {error}") from error
-            if shrink_masks and _same_aspect(tuple(mask.shape[:2]), image_size):
-                mask = _resize(mask[None], image_size)[0]
-            if tuple(mask.shape[:2]) != image_size:
+            alpha = read_mask(mask_paths[index], image_size if shrink_masks else None)
+            if tuple(alpha.shape[:2]) != image_size:
                 raise DatasetError(
-                    f"{mask_path}: mask size (H, W) = {tuple(mask.shape[:2])}, expected "
+                    f"{mask_paths[index]}: mask size (H, W) = {tuple(alpha.shape[:2])}, expected "
                     f"{image_size} like its image {image_path.name}"
                 )
-            alpha = mask
-        colours.append(colour)
-        masks.append(torch.ones_like(colour[..., :1]) if alpha is None else alpha)
-
-    images = torch.stack(colours).float()
-    mask_tensor = torch.stack(masks).float().clamp(0.0, 1.0)
-    if factor not in (None, 1) and images_folder.name == "images":
-        target = (max(1, round(size[0] / factor)), max(1, round(size[1] / factor)))
-        images = _resize(images, target)
-        mask_tensor = _resize(mask_tensor, target)
-    height, width = int(images.shape[1]), int(images.shape[2])
+            sources.add("masks")
+        else:
+            sources.add("none" if alpha is None else "alpha")
+        if alpha is None:
+            alpha = torch.ones_like(colour[..., :1])
+        images[index] = shrink_image(colour * alpha if premultiply else colour, target)
+        mask_tensor[index] = shrink_image(alpha.clamp(0.0, 1.0), target)
+    height, width = target
+    if len(sources) > 1:
+        raise DatasetError(
+            f"{images_folder}: images mix coverage sources {sorted(sources)} (alpha channel, "
+            "none): give every image an alpha channel or add masks/"
+        )
 
     hwf = poses[:, :, 4]  # [N, 3] = height, width, focal at the resolution the poses were made
     pose_height, pose_width, focal = hwf[:, 0], hwf[:, 1], hwf[:, 2]
@@ -734,36 +871,176 @@ def read_llff(
         far=far,
     )
     names = [path.stem for path in image_paths]
-    return CaptureSet(cameras=cameras, images=images, masks=mask_tensor, names=names, split="all")
+    return CaptureSet(
+        cameras=cameras,
+        images=images,
+        masks=mask_tensor,
+        names=names,
+        split="all",
+        mask_source=sources.pop(),
+        metadata=[read_exif(path) for path in image_paths],
+    )
 
 
-# LLFF captures have no splits: every 8th image is held out for testing (the LLFF/NeRF habit).
+def _llff_mask_paths(
+    masks_folder: Path, image_paths: list[Path], images_folder: Path
+) -> list[Path] | None:
+    """The mask file of every image: same stem in masks_folder (any image suffix), else, when
+    no stem matches at all, the masks in sorted order (LLFF's habit). None without the folder."""
+    if not masks_folder.is_dir():
+        return None
+    by_stem = [find_mask_file(masks_folder, path.stem) for path in image_paths]
+    if all(path is not None for path in by_stem):
+        return by_stem
+    missing = [path.name for path, mask in zip(image_paths, by_stem, strict=True) if mask is None]
+    in_order = _image_files(masks_folder)
+    if len(missing) == len(image_paths) and len(in_order) == len(image_paths):
+        return in_order
+    if len(missing) < len(image_paths):
+        shown = ", ".join(missing[:5]) + (", ..." if len(missing) > 5 else "")
+        raise DatasetError(
+            f"{masks_folder}: no mask for {len(missing)} of {len(image_paths)} images "
+            f"(expected a file with the image's stem, e.g. {Path(missing[0]).stem}.png): {shown}"
+        )
+    raise DatasetError(
+        f"{masks_folder}: {len(in_order)} masks but {len(image_paths)} images in {images_folder}"
+    )
+
+
+# LLFF captures have no splits: every 8th image is held out for testing (the LLFF/NeRF habit);
+# dataset.holdout_every in a run config changes it.
 LLFF_HOLDOUT_EVERY = 8
 
 
-def read_captures(folder: str | os.PathLike, split: str) -> CaptureSet:
-    """One split of a dataset in either layout, as a fit needs it: linear colour premultiplied
-    by coverage (background removed), masks from alpha or mask images.
+def dataset_layout(folder: str | os.PathLike) -> str:
+    """'llff' (poses_bounds.npy), 'nerf_synthetic' (transforms_*.json) or 'colmap' (a sparse
+    model in sparse/0/, sparse/ or the folder), or 'photos' (images/ without poses: read_captures
+    estimates them, recon.io.sfm); DatasetError else."""
+    from recon.io.colmap import colmap_model_folder
 
-    NeRF-synthetic: transforms_{split}.json (EXR preferred when present). LLFF/NeRD:
-    poses_bounds.npy, with 'test' = every LLFF_HOLDOUT_EVERY-th image and 'train' the rest
-    ('val' is empty). Images without masks are treated as fully covered.
-    """
     folder = Path(folder)
     if (folder / "poses_bounds.npy").exists():
-        captures = read_llff(folder)
-        index = torch.arange(len(captures.cameras))
-        held_out = index % LLFF_HOLDOUT_EVERY == 0
-        chosen = held_out if split == "test" else ~held_out
+        return "llff"
+    if any(folder.glob("transforms_*.json")):
+        return "nerf_synthetic"
+    if colmap_model_folder(folder) is not None:
+        return "colmap"
+    from recon.io.sfm import has_plain_photos
+
+    if has_plain_photos(folder):
+        return "photos"
+    raise DatasetError(
+        f"{folder}: not a dataset recon reads (expected poses_bounds.npy with images/ (LLFF), "
+        "transforms_train.json (NeRF-synthetic), or a COLMAP model in sparse/0/ with images/)"
+    )
+
+
+def has_split(folder: str | os.PathLike, split: str) -> bool:
+    """Whether read_captures can read this split: LLFF has 'train' and 'test' (held out by
+    index); NeRF-synthetic the splits it has transforms files for."""
+    folder = Path(folder)
+    if dataset_layout(folder) in ("llff", "colmap", "photos"):
+        return split in ("train", "test")
+    return (folder / f"transforms_{split}.json").exists()
+
+
+def held_out_split(folder: str | os.PathLike) -> str:
+    """The split that held-out metrics read: 'test' when there is one, else 'val'."""
+    return "test" if has_split(folder, "test") else "val"
+
+
+def read_captures(folder: str | os.PathLike, split: str, options: Any = None) -> CaptureSet:
+    """One split of a dataset in either layout, as a fit needs it: linear colour premultiplied
+    by coverage (background removed), masks from alpha, mask images or a background key.
+
+    NeRF-synthetic: transforms_{split}.json (EXR preferred when present). LLFF/NeRD
+    (poses_bounds.npy) and COLMAP (recon.io.colmap): 'test' = every holdout_every-th image and
+    'train' the rest.
+    options: a recon.config.run_config.DatasetConfig (max_resolution, background_key,
+        holdout_every, exposure); None reads at the stored size with LLFF_HOLDOUT_EVERY.
+    Photos with neither masks nor alpha are a DatasetError unless options.background_key is
+    set (then pixels near that colour are background).
+    """
+    folder = Path(folder)
+    max_resolution = getattr(options, "max_resolution", None)
+    holdout_every = getattr(options, "holdout_every", LLFF_HOLDOUT_EVERY)
+    layout = dataset_layout(folder)
+    if layout == "photos":
+        from recon.io.sfm import estimate_poses
+
+        estimate_poses(folder)
+        layout = "colmap"
+    if layout in ("llff", "colmap"):
         if split not in ("train", "test"):
-            raise DatasetError(f"{folder}: LLFF datasets have only 'train' and 'test' splits")
+            raise DatasetError(
+                f"{folder}: {layout.upper()} datasets have only 'train' and 'test' splits, "
+                f"got {split!r}"
+            )
+        if layout == "llff":
+            captures = read_llff(folder, max_resolution=max_resolution, premultiply=True)
+        else:
+            from recon.io.colmap import read_colmap
+
+            captures = read_colmap(folder, max_resolution=max_resolution, premultiply=True)
+        index = torch.arange(len(captures.cameras))
+        held_out = index % holdout_every == 0
+        chosen = held_out if split == "test" else ~held_out
         selected = torch.nonzero(chosen).squeeze(1)
-        images = captures.images[selected] * captures.masks[selected]
-        return CaptureSet(
+        metadata = captures.metadata
+        captures = CaptureSet(
             captures.cameras[selected],
-            images,
+            captures.images[selected],
             captures.masks[selected],
             [captures.names[i] for i in selected.tolist()],
             split,
+            mask_source=captures.mask_source,
+            metadata=None if metadata is None else [metadata[i] for i in selected.tolist()],
         )
-    return read_nerf_synthetic(folder, split, background=None, prefer_exr=True)
+    else:
+        captures = read_nerf_synthetic(
+            folder, split, background=None, prefer_exr=True, max_resolution=max_resolution
+        )
+    captures = _apply_background_key(captures, folder, options)
+    if getattr(options, "exposure", "none") == "exif":
+        captures.images = captures.images / exif_gains(captures, folder)[:, None, None, None]
+    return captures
+
+
+def _apply_background_key(captures: CaptureSet, folder: Path, options: Any) -> CaptureSet:
+    """Masks from options.background_key where the images have none (their colour is then
+    straight), and the colour premultiplied by them; DatasetError without a key."""
+    if captures.mask_source != "none":
+        return captures
+    key = getattr(options, "background_key", None)
+    if key is None:
+        raise DatasetError(
+            f"{folder}: the images have no masks/ folder and no alpha channel, so the object "
+            "cannot be told from the background; add masks/ (one PNG or JPG per image, same "
+            "file stem, white = object), or set dataset.background_key to the background's "
+            "linear RGB colour (e.g. [1, 1, 1]) in the run config"
+        )
+    colour = torch.tensor(key, dtype=captures.images.dtype)
+    difference = (captures.images - colour).abs().amax(-1, keepdim=True)
+    tolerance = getattr(options, "background_tolerance", 0.08)
+    captures.masks = (difference > tolerance).to(captures.images.dtype)
+    captures.images = captures.images * captures.masks
+    captures.mask_source = "key"
+    return captures
+
+
+def exif_gains(captures: CaptureSet, folder: Path) -> torch.Tensor:
+    """Per-view known gains [B]: EXIF exposure (time x ISO / f-number^2) over the median of
+    the views. DatasetError naming the first image whose EXIF lacks a value."""
+    values = []
+    for name, metadata in zip(
+        captures.names, captures.metadata or [{}] * len(captures), strict=True
+    ):
+        value = exposure_value(metadata)
+        if value is None:
+            raise DatasetError(
+                f"{folder}: dataset.exposure is 'exif' but image {name!r} has no EXIF "
+                f"exposure time, f-number and ISO (got {metadata})"
+            )
+        values.append(value)
+    gains = torch.tensor(values, dtype=torch.float64)
+    return (gains / gains.median()).float()

@@ -115,6 +115,11 @@ class RunPaths:
         return self.root / "report.md"
 
     @property
+    def normalization(self) -> Path:
+        """The similarity transform from the dataset's frame to the fit's normalised frame."""
+        return self.root / "normalization.json"
+
+    @property
     def reference_mesh(self) -> Path:
         return self.ground_truth / "reference.obj"
 

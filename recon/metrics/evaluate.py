@@ -13,7 +13,7 @@ import torch
 from recon.config.run_config import RunConfig
 from recon.errors import ReconError
 from recon.io.atomic import atomic_write_json
-from recon.io.datasets import read_captures
+from recon.io.datasets import held_out_split, read_captures
 from recon.io.images import linear_to_srgb, write_png
 from recon.io.meshes import load_mesh
 from recon.io.run_folder import RunPaths
@@ -59,8 +59,7 @@ def evaluate_stage(config: RunConfig, paths: RunPaths, device: torch.device) -> 
     """Entry point 'evaluate' of the recon.stages group."""
     if not paths.fitted_mesh.exists():
         raise ReconError(f"evaluate: no fitted mesh at {paths.fitted_mesh} (run the fit stage)")
-    llff = (paths.dataset / "poses_bounds.npy").exists()
-    split = "test" if llff or (paths.dataset / "transforms_test.json").exists() else "val"
+    split = held_out_split(paths.dataset)
     if split == "val":
         # Legal (a dataset without a test split), but the user must know what was scored.
         print(
@@ -68,7 +67,7 @@ def evaluate_stage(config: RunConfig, paths: RunPaths, device: torch.device) -> 
             "'val' split instead (metrics.json says split: val)",
             file=sys.stderr,
         )
-    captures = read_captures(paths.dataset, split)
+    captures = read_captures(paths.dataset, split, config.dataset)
     mesh, colors, alphas = render_fitted(paths, captures.cameras, device)
     background = torch.tensor(config.capture.background)
     prediction = colors + (1 - alphas) * background

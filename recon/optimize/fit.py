@@ -1,26 +1,35 @@
-"""The fit stage: dataset -> geometry stage (remeshing) -> simplify -> unwrap + bake ->
-texture stage -> mesh/ (OBJ + MTL + PNG, GLB) and light/ (JSON + EXR environment map)."""
+"""The fit stage: dataset -> normalisation -> geometry stage (remeshing) -> simplify -> unwrap +
+bake -> texture stage -> mesh/ (OBJ + MTL + PNG, GLB) and light/ (JSON + EXR environment map).
+
+With dataset.normalize.enabled the fit works in a recentred, rescaled frame
+(normalization.json); mesh/model.obj and model.glb are written in the dataset's own frame (the
+one its cameras are in, which evaluate, report and diagnose read), mesh/normalized/ in the fit's.
+The light needs no conversion: the transform has no rotation."""
 
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import torch
 
 from recon.config.run_config import RunConfig
 from recon.errors import ReconError
 from recon.io.atomic import atomic_write_json
-from recon.io.datasets import read_captures
+from recon.io.datasets import has_split, read_captures
 from recon.io.images import write_exr
 from recon.io.meshes import save_mesh
 from recon.io.run_folder import RunPaths
 from recon.optimize.checkpoint import History, load_checkpoint
 from recon.optimize.geometry_stage import run_geometry_stage
+from recon.optimize.normalize import SceneTransform, estimate_scene_transform
 from recon.optimize.scene_model import LightModel
 from recon.optimize.texture_stage import run_texture_stage
 from recon.render.shading import sh_basis
 
 ENVIRONMENT_SIZE = (64, 128)
+# Half-size of the visual hull's grid over the normalised object's half-size.
+HULL_MARGIN = 1.5
 
 
 def environment_map_from_light(light: LightModel, size=ENVIRONMENT_SIZE) -> torch.Tensor:
@@ -41,15 +50,28 @@ def fit_stage(
 ) -> dict:
     """Entry point 'fit' of the recon.stages group: reads paths.dataset, writes the fitted
     scene, history and checkpoints into the run folder."""
-    if (
-        not (paths.dataset / "transforms_train.json").exists()
-        and not (paths.dataset / "poses_bounds.npy").exists()
-    ):
+    if not paths.dataset.is_dir() or not has_split(paths.dataset, "train"):
         raise ReconError(
             f"fit: no training split in {paths.dataset} (run the synth stage first, or point "
             "the run at a dataset)"
         )
-    captures = read_captures(paths.dataset, "train")
+    captures = read_captures(paths.dataset, "train", config.dataset)
+    transform = None
+    hull_radius = None
+    normalize = config.dataset.normalize.enabled
+    if normalize is None:
+        normalize = config.data is not None
+    if normalize:
+        if resume and paths.normalization.exists():
+            transform = SceneTransform.read(paths.normalization)
+        else:
+            transform = estimate_scene_transform(
+                captures.cameras, captures.masks, config.dataset.normalize
+            )
+            transform.write(paths.normalization)
+        captures = replace(captures, cameras=transform.cameras(captures.cameras))
+        # The object fills radius; the hull's grid keeps a margin so that it never touches it.
+        hull_radius = HULL_MARGIN * config.dataset.normalize.radius
     geometry_checkpoint = paths.checkpoints / "geometry.pt"
     texture_checkpoint = paths.checkpoints / "texture.pt"
     truncate = None
@@ -60,7 +82,14 @@ def fit_stage(
             truncate = (stage, state["step"] - 1)
     history = History(paths.history, truncate_after=truncate)
     geometry = run_geometry_stage(
-        captures, config.fit, device, config.seed, geometry_checkpoint, history, resume=resume
+        captures,
+        config.fit,
+        device,
+        config.seed,
+        geometry_checkpoint,
+        history,
+        resume=resume,
+        hull_radius=hull_radius,
     )
     if config.fit.material == "pbr":
         # The pbr material (base colour, roughness, metalness, environment map): its own stage
@@ -90,6 +119,10 @@ def fit_stage(
     )
     paths.mesh_folder.mkdir(parents=True, exist_ok=True)
     mesh = result.mesh.to("cpu")
+    if transform is not None:
+        # The fit's own frame beside the dataset's (which every later stage reads).
+        save_mesh(paths.mesh_folder / "normalized" / "model.obj", mesh)
+        mesh = replace(mesh, verts=transform.to_dataset(mesh.verts))
     save_mesh(paths.fitted_mesh, mesh)
     save_mesh(paths.mesh_folder / "model.glb", mesh)
     paths.light_folder.mkdir(parents=True, exist_ok=True)

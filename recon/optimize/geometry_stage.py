@@ -17,6 +17,7 @@ import trimesh
 from tqdm import tqdm
 
 from recon.config.run_config import FitConfig
+from recon.errors import warn_user
 from recon.io.datasets import CaptureSet
 from recon.mesh.mesh import Mesh
 from recon.optimize.checkpoint import (
@@ -40,6 +41,8 @@ from recon.render.antialias import build_topology
 from recon.render.renderer import Renderer
 
 LOG_EVERY = 10
+# A remeshed face count above this multiple of the simplification target is warned about.
+FACE_WARNING_FACTOR = 10
 
 
 @dataclass
@@ -53,10 +56,13 @@ class GeometryResult:
     effects: FitEffects | None = None
 
 
-def initial_mesh(captures: CaptureSet, config: FitConfig, device: torch.device) -> Mesh:
-    """The visual hull of the masks, or an icosphere filling the hull's bounds."""
+def initial_mesh(
+    captures: CaptureSet, config: FitConfig, device: torch.device, radius: float | None = None
+) -> Mesh:
+    """The visual hull of the masks, or an icosphere filling the hull's bounds. radius: the
+    carving grid's half-size (default: visual_hull's, from the camera distances)."""
     hull = visual_hull(
-        captures.cameras.to(device), captures.masks.to(device), config.hull_resolution
+        captures.cameras.to(device), captures.masks.to(device), config.hull_resolution, radius
     )
     if config.init == "visual_hull":
         return hull
@@ -121,14 +127,16 @@ def run_geometry_stage(
     checkpoint_path: Path,
     history: History,
     resume: bool = False,
+    hull_radius: float | None = None,
 ) -> GeometryResult:
+    """hull_radius: half-size of the visual hull's carving grid (None: visual_hull's default)."""
     geometry = config.geometry
     generator = torch.Generator().manual_seed(seed)
     pyramid = TrainingPyramid.build(captures, geometry.resolutions, device)
     renderer = Renderer()
     checkpoint = load_checkpoint(checkpoint_path) if resume else None
     if checkpoint is not None and checkpoint.get("stage") == "geometry_done":
-        return _result_from_checkpoint(checkpoint, device)
+        return _result_from_checkpoint(checkpoint, device, config.light.frame)
 
     if checkpoint is not None:
         verts = checkpoint["verts"].to(device)
@@ -137,7 +145,7 @@ def run_geometry_stage(
         diagonal = checkpoint["diagonal"]
         start_step = checkpoint["step"]
     else:
-        mesh = initial_mesh(captures, config, device)
+        mesh = initial_mesh(captures, config, device, hull_radius)
         diagonal = _diagonal(mesh.verts)
         verts, faces = mesh.verts, mesh.faces
         if geometry.remesh_every > 0:
@@ -150,9 +158,11 @@ def run_geometry_stage(
     masks_all = pyramid.levels[-1][2]
     images_all = pyramid.levels[-1][1]
     mean_radiance = float(images_all.sum() / (masks_all.sum() * 3).clamp_min(1))
-    light = LightModel(ambient=mean_radiance / 0.5 * 0.7, with_sun=geometry.directional_light).to(
-        device
-    )
+    light = LightModel(
+        ambient=mean_radiance / 0.5 * 0.7,
+        with_sun=geometry.directional_light,
+        frame=config.light.frame,
+    ).to(device)
     albedo = torch.nn.Parameter(albedo_values)
     positions = _PositionOptimizer(verts, faces, config)
     albedo_optimizer = torch.optim.Adam([albedo], lr=geometry.albedo_learning_rate)
@@ -188,6 +198,7 @@ def run_geometry_stage(
             },
         )
 
+    warned_faces = False
     started = time.perf_counter()
     bar = tqdm(
         range(start_step, geometry.steps),
@@ -243,6 +254,17 @@ def run_geometry_stage(
             positions, albedo, albedo_optimizer = _remesh_state(
                 positions, albedo, albedo_optimizer, config, progress, diagonal
             )
+            faces_now = int(positions.faces.shape[0])
+            if not warned_faces and faces_now > FACE_WARNING_FACTOR * config.simplify.target_faces:
+                warned_faces = True
+                warn_user(
+                    f"fit: remeshing grew the mesh to {faces_now} faces, over "
+                    f"{FACE_WARNING_FACTOR} x fit.simplify.target_faces "
+                    f"({config.simplify.target_faces}); each step slows down with it. The "
+                    "initial hull is probably much larger than the object (keep "
+                    "dataset.normalize.enabled true, check the masks), or raise "
+                    "fit.geometry.edge_length_end"
+                )
         if (step + 1) % config.checkpoint_every == 0:
             save(step + 1)
     bar.close()
@@ -284,8 +306,10 @@ def _remesh_state(positions, albedo, albedo_optimizer, config, progress, diagona
     return new_positions, new_albedo, new_albedo_optimizer
 
 
-def _result_from_checkpoint(checkpoint: dict, device: torch.device) -> GeometryResult:
-    light = LightModel()
+def _result_from_checkpoint(
+    checkpoint: dict, device: torch.device, frame: str = "world"
+) -> GeometryResult:
+    light = LightModel(frame=frame)
     light.load_state_dict(checkpoint["light"])
     return GeometryResult(
         checkpoint["verts"].to(device),

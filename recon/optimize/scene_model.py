@@ -55,8 +55,10 @@ class FitEffects:
 class LightModel(torch.nn.Module):
     """SH environment [9, 3] plus an optional sun (direction, log irradiance)."""
 
-    def __init__(self, ambient: float = 1.0, with_sun: bool = True) -> None:
+    def __init__(self, ambient: float = 1.0, with_sun: bool = True, frame: str = "world") -> None:
+        """frame: 'world', or 'camera' for a light fixed to the camera (config fit.light)."""
         super().__init__()
+        self.frame = frame
         sh = torch.zeros(SH_COEFFICIENT_COUNT, 3)
         sh[0] = ambient * math.sqrt(4 * math.pi)
         self.sh = torch.nn.Parameter(sh)
@@ -67,7 +69,7 @@ class LightModel(torch.nn.Module):
     @classmethod
     def from_lighting(cls, lighting: Lighting) -> LightModel:
         """A trainable model holding `lighting` (SH plus at most one sun), on its device."""
-        light = cls(with_sun=bool(lighting.directional))
+        light = cls(with_sun=bool(lighting.directional), frame=lighting.frame)
         with torch.no_grad():
             light.sh.copy_(lighting.sh_coefficients)
             if lighting.directional:
@@ -85,7 +87,7 @@ class LightModel(torch.nn.Module):
                     self.sun_log_irradiance.exp(),
                 )
             )
-        return Lighting(sh_coefficients=self.sh, directional=directional)
+        return Lighting(sh_coefficients=self.sh, directional=directional, frame=self.frame)
 
     def to_json(self) -> dict:
         lighting = self.lighting()
@@ -98,6 +100,7 @@ class LightModel(torch.nn.Module):
                 }
                 for light in lighting.directional
             ],
+            "frame": self.frame,
         }
 
 

@@ -189,7 +189,7 @@ def run_texture_stage(
             topology=topology,
             mip_pyramid=build_mip_pyramid(texture),
         )
-        color_loss = image_loss(output.color, images[views])
+        color_loss = image_loss(output.color, images[views], settings.image_loss)
         mask_loss = (output.alpha - masks[views]).abs().mean()
         # Total variation inside the charts keeps texels that few views see from speckling.
         smoothness = texture_total_variation(texture)

@@ -7,7 +7,7 @@ import torch
 from skimage import measure
 
 from recon.camera import Cameras
-from recon.errors import ReconError
+from recon.errors import ReconError, warn_user
 from recon.mesh.mesh import Mesh
 
 
@@ -19,9 +19,10 @@ def carve(
     threshold: float = 0.5,
     chunk: int = 1 << 16,
     min_view_share: float = 0.5,
+    center: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, float]:
     """Occupancy [R, R, R] float (1 = inside every silhouette that sees it) over the cube
-    [-radius, radius]^3, and the radius used.
+    center + [-radius, radius]^3 (center [3], default the origin), and the radius used.
 
     masks: [B, H, W, 1] coverage. A voxel is removed when any view sees its centre outside the
     mask; views whose image does not contain the centre say nothing about it, but a voxel seen
@@ -40,6 +41,8 @@ def carve(
     axis = (torch.arange(resolution, dtype=torch.float32) + 0.5) / resolution * 2 - 1
     grid = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3) * radius
     grid = grid.to(masks.device)
+    if center is not None:
+        grid = grid + torch.as_tensor(center, dtype=grid.dtype, device=grid.device)
     occupied = torch.ones(grid.shape[0], dtype=torch.bool, device=masks.device)
     mask_image = masks[..., 0] >= threshold  # [B, H, W]
     for start in range(0, grid.shape[0], chunk):
@@ -56,6 +59,14 @@ def carve(
     return occupied.view(resolution, resolution, resolution).float(), radius
 
 
+def border_share(occupancy: torch.Tensor) -> float:
+    """The share of the grid's outer voxels [R, R, R] that are occupied (0 when the carved
+    volume stays clear of the border)."""
+    border = torch.ones_like(occupancy, dtype=torch.bool)
+    border[1:-1, 1:-1, 1:-1] = False
+    return float(occupancy[border].mean())
+
+
 def visual_hull(
     cameras: Cameras, masks: torch.Tensor, resolution: int = 64, radius: float | None = None
 ) -> Mesh:
@@ -64,6 +75,14 @@ def visual_hull(
     volume = occupancy.cpu().numpy()
     if volume.sum() == 0:
         raise ReconError("visual hull: every voxel was carved away; are the masks empty?")
+    touching = border_share(occupancy)
+    if touching > 0:
+        warn_user(
+            f"visual hull: {touching:.0%} of the carving grid's border voxels are occupied (grid "
+            f"half-size {radius:.3g} around the origin): the object is cut off there. Keep "
+            "dataset.normalize.enabled true (it recentres the object), or check the masks "
+            "(white = object) and the poses"
+        )
     # Pad so the surface closes at the grid border; a light blur gives marching cubes a smooth
     # field instead of a staircase.
     volume = np.pad(volume, 1)

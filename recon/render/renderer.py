@@ -129,7 +129,16 @@ class Renderer:
             else normals.new_zeros(0, 1)
         )
         return SurfaceBuffers(
-            mesh, fragments, clip_pos, topology, normals, uv, uv_derivatives, depth, (height, width)
+            mesh,
+            fragments,
+            clip_pos,
+            topology,
+            normals,
+            uv,
+            uv_derivatives,
+            depth,
+            (height, width),
+            cameras.world_to_cam,
         )
 
     def shade(
@@ -169,7 +178,10 @@ class Renderer:
                 (fragments.covered_index.shape[0], 3), 0.5, device=mesh.verts.device
             )
         positions = interpolate_packed(mesh.verts, fragments, faces) if lighting.points else None
-        radiance = lambertian(albedo, buffers.normals, lighting, positions)
+        normals = buffers.normals
+        if lighting.frame == "camera":
+            normals, positions = _to_camera_axes(buffers, normals, positions)
+        radiance = lambertian(albedo, normals, lighting, positions)
         return self._composite(buffers, radiance, albedo, background, antialias_edges)
 
     def shade_pbr(
@@ -281,6 +293,23 @@ class SurfaceBuffers:
     uv_derivatives: torch.Tensor | None
     depth: torch.Tensor
     image_size: tuple[int, int]
+    # [B, 4, 4] the cameras' world-to-camera matrices (for lights fixed to the camera).
+    world_to_cam: torch.Tensor | None = None
+
+
+def _to_camera_axes(
+    buffers: SurfaceBuffers, normals: torch.Tensor, positions: torch.Tensor | None
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Packed world normals [N, 3] (and positions) in their own view's OpenCV camera axes."""
+    if buffers.world_to_cam is None:
+        raise ReconError("a camera-frame light needs the buffers' world_to_cam (surface_buffers)")
+    view = buffers.fragments.covered_batch
+    matrices = buffers.world_to_cam[view]  # [N, 4, 4]
+    rotation = matrices[:, :3, :3]
+    camera_normals = (rotation @ normals[..., None])[..., 0]
+    if positions is not None:
+        positions = (rotation @ positions[..., None])[..., 0] + matrices[:, :3, 3]
+    return camera_normals, positions
 
 
 def _texture_packed(

@@ -81,6 +81,14 @@ class Lighting:
     sh_coefficients: torch.Tensor
     directional: list[DirectionalLight] = field(default_factory=list)
     points: list[PointLight] = field(default_factory=list)
+    # 'world': directions, positions and the environment are in world space. 'camera': they
+    # are in each view's OpenCV camera axes (x right, y down, z forward): a light fixed to the
+    # camera, as in a turntable capture; Renderer.shade turns the normals into camera axes.
+    frame: str = "world"
+
+    def __post_init__(self) -> None:
+        if self.frame not in ("world", "camera"):
+            raise ReconError(f"lighting.frame: expected 'world' or 'camera', got {self.frame!r}")
 
     @staticmethod
     def constant(radiance: float | list[float] = 1.0, channels: int = 3, device="cpu") -> Lighting:
@@ -95,7 +103,7 @@ class Lighting:
         """The lighting of a lighting JSON record (the fitted light's light.json, data_synth's
         ground_truth/lighting.json or a dataset's lighting_relight.json): sh_coefficients
         [9][C], directional [{direction_to_light, irradiance}], points [{position, intensity,
-        emitter_normal}] (optional). Other keys (area lights, an environment map's file) are
+        emitter_normal}] (optional), frame ('world' or 'camera'; default 'world'). Other keys (area lights, an environment map's file) are
         not part of recon's shading and are ignored."""
 
         def tensor(values) -> torch.Tensor:
@@ -117,6 +125,7 @@ class Lighting:
                 )
                 for light in data.get("points", [])
             ],
+            frame=data.get("frame", "world"),
         )
 
     def to(self, device: torch.device | str) -> Lighting:

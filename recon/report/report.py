@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import html
 import json
+import math
 from pathlib import Path
 
 import matplotlib
 import matplotlib.pyplot as plt
 import torch
 
-from recon.camera import orbit_cameras
+from recon.camera import Cameras, intrinsics_from_fov, look_at, orbit_cameras
 from recon.config.run_config import RunConfig
 from recon.io.atomic import atomic_path, atomic_write_text
 from recon.io.images import save_contact_sheet
@@ -56,9 +57,58 @@ def loss_figure(records: list[dict], path: Path) -> None:
     _save_figure(figure, path)
 
 
-def turntable(mesh: Mesh, lighting: Lighting, path: Path, device: torch.device) -> None:
-    """Eight views around the fitted mesh in one sheet."""
-    cameras = orbit_cameras(8, (160, 160), distance=3.0, fov_x_deg=40.0, device=device)
+def framing_cameras(
+    mesh: Mesh,
+    count: int,
+    size: int,
+    up: list[float] | None = None,
+    elevation_deg: float = 20.0,
+    fov_x_deg: float = 40.0,
+) -> Cameras:
+    """count cameras on a ring around the mesh's bounding-box centre, about `up` (default +y),
+    far enough that the bounding sphere fills about 80 % of the frame: the object is in view
+    wherever the dataset put it and whichever way is up."""
+    verts = mesh.verts.detach().cpu().float()
+    centre = (verts.amax(0) + verts.amin(0)) / 2
+    radius = max(float((verts - centre).norm(dim=-1).max()), 1e-6)
+    distance = radius / math.sin(math.radians(fov_x_deg) / 2) / 0.8
+    up_vector = torch.nn.functional.normalize(torch.tensor(up or [0.0, 1.0, 0.0]).float(), dim=0)
+    helper = (
+        torch.tensor([1.0, 0.0, 0.0])
+        if abs(float(up_vector[0])) < 0.9
+        else torch.tensor([0.0, 0.0, 1.0])
+    )
+    first = torch.nn.functional.normalize(torch.linalg.cross(up_vector, helper, dim=0), dim=0)
+    second = torch.linalg.cross(first, up_vector, dim=0)
+    azimuth = torch.arange(count, dtype=torch.float32) * (2 * math.pi / count)
+    elevation = math.radians(elevation_deg)
+    directions = (
+        math.cos(elevation)
+        * (torch.cos(azimuth)[:, None] * second + torch.sin(azimuth)[:, None] * first)
+        + math.sin(elevation) * up_vector
+    )
+    eyes = centre + distance * directions
+    world_to_cam = look_at(eyes, centre.expand_as(eyes), up=tuple(up_vector.tolist()))
+    intrinsics = intrinsics_from_fov(fov_x_deg, (size, size))
+    return Cameras(world_to_cam, intrinsics, (size, size), near=0.05 * distance, far=3 * distance)
+
+
+def scene_up(paths: RunPaths) -> list[float] | None:
+    """The up axis recorded by the fit's normalisation (normalization.json), or None."""
+    if not paths.normalization.exists():
+        return None
+    return json.loads(paths.normalization.read_text()).get("up")
+
+
+def turntable(
+    mesh: Mesh,
+    lighting: Lighting,
+    path: Path,
+    device: torch.device,
+    up: list[float] | None = None,
+) -> None:
+    """Eight views around the fitted mesh in one sheet, framed by its bounds about `up`."""
+    cameras = framing_cameras(mesh, 8, 192, up).to(device)
     with torch.no_grad():
         output = Renderer().render(mesh.to(device), cameras, lighting, background=1.0)
     save_contact_sheet(list(output.color.cpu()), path, columns=4)
@@ -106,7 +156,7 @@ def report_stage(config: RunConfig, paths: RunPaths, device: torch.device) -> di
     if paths.fitted_mesh.exists():
         mesh = load_mesh(paths.fitted_mesh)
         lighting = load_fitted_light(paths, device)
-        turntable(mesh, lighting, paths.figures / "turntable.png", device)
+        turntable(mesh, lighting, paths.figures / "turntable.png", device, scene_up(paths))
         figures.append(("Fitted mesh, turntable", paths.figures / "turntable.png"))
         pbr = load_pbr_result(paths)
         if pbr is not None:
@@ -126,7 +176,13 @@ def report_stage(config: RunConfig, paths: RunPaths, device: torch.device) -> di
             )
     if paths.renders.exists():
         for render in sorted(paths.renders.glob("*.png"))[:8]:
-            figures.append((f"Held-out view {render.stem}: target | render | error", render))
+            figures.append(
+                (
+                    f"Held-out view {render.stem}: target | render | absolute sRGB error "
+                    "(magma: black 0 to white 0.25)",
+                    render,
+                )
+            )
     metrics = json.loads(paths.metrics.read_text()) if paths.metrics.exists() else {}
     rows = _metric_rows(metrics)
     diagnosis_path = paths.root / "diagnosis.json"

@@ -157,7 +157,7 @@ def test_a_flat_card_spares_the_vignetting_regression(monkeypatch):
 
     calls = []
 
-    def loaded(paths, split, device):
+    def loaded(paths, split, device, dataset_options=None):
         calls.append(split)
         return "training views"
 

@@ -222,7 +222,7 @@ CASES = {
     ),
     "a dataset folder that is not one": Case(
         ["fit", "tiny.yaml", "--data", "notrun", "--out", "new"],
-        ["transforms_train.json", "not found"],
+        ["notrun", "not a dataset recon reads"],
     ),
     # Flags and keys that cannot apply are errors, not silently ignored.
     "withhold on a given dataset": Case(
