@@ -39,6 +39,11 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
         "vignetting falloff extrapolated to the corners",
     ),
     "refit-settings": ("benchmarks.refit_settings", "refit learning rates of one effect"),
+    "real-capture": (
+        "benchmarks.real_capture",
+        "the shared real capture fitted from its raw layout",
+    ),
+    "material": ("benchmarks.material", "pbr against lambert on a Mitsuba-rendered glossy scene"),
 }
 
 PROGRAM = "recon-bench"

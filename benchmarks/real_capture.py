@@ -7,7 +7,7 @@ only) and whole-image PSNR, the fit's and the whole run's seconds, the peak resi
 the run (env.json, resource.getrusage), the fitted mesh's faces and genus, the normalisation
 found, and the issue's targets side by side. Run from the repository root:
 
-    python scripts/bench_real_capture.py [--data FOLDER] [--out runs/bench_real_capture]
+    recon-bench real-capture [--data FOLDER] [--out runs/bench_real_capture]
         [--threads 2] [--set key=value ...]
 """
 
@@ -51,13 +51,13 @@ def _commit() -> str:
         return "unknown"
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", default=str(DEFAULT_DATA))
     parser.add_argument("--out", default="runs/bench_real_capture")
     parser.add_argument("--threads", type=int, default=2, help="torch/BLAS threads")
     parser.add_argument("--set", action="append", default=[], help="config override key=value")
-    arguments = parser.parse_args()
+    arguments = parser.parse_args(argv)
     data = Path(arguments.data)
     if not (data / "poses_bounds.npy").exists():
         print(json.dumps({"error": f"{data}: no poses_bounds.npy (is ../shared present?)"}))

@@ -7,7 +7,7 @@ PSNR (all pixels and masked), Chamfer-L1, the fitted roughness against the true 
 wall time, beside the issue's targets. --size/--views/--steps shrink the run for a small
 machine. Run from the repository root:
 
-    python scripts/bench_material.py [--size 64] [--views 16] [--test-views 4]
+    recon-bench material [--size 64] [--views 16] [--test-views 4]
         [--geometry-steps 150] [--texture-steps 100] [--spp 32] [--out runs/bench_material]
 """
 
@@ -20,9 +20,9 @@ import sys
 import time
 from pathlib import Path
 
+from benchmarks import common
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import _bench_common as common  # noqa: E402
 
 TARGETS = {"psnr": (">=", 32.0), "roughness_error": ("<=", 0.05), "seconds": ("<=", 600.0)}
 
