@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import torch
@@ -22,8 +23,18 @@ def save_checkpoint(path: Path, state: dict) -> None:
             # RuntimeError('[enforce fail at inline_container.cc] ... file write failed').
             raise WriteError(
                 f"cannot write checkpoint {path}: {error}".splitlines()[0]
-                + " (the disk may be full; free space, then continue with --resume)"
+                + f" (the disk may be full: {_free_bytes(path.parent)} free; free space, then "
+                "continue with --resume)"
             ) from error
+
+
+def _free_bytes(folder: Path) -> str:
+    """The free space of folder's file system, for the message of a failed write."""
+    try:
+        free = shutil.disk_usage(folder).free
+    except OSError:
+        return "unknown bytes"
+    return f"{free / 1024**2:.1f} MiB" if free >= 1024**2 else f"{free} bytes"
 
 
 def load_checkpoint(path: Path) -> dict | None:
