@@ -24,7 +24,7 @@ import torch
 from recon import __version__
 from recon.config import config_hash, dump_resolved, load_config
 from recon.config.run_config import RunConfig
-from recon.errors import ReconError, WriteError
+from recon.errors import ReconError, WriteError, warn_user
 from recon.io.atomic import append_json_line, atomic_write_json, remove_stale_temporaries
 from recon.io.run_folder import NewRunFolder, RunPaths, open_run_folder, start_run_folder
 from recon.preflight import check_new_run, check_writable
@@ -77,7 +77,6 @@ def peak_memory_mb() -> float:
     """The process's peak resident set size in MiB (resource.getrusage's ru_maxrss: KiB on
     Linux, bytes on macOS)."""
     import resource
-    import sys
 
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return round(peak / (1024 * 1024 if sys.platform == "darwin" else 1024), 1)
@@ -109,11 +108,6 @@ def _stages_to_run(config: RunConfig, stages: list[str] | None) -> list[str]:
         # A given dataset replaces the synthetic captures.
         chosen.remove("synth")
     return chosen
-
-
-def warn(message: str) -> None:
-    """A warning for the user: legal input that may not do what they expect."""
-    print(f"recon: warning: {message}", file=sys.stderr)
 
 
 def run(
@@ -153,7 +147,7 @@ def run(
         force=force,
     )
     for message in found.warnings:
-        warn(message)
+        warn_user(message)
     started = start_run_folder(out, force=force, inputs=found.inputs)
     paths = started.paths
     if config.data is not None:
@@ -168,7 +162,8 @@ def run(
             stage_options,
             on_first_stage_done=started.commit,
         )
-    except WriteError as error:
+    except (WriteError, OSError, KeyboardInterrupt) as error:
+        # Listed before ReconError, of which WriteError is one: a failed write is no failed check.
         _keep_after_failure(started, error)
         raise
     except ReconError:
@@ -177,9 +172,6 @@ def run(
         if not _completed_stages(paths):
             started.abandon()
         raise
-    except (OSError, KeyboardInterrupt) as error:
-        _keep_after_failure(started, error)
-        raise
 
 
 def _keep_after_failure(started: NewRunFolder, error: BaseException) -> None:
@@ -187,7 +179,7 @@ def _keep_after_failure(started: NewRunFolder, error: BaseException) -> None:
     so it can be resumed, and the run --force replaced stays aside: nothing is deleted."""
     error.run_folder = started.paths.root  # the CLI says where to --resume
     if started.replaced is not None:
-        warn(
+        warn_user(
             f"the run folder replaced by --force is kept at {started.replaced} until you delete it"
         )
 

@@ -4,14 +4,13 @@ run has one) -> metrics.json and renders/ (target | render | error per view)."""
 from __future__ import annotations
 
 import json
-import sys
 
 import matplotlib
 import numpy as np
 import torch
 
 from recon.config.run_config import RunConfig
-from recon.errors import ReconError
+from recon.errors import ReconError, warn_user
 from recon.io.atomic import atomic_write_json
 from recon.io.datasets import held_out_split, read_captures
 from recon.io.images import linear_to_srgb, write_png
@@ -62,10 +61,9 @@ def evaluate_stage(config: RunConfig, paths: RunPaths, device: torch.device) -> 
     split = held_out_split(paths.dataset)
     if split == "val":
         # Legal (a dataset without a test split), but the user must know what was scored.
-        print(
-            f"recon: warning: {paths.dataset} has no transforms_test.json; evaluating on the "
-            "'val' split instead (metrics.json says split: val)",
-            file=sys.stderr,
+        warn_user(
+            f"{paths.dataset} has no transforms_test.json; evaluating on the 'val' split "
+            "instead (metrics.json says split: val)"
         )
     captures = read_captures(paths.dataset, split, config.dataset)
     mesh, colors, alphas = render_fitted(paths, captures.cameras, device)
