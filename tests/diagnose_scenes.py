@@ -100,3 +100,32 @@ def glossy_torus_views(
     observed = observed + 0.002 * torch.randn(observed.shape, generator=generator)
     data = build_diagnosis_data(observed, output.alpha, fitted, cameras, fitted_light, mesh)
     return data, gains
+
+
+def albedo_error_views(seed: int, views: int = 12, size: int = 32, error: float = 0.5):
+    """Held-out views of a torus whose fitted texture is wrong by smooth random patches
+    (texture * (1 + error * a random 4 x 4 field per channel, upsampled)): a ~20 dB fit with
+    no camera or light-transport effect at all, only the base model's mismatch."""
+    from recon.camera import orbit_cameras
+    from recon.diagnose.data import build_diagnosis_data
+    from recon.render.renderer import Renderer
+    from recon.render.shading import Lighting
+
+    def colours(pattern):
+        return [pattern, 0.8 * pattern + 0.1, 0.6 * (1 - pattern) + 0.2]
+
+    true = patterned_torus((3, 2), 0.3, colours)
+    fitted = patterned_torus((3, 2), 0.3, colours)
+    generator = torch.Generator().manual_seed(seed)
+    field = torch.randn(1, 3, 4, 4, generator=generator)
+    field = torch.nn.functional.interpolate(
+        field, size=(32, 32), mode="bilinear", align_corners=True
+    )
+    true.texture = (true.texture * (1 + error * field[0].permute(1, 2, 0))).clamp(0.02, 1)
+    cameras = orbit_cameras(views, (size, size), distance=2.4, fov_x_deg=45, elevation_deg=30)
+    lighting = Lighting.constant(0.8)
+    renderer = Renderer(texture_filter="linear")
+    observed = renderer.render(true, cameras, lighting)
+    render = renderer.render(fitted, cameras, lighting)
+    noisy = observed.color + 0.002 * torch.randn(observed.color.shape, generator=generator)
+    return build_diagnosis_data(noisy, observed.alpha, render, cameras, lighting, fitted)

@@ -245,9 +245,11 @@ def signature_evidence(
     table: PixelTable,
     data: DiagnosisData,
     options: SpecificityOptions,
+    significant: bool = True,
 ) -> list[Evidence]:
     """The specificity Evidence of one gain-like candidate (and, when its gain follows a
-    confusable domain instead, an Evidence for the mismatch or effect that does)."""
+    confusable domain instead, an Evidence for the mismatch or effect that does; it passes
+    only when the candidate itself was significant: an insignificant gain explains nothing)."""
     signature = SIGNATURES[name]
     confusers = _confusers(signature, data)
     base = list(signature.base)
@@ -337,7 +339,7 @@ def signature_evidence(
     if alternative and signature.names_alternative:
         # The alternative is named only when the held-out pixels agree: most of the
         # candidate's reduction is gone once the domain is modelled.
-        named = share < options.retained_share
+        named = significant and share < options.retained_share
         verb = "explains" if named else "may explain"
         evidence.append(
             Evidence(
@@ -359,12 +361,15 @@ def specificity_evidence(
     data: DiagnosisData,
     candidates: list[str] | None = None,
     options: SpecificityOptions | None = None,
+    significant: set[str] | None = None,
 ) -> list[Evidence]:
     """Specificity Evidence for each gain-like candidate (default: every one in SIGNATURES):
     whether its gain follows its own factor or a confusable domain's profile.
 
     data: the held-out views (observations beside the fitted scene's render). Candidates
-    without a gain signature (lens distortion, blurs, pose error) get no Evidence here."""
+    without a gain signature (lens distortion, blurs, pose error) get no Evidence here.
+    significant: the candidates found significant so far (probe and null); a vetoed one names
+    its confuser only if it is among them (None: every candidate counts as significant)."""
     options = options or SpecificityOptions()
     names = [name for name in (candidates or list(SIGNATURES)) if name in SIGNATURES]
     if not names:
@@ -379,5 +384,6 @@ def specificity_evidence(
     )
     evidence: list[Evidence] = []
     for name in names:
-        evidence.extend(signature_evidence(name, table, data, options))
+        counts = significant is None or name in significant
+        evidence.extend(signature_evidence(name, table, data, options, counts))
     return evidence

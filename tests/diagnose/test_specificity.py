@@ -113,3 +113,11 @@ def test_the_key_pair_holds_for_other_noise_and_exposure_draws(seed):
     varied, _ = glossy_torus_views(exposure_sigma=0.3, seed=seed)
     assert not by_candidate(specificity_evidence(constant, ["exposure"]))["exposure"].passed
     assert by_candidate(specificity_evidence(varied, ["exposure"]))["exposure"].passed
+
+
+def test_an_insignificant_candidate_names_nothing():
+    data, _ = glossy_torus_views(exposure_sigma=0.0)
+    evidence = by_candidate(specificity_evidence(data, ["exposure"], significant=set()))
+    assert not evidence["exposure"].passed
+    assert not evidence[VIEW_DEPENDENT_REFLECTANCE].passed
+    assert "may explain" in evidence[VIEW_DEPENDENT_REFLECTANCE].reason
