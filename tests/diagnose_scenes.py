@@ -36,6 +36,8 @@ def glossy_torus_views(
     light_direction: tuple[float, float, float] = (0.0, 0.2, 1.0),
     seed: int = 0,
     transform: Callable[[torch.Tensor, object], torch.Tensor] | None = None,
+    distance: float = 2.4,
+    fov_x_deg: float = 45.0,
 ):
     """Held-out views of a glossy torus beside its diffuse fit: (DiagnosisData, true gains [V]).
 
@@ -46,7 +48,8 @@ def glossy_torus_views(
     mean highlight per channel (the best per-channel scale): what a diffuse fit of a glossy
     object leaves. The light's direction is near the cameras' ring, so views that face it show
     more highlight: per-view gains follow n.h. transform(observed, output) applies a further
-    camera effect to the observed views (premultiplied linear colour).
+    camera effect to the observed views (premultiplied linear colour). distance and fov_x_deg
+    frame the orbit (how much of the image the torus covers).
     """
     from recon.camera import orbit_cameras
     from recon.diagnose.data import build_diagnosis_data
@@ -54,7 +57,9 @@ def glossy_torus_views(
     from recon.render.shading import DirectionalLight, Lighting
 
     mesh = patterned_torus((3, 2), 0.3, lambda p: [p, 0.8 * p + 0.1, 0.6 * (1 - p) + 0.2])
-    cameras = orbit_cameras(views, (size, size), distance=2.4, fov_x_deg=45, elevation_deg=30)
+    cameras = orbit_cameras(
+        views, (size, size), distance=distance, fov_x_deg=fov_x_deg, elevation_deg=30
+    )
     direction = torch.tensor(light_direction, dtype=torch.float32)
     direction = direction / direction.norm()
     irradiance = torch.full((3,), 2.0)
