@@ -100,33 +100,79 @@ def image_gradients(image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return dx, dy
 
 
+@dataclass
+class _Pixels:
+    """The region's pixels of a DiagnosisData, flattened (N pixels): where they are, their
+    render, its gradients, the residual, and which held-out half they belong to."""
+
+    view: torch.Tensor  # [N]
+    row: torch.Tensor  # [N]
+    column: torch.Tensor  # [N]
+    rendered: torch.Tensor  # [N, 3]
+    gradient_x: torch.Tensor  # [N, 3]
+    gradient_y: torch.Tensor  # [N, 3]
+    residual: torch.Tensor  # [N, 3]
+    first: torch.Tensor  # [N] bool
+
+    @classmethod
+    def of(cls, data: DiagnosisData, block_pixels: int) -> _Pixels:
+        batch, height, width, _ = data.observed.shape
+        inside = data.region[..., 0] > 0.5
+        view, row, column = inside.nonzero(as_tuple=True)
+        gradient_x, gradient_y = image_gradients(data.rendered)
+        first = checkerboard(batch, height, width, block_pixels)[..., 0] > 0.5
+        return cls(
+            view=view,
+            row=row,
+            column=column,
+            rendered=data.rendered[inside],
+            gradient_x=gradient_x[inside],
+            gradient_y=gradient_y[inside],
+            residual=data.residual[inside].double(),
+            first=first[inside],
+        )
+
+
 def placebo_bases(
-    data: DiagnosisData,
+    pixels: _Pixels,
+    size: tuple[int, int, int],
     count: int,
     geometric: bool,
     options: NullOptions,
     generator,
     shared: bool = False,
 ) -> torch.Tensor:
-    """count random basis images [count, B, H, W, 3] of one placebo parameter each: a random
-    smooth gain field times the render, or (geometric) the render's change along a random
-    smooth displacement field (its first-order image change). shared: one field for every
-    view's image frame (a global parameter), else one per view."""
-    batch, height, width, _ = data.rendered.shape
-    rendered = data.rendered.double()
+    """count random basis images [count, N, 3] (at the region's N pixels) of one placebo
+    parameter each: a random smooth gain field times the render, or (geometric) the render's
+    change along a random smooth displacement field (its first-order image change). size:
+    (B, H, W); shared: one field for every view's image frame (a global parameter), else one
+    per view."""
+    batch, height, width = size
     views = 1 if shared else batch
     fields = smooth_fields(count * views * 2, height, width, options.field_cells, generator)
-    fields = fields.view(count, views, 2, height, width).double().expand(-1, batch, -1, -1, -1)
+    fields = fields.view(count, views, 2, height, width)
+    view = torch.zeros_like(pixels.view) if shared else pixels.view
+    values = fields.permute(1, 3, 4, 0, 2)[view, pixels.row, pixels.column]  # [N, count, 2]
+    values = values.permute(1, 0, 2).contiguous()  # [count, N, 2]
     # A placebo must mean nothing: without its mean over the view's object (weighted by the
     # render's energy), a random gain field is partly a uniform gain (an exposure), and a
     # random displacement field partly a shift (a pose change).
-    weight = (rendered**2).sum(-1) * data.region[..., 0].double()  # [B, H, W]
-    mean = (fields * weight[None, :, None]).sum((-2, -1), keepdim=True)
-    fields = fields - mean / weight.sum((-2, -1))[None, :, None, None, None].clamp_min(1e-30)
+    weight = (pixels.rendered**2).sum(-1)
+    total = torch.zeros(batch).index_add_(0, pixels.view, weight).clamp_min(1e-30)
+    for component in range(2):
+        sums = torch.zeros(count, batch).index_add_(1, pixels.view, values[..., component] * weight)
+        values[..., component] -= (sums / total)[:, pixels.view]
     if not geometric:
-        return fields[:, :, 0, :, :, None] * rendered[None]
-    dx, dy = image_gradients(rendered)
-    return fields[:, :, 0, :, :, None] * dx[None] + fields[:, :, 1, :, :, None] * dy[None]
+        return values[..., :1] * pixels.rendered[None]
+    return values[..., :1] * pixels.gradient_x[None] + values[..., 1:] * pixels.gradient_y[None]
+
+
+def _least_squares(bases: torch.Tensor, target: torch.Tensor, fit: torch.Tensor) -> torch.Tensor:
+    """Coefficients [P] of bases [P, N, 3] that fit target [N, 3] on the pixels fit [N]."""
+    chosen = bases[:, fit].double().flatten(1)
+    gram = chosen @ chosen.T
+    gram = gram + 1e-9 * gram.diagonal().mean().clamp_min(1e-30) * torch.eye(len(bases))
+    return torch.linalg.solve(gram, chosen @ target[fit].flatten())
 
 
 def placebo_reduction(
@@ -135,33 +181,39 @@ def placebo_reduction(
     """The held-out reduction of one random placebo with per_view parameters per view and
     shared global ones, fitted by linear least squares on the first half of the blocks (the
     residual's projection on the placebo's basis) and scored on the second."""
+    pixels = _Pixels.of(data, options.block_pixels)
+    return _placebo_reduction(pixels, data, per_view, shared, geometric, options, seed)
+
+
+def _placebo_reduction(
+    pixels: _Pixels,
+    data: DiagnosisData,
+    per_view: int,
+    shared: int,
+    geometric: bool,
+    options: NullOptions,
+    seed: int,
+) -> float:
     generator = torch.Generator().manual_seed(seed)
-    batch, height, width, _ = data.observed.shape
-    first = checkerboard(batch, height, width, options.block_pixels).double()
-    region = data.region.double()
-    fit_weight, test_weight = first * region, (1 - first) * region
-    residual = data.residual.double()
+    size = (data.view_count, *data.image_size)
+    residual = pixels.residual
     explained = torch.zeros_like(residual)
     if per_view:
-        bases = placebo_bases(data, per_view, geometric, options, generator)  # [P, B, H, W, 3]
-        flat = (bases * fit_weight[None]).flatten(2)  # [P, B, N]
-        gram = torch.einsum("pbn,qbn->bpq", flat, bases.flatten(2))
-        right = torch.einsum("pbn,bn->bp", flat, residual.flatten(1))
-        ridge = 1e-9 * gram.diagonal(dim1=1, dim2=2).mean(-1).clamp_min(1e-30)
-        gram = gram + ridge[:, None, None] * torch.eye(per_view, dtype=gram.dtype)
-        theta = torch.linalg.solve(gram, right)  # [B, P]
-        explained = explained + torch.einsum("bp,pbhwc->bhwc", theta, bases)
+        bases = placebo_bases(pixels, size, per_view, geometric, options, generator)
+        for view in range(data.view_count):
+            here = pixels.view == view
+            if not bool((here & pixels.first).any()):
+                continue
+            local = bases[:, here]
+            theta = _least_squares(local, residual[here], pixels.first[here])
+            explained[here] += torch.einsum("p,pnc->nc", theta, local.double())
     if shared:
-        bases = placebo_bases(data, shared, geometric, options, generator, shared=True)
-        flat = bases.flatten(1)
-        weighted = (bases * fit_weight[None]).flatten(1)
-        gram = weighted @ flat.T
-        right = weighted @ (residual - explained).flatten()
-        gram = gram + 1e-9 * gram.diagonal().mean().clamp_min(1e-30) * torch.eye(shared)
-        theta = torch.linalg.solve(gram, right)
-        explained = explained + torch.einsum("p,pbhwc->bhwc", theta, bases)
-    before = (residual**2 * test_weight).sum()
-    after = ((residual - explained) ** 2 * test_weight).sum()
+        bases = placebo_bases(pixels, size, shared, geometric, options, generator, shared=True)
+        theta = _least_squares(bases, residual - explained, pixels.first)
+        explained += torch.einsum("p,pnc->nc", theta, bases.double())
+    test = ~pixels.first
+    before = (residual[test] ** 2).sum()
+    after = ((residual - explained)[test] ** 2).sum()
     return float(1 - after / before.clamp_min(1e-30))
 
 
@@ -173,9 +225,10 @@ def placebo_null(
     options = options or NullOptions()
     per_view, shared = parameter_layout(name, data.view_count)
     geometric = name in GEOMETRIC_EFFECTS
+    pixels = _Pixels.of(data, options.block_pixels)
     draws = [
-        placebo_reduction(data, per_view, shared, geometric, options, options.seed + draw)
-        for draw in range(options.placebo_draws)
+        _placebo_reduction(pixels, data, per_view, shared, geometric, options, options.seed + d)
+        for d in range(options.placebo_draws)
     ]
     threshold = float(torch.quantile(torch.tensor(draws, dtype=torch.float64), options.quantile))
     return threshold, draws
