@@ -241,6 +241,11 @@ def _diagnose(arguments) -> int:
                 else ""
             )
         )
+    checks = result.get("checks", {})
+    for name, reason in checks.get("vetoed", {}).items():
+        print(f"vetoed {name}: {reason}")
+    for item in checks.get("not_identifiable", []):
+        print(f"note: {item['reason']}")
     print(f"verdict: {result['verdict']}")
     if result["refits"]:
         confirmed = result["confirmed_by_refit"]

@@ -11,7 +11,11 @@ diagnosis.json (stable schema, see README "Gap diagnosis"):
   refits:  [{effects, before, after, floor, closed_fraction, confirmed, relight_before,
             relight_after, relight_floor, relight_closed_fraction, geometry_before,
             geometry_after}]
-  verdict: the significant effects in order, or "no significant unmodelled effect"
+  checks:  {vetoed, mismatches, not_identifiable, evidence} (recon.diagnose.checks: nulls from
+           the run, specificity, capture metadata, identifiability); each ranking entry also
+           lists its own Evidence under "checks"
+  verdict: the significant effects in order and what the base model cannot represent, or
+           "no significant unmodelled effect"
   confirmed_by_refit: the refitted effects whose refit closed at least 5 % of the gap
 """
 
@@ -28,6 +32,7 @@ import matplotlib.pyplot as plt
 import torch
 
 from recon.config.run_config import RunConfig
+from recon.diagnose import checks as second_opinion
 from recon.diagnose.absorption import (
     GEOMETRY_ABSORBABLE,
     AbsorptionCache,
@@ -48,7 +53,6 @@ from recon.diagnose.which import (
     conditional_probes,
     conditioning_effect,
     rank_candidates,
-    verdict_of,
 )
 from recon.effects.forward import render_with_effects
 from recon.effects.photometric import normalised_radius
@@ -466,6 +470,14 @@ def diagnose_run(
             absorption_probes(ranking, data, paths, config, device, given=given, cache=cache)
         lap("conditional_absorption")
     ranking.sort(key=CandidateResult.rank_key, reverse=True)
+    # Issue 20's checks (nulls from the run, specificity, metadata, identifiability): vetoes
+    # applied in place, the Evidence stored beside each candidate (recon.diagnose.checks).
+    conditions, known_exposure = second_opinion.capture_facts(
+        paths.dataset, split, config.dataset, relight_views is not None, "flat_field" in gap
+    )
+    checks = second_opinion.apply_checks(ranking, data, conditions, known_exposure)
+    ranking.sort(key=CandidateResult.rank_key, reverse=True)
+    lap("checks")
     timings = {"diagnose_seconds": round(time.perf_counter() - started, 2), "stages": stage_seconds}
     # Against the ground truth when the run has one (synthetic data only; not part of the
     # diagnosis method, so outside its timing).
@@ -506,11 +518,15 @@ def diagnose_run(
             time.perf_counter() - started - timings["diagnose_seconds"], 2
         )
     _mark_vignetting_coverage(ranking, refits, covered_radius(data), gap.get("flat_field"))
-    verdict = verdict_of(ranking)
+    verdict = checks.verdict([candidate.effect for candidate in ranking if candidate.significant])
     result = {
         "gap": gap,
         "where": where,
-        "ranking": [candidate.to_json() for candidate in ranking],
+        "ranking": [
+            {**candidate.to_json(), "checks": checks.for_candidate(candidate.effect)}
+            for candidate in ranking
+        ],
+        "checks": checks.to_json(),
         "refits": refits,
         "verdict": verdict,
         # The effects whose refit closed at least CONFIRMING_SHARE of the gap: a significant

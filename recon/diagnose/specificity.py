@@ -140,9 +140,11 @@ class SpecificityOptions:
     alpha: the F-test's level: a candidate is specific when, in every confusable domain, its
         own gain stands out above its scatter across that domain's bins at this level (the
         conventional 1 %; not tuned on any benchmark).
-    retained_share: a failed candidate names the domain's mismatch only when, on held-out
-        pixels too, less than this share of its reduction survives the domain's profile (one
-        half: the point where the reduction is more the domain's than the candidate's).
+    retained_share: ... and when on held-out pixels its reduction is not mostly gone once the
+        domain's profile is modelled (the share that survives has an interval reaching this
+        value); a failed candidate names the domain's mismatch only when its point estimate
+        is below it. One half: the point where the reduction is more the domain's than the
+        candidate's.
     bootstrap_samples, interval: the bootstrap over views of the retained share (a central
         interval of this probability).
     seed: the bootstrap's random seed.
@@ -297,10 +299,22 @@ def signature_evidence(
         if slope is not None:
             record["view_slope"] = slope
         domains[domain] = record
-    worst = max(domains, key=lambda domain: (domains[domain]["p_value"], -domains[domain]["share"]))
+    # A domain explains the candidate's gain when the gain does not stand out above its
+    # scatter across the domain's bins (F-test), or when, on held-out pixels, less than the
+    # retained share of its reduction survives the domain's profile with confidence.
+    failing = [
+        domain
+        for domain, record in domains.items()
+        if record["p_value"] >= options.alpha or record["interval"][1] < options.retained_share
+    ]
+    passed = not failing
+    if passed:
+        worst = max(domains, key=lambda domain: domains[domain]["p_value"])
+    else:
+        # The domain that explains most of it names the alternative.
+        worst = min(failing, key=lambda domain: domains[domain]["share"])
     record = domains[worst]
     p_value = record["p_value"]
-    passed = p_value < options.alpha
     details = {
         "heldout_reduction": relative,
         "domains": domains,
@@ -331,9 +345,9 @@ def signature_evidence(
         )
     instead = f"{alternative}, not {name}" if alternative else f"not {name}"
     reason = (
-        f"{follows}once a common profile of {word} is modelled, {name}'s gain is no larger "
-        f"than its scatter across the bins ({test}; it {kept} of its held-out reduction of "
-        f"{100 * relative:.1f} %): {instead}"
+        f"{follows}once a common profile of {word} is modelled, {name}'s gain no longer "
+        f"stands out ({test} against its scatter across the bins; it {kept} of its held-out "
+        f"reduction of {100 * relative:.1f} %): {instead}"
     )
     evidence = [Evidence(KIND, name, p_value, options.alpha, False, reason, details)]
     if alternative and signature.names_alternative:

@@ -429,7 +429,7 @@ def test_diagnose_command_writes_the_documented_schema(tiny_run, capsys):
     printed = capsys.readouterr().out
     assert "verdict:" in printed and "visibility fingerprint:" in printed
     diagnosis = json.loads((tiny_run / "diagnosis.json").read_text())
-    assert {"gap", "where", "ranking", "refits", "verdict", "timings"} <= set(diagnosis)
+    assert {"gap", "where", "ranking", "refits", "verdict", "timings", "checks"} <= set(diagnosis)
     # The fit modelled no effect, so there is nothing to say about its effects.
     assert "fit_effects_not_in_model" not in diagnosis["gap"]
     assert {item["effect"] for item in diagnosis["ranking"]} == {
@@ -449,8 +449,10 @@ def test_diagnose_command_writes_the_documented_schema(tiny_run, capsys):
             "conditional_on",
             "absorption_discounted_by",
         } <= set(item)
-        assert item["evidence"] in ("", "probe", "absorption", "fingerprint")
-        assert item["significant"] == bool(item["evidence"])
+        # "vetoed": the checks (recon.diagnose.checks) overruled the evidence.
+        assert item["evidence"] in ("", "probe", "absorption", "fingerprint", "vetoed")
+        assert item["significant"] == (item["evidence"] not in ("", "vetoed"))
+        assert all(check["candidate"] == item["effect"] for check in item["checks"])
     # Vignetting is absorbable: it carries the absorption refit's evidence.
     vignetting = next(item for item in diagnosis["ranking"] if item["effect"] == "vignetting")
     assert vignetting["absorption"] is not None and len(vignetting["absorption_interval"]) == 2
