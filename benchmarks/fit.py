@@ -17,6 +17,8 @@ import sys
 import time
 from pathlib import Path
 
+from recon.io.run_folder import RunPaths
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_MESHES = REPO_ROOT.parent / "shared" / "meshes"
 TARGETS = {
@@ -59,7 +61,7 @@ def run_scene(scene: str, out: Path, overrides: list[str]) -> dict:
     seconds = time.perf_counter() - started
     if completed.returncode != 0:
         return {"scene": scene, "failed": completed.returncode, "seconds": seconds}
-    metrics = json.loads((run_folder / "metrics.json").read_text())
+    metrics = json.loads(RunPaths(run_folder).metrics.read_text())
     figures = {
         "seconds": round(seconds, 1),
         "psnr": metrics["image"]["psnr"],

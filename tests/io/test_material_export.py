@@ -12,7 +12,8 @@ from recon.io.images import read_exr
 from recon.io.meshes import load_material_maps, load_mesh, save_mesh
 from recon.io.run_folder import RunPaths
 from recon.mesh.mesh import Mesh
-from recon.optimize.material_stage import PbrTextureResult, light_from_environment, write_pbr_result
+from recon.optimize.material_stage import PbrTextureResult, light_from_environment
+from recon.stages.fitted_scene import load_pbr_fit, write_pbr_fit
 
 
 def _textured_quad() -> tuple[Mesh, torch.Tensor]:
@@ -56,12 +57,12 @@ def test_material_maps_of_the_wrong_shape_are_refused_by_name(tmp_path):
         save_mesh(tmp_path / "bad.obj", mesh, material_maps=torch.cat([maps, maps[..., :1]], -1))
 
 
-def test_write_pbr_result_writes_mesh_maps_environment_and_light(tmp_path):
+def test_write_pbr_fit_writes_mesh_maps_environment_and_light(tmp_path):
     mesh, maps = _textured_quad()
     environment = torch.rand(4, 8, 3, generator=torch.Generator().manual_seed(1))
     result = PbrTextureResult(mesh, maps, environment, light_from_environment(environment), 0.5, 4)
     paths = RunPaths(tmp_path)
-    summary = write_pbr_result(paths, result)
+    summary = write_pbr_fit(paths, result)
     assert summary["material"] == "pbr" and summary["faces"] == 2
     torch.testing.assert_close(read_exr(paths.light_folder / "environment.exr"), environment)
     record = json.loads(paths.fitted_light.read_text())
@@ -72,18 +73,16 @@ def test_write_pbr_result_writes_mesh_maps_environment_and_light(tmp_path):
 
 
 def test_a_pbr_run_with_its_environment_missing_is_named(tmp_path):
-    from recon.optimize.material_stage import load_pbr_result
-
     mesh, maps = _textured_quad()
     environment = torch.ones(4, 8, 3)
     paths = RunPaths(tmp_path)
-    write_pbr_result(
+    write_pbr_fit(
         paths,
         PbrTextureResult(mesh, maps, environment, light_from_environment(environment), 0.5, 4),
     )
-    loaded = load_pbr_result(paths)
+    loaded = load_pbr_fit(paths)
     torch.testing.assert_close(loaded.environment, environment)
     assert loaded.prefilter_levels == 4 and loaded.material.shape == (8, 8, 2)
     (paths.light_folder / "environment.exr").unlink()
     with pytest.raises(ReconError, match=r"light.json: names the pbr material, but .*environment"):
-        load_pbr_result(paths)
+        load_pbr_fit(paths)

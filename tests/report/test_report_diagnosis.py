@@ -9,7 +9,7 @@ import torch
 
 from recon.config.run_config import RunConfig
 from recon.io.run_folder import prepare_run_folder
-from recon.report.report import report_stage
+from recon.stages.report import report_stage
 
 
 def test_report_carries_the_diagnosis(tmp_path):
@@ -64,7 +64,7 @@ def test_report_carries_the_diagnosis(tmp_path):
         ],
         "figures": {},
     }
-    (paths.root / "diagnosis.json").write_text(json.dumps(diagnosis))
+    paths.diagnosis.write_text(json.dumps(diagnosis))
     report_stage(RunConfig(), paths, torch.device("cpu"))
     markdown = paths.report_markdown.read_text()
     assert "Verdict: significant unmodelled effects: vignetting" in markdown
