@@ -146,3 +146,79 @@ def test_the_run_folder_rules_see_a_violation():
     assert len(found) == 2 and "'metrics.json'" in found[0] and "dataset layout" in found[1]
     assert _excepted("recon/optimize/fit.py", "load_fitted_light")
     assert not _excepted("recon/optimize/fit.py", "fit_scene")
+
+
+# Tests that exercise several modules together through the pipeline or the CLI (end to end,
+# bad inputs, fault injection, repeatability) and regression/cross-checks against independent
+# references: these folders are declared, every other test file mirrors one module.
+SCENARIO_FOLDERS = {
+    "tests/pipeline": "whole runs through recon.cli and recon.pipeline",
+    "tests/regression": "tiny fits end to end against metric bounds, and resume",
+}
+# Test files outside the mirror, and why.
+UNMIRRORED = {
+    "tests/test_architecture.py": "the house rules themselves (this file)",
+    "tests/test_docs.py": "docs/ (generated pages are fresh, links resolve)",
+    # The diagnosis redesign (issue 20) re-homes recon/diagnose/ and its tests.
+    "tests/diagnose/test_diagnose_residuals.py": "issue 20 (recon/diagnose/residuals.py)",
+}
+# Top-level folders of tests/ and the package each mirrors.
+MIRRORED_PACKAGES = {"data_synth": "data_synth", "benchmarks": "benchmarks", "scripts": "scripts"}
+
+
+def _module_for(test_file: Path) -> list[Path]:
+    """The modules a test file may mirror: tests/a/test_b.py -> recon/a/b.py (or the package
+    a/b/), tests/data_synth/x/test_y.py -> data_synth/x/y.py, likewise benchmarks/ and
+    scripts/. A long module's tests may be split by topic: test_b_topic.py also mirrors b.py.
+    Dunder modules drop their underscores (recon/__main__.py -> tests/test_main.py)."""
+    relative = test_file.relative_to(REPO_ROOT / "tests")
+    parts = list(relative.parts[:-1])
+    if parts and parts[0] in MIRRORED_PACKAGES:
+        root = REPO_ROOT / MIRRORED_PACKAGES[parts[0]]
+        parts = parts[1:]
+    else:
+        root = REPO_ROOT / "recon"
+    folder = root.joinpath(*parts)
+    words = test_file.stem.removeprefix("test_").split("_")
+    candidates = []
+    for count in range(len(words), 0, -1):
+        name = "_".join(words[:count])
+        for module in (f"{name}.py", f"__{name}__.py"):
+            candidates.append(folder / module)
+        candidates.append(folder / name / "__init__.py")
+    return [path for path in candidates if path.exists()]
+
+
+def _unmirrored_tests() -> list[str]:
+    found = []
+    for path in sorted((REPO_ROOT / "tests").rglob("test_*.py")):
+        name = path.relative_to(REPO_ROOT).as_posix()
+        if name in UNMIRRORED or any(name.startswith(f"{folder}/") for folder in SCENARIO_FOLDERS):
+            continue
+        if not _module_for(path):
+            found.append(name)
+    return found
+
+
+def test_tests_mirror_modules():
+    """recon/a/b.py is tested in tests/a/test_b.py (data_synth/x.py in tests/data_synth/
+    test_x.py, benchmarks/x.py in tests/benchmarks/test_x.py): a test file that mirrors no
+    module lives in a declared scenario folder or is listed, with its reason, in UNMIRRORED."""
+    found = _unmirrored_tests()
+    assert not found, "test files that mirror no module:\n" + "\n".join(found)
+    for name in UNMIRRORED:
+        assert (REPO_ROOT / name).exists(), f"UNMIRRORED lists {name}, which is gone"
+
+
+def test_the_mirror_rule_finds_modules():
+    tests = REPO_ROOT / "tests"
+    assert _module_for(tests / "render" / "test_rasterize.py") == [
+        REPO_ROOT / "recon" / "render" / "rasterize.py"
+    ]
+    assert _module_for(tests / "io" / "test_datasets_real_captures.py")[0].name == "datasets.py"
+    assert _module_for(tests / "data_synth" / "effects" / "test_optics.py")[0] == (
+        REPO_ROOT / "data_synth" / "effects" / "optics.py"
+    )
+    assert _module_for(tests / "test_main.py") == [REPO_ROOT / "recon" / "__main__.py"]
+    assert _module_for(tests / "render" / "test_nothing_here.py") == []
+    assert _module_for(tests / "io" / "test_io_meshes.py") == []
