@@ -16,13 +16,11 @@ averages and the value at a pixel centre needs no smooth global model).
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import torch
 
 from recon.diagnose.residuals import luminance_of
 from recon.errors import ReconError
-from recon.io.datasets import FLAT_FIELD_SPLIT, read_nerf_synthetic
 
 # Pixels each side of a point in its local quadratic fit (a 13 x 13 window, clipped at the
 # frame's edge): wide enough to average noise, narrow enough that a quadratic follows a falloff
@@ -32,21 +30,10 @@ HALF_WINDOW = 6
 CIRCLE_POINTS = 64
 # Radial bins of the profile that the figure draws (0 to the corner).
 PROFILE_BINS = 16
-# A card lit to within 2 % over the frame is the usual tolerance of a flat-field target; a
-# corner darker or brighter than that is the camera's. Fixed before any case was scored.
-FLAT_FIELD_ALLOWANCE = 0.02
 # A frame with more than this share of its pixels at or above CLIPPED_VALUE (an 8-bit white, or a
 # sensor's full well normalised to 1) is refused: clipping flattens the falloff it measures.
 CLIPPED_VALUE = 0.999
 MAXIMUM_CLIPPED_SHARE = 0.01
-
-
-def load_flat_field(dataset: Path) -> torch.Tensor | None:
-    """The dataset's flat-field frames [N, H, W, 3] (linear, float64), or None without them."""
-    if not (Path(dataset) / f"transforms_{FLAT_FIELD_SPLIT}.json").exists():
-        return None
-    captures = read_nerf_synthetic(dataset, FLAT_FIELD_SPLIT, background=None, prefer_exr=True)
-    return captures.images.double()
 
 
 def local_value(image: torch.Tensor, column: float, row: float, half_window: int) -> float:
@@ -136,7 +123,6 @@ def measure_flat_field(frames: torch.Tensor, response_exponent: float | None = N
         "half_radius_falloff": round(half_radius_falloff, 5),
         "corner_falloff_per_frame": [round(value, 5) for value in per_frame],
         "deviation": round(max(abs(1 - corner_falloff), abs(1 - half_radius_falloff)), 5),
-        "allowance": FLAT_FIELD_ALLOWANCE,
         "response_exponent": exponent,
         "frames": count,
         "profile_radius": [round(float(value), 4) for value in 0.5 * (bins[1:] + bins[:-1])],

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import torch
 
+from recon.config.run_config import DiagnoseConfig
 from recon.diagnose.data import DiagnosisData
 from recon.diagnose.which import block_halves
 from recon.effects.photometric import Vignetting, normalised_radius
@@ -65,7 +66,7 @@ class InteriorPixels:
     view_count: int
 
     @classmethod
-    def from_data(cls, data: DiagnosisData) -> InteriorPixels:
+    def from_data(cls, data: DiagnosisData, block_pixels: int) -> InteriorPixels:
         batch, height, width, channels = data.observed.shape
         covered = (data.rendered_alpha >= FULL_COVERAGE) & (data.observed_alpha >= FULL_COVERAGE)
         covered = covered & (data.texel_uv[..., :1] >= 0)
@@ -83,7 +84,7 @@ class InteriorPixels:
         uv = (data.texel_uv * CELLS_PER_SIDE).long().clamp(0, CELLS_PER_SIDE - 1)
         cell = uv[..., 1] * CELLS_PER_SIDE + uv[..., 0]
         view = torch.arange(batch, device=keep.device)[:, None, None].expand(batch, height, width)
-        first, _ = block_halves(batch, height, width, keep.device)
+        first, _ = block_halves(batch, height, width, keep.device, block_pixels)
         channel = torch.arange(channels, device=keep.device).expand(batch, height, width, -1)[keep]
 
         def per_channel(values: torch.Tensor) -> torch.Tensor:
@@ -213,15 +214,15 @@ def falloff_module(coefficients: torch.Tensor) -> Vignetting:
 
 
 def radial_absorption(
-    training: DiagnosisData, heldout: DiagnosisData
+    training: DiagnosisData, heldout: DiagnosisData, settings: DiagnoseConfig
 ) -> tuple[torch.Tensor, torch.Tensor, Vignetting]:
     """Held-out per-view error sums [B] without and with the falloff (cell and view gains in
     both), and the fitted falloff as a Vignetting module. A fitted falloff that brightens
     half-way out is no vignetting (a lens only loses light off axis; a specular or
     interreflection misfit can put brighter pixels near the rim): its errors are the control's,
     no evidence."""
-    train_pixels = InteriorPixels.from_data(training)
-    test_pixels = InteriorPixels.from_data(heldout)
+    train_pixels = InteriorPixels.from_data(training, settings.block_pixels)
+    test_pixels = InteriorPixels.from_data(heldout, settings.block_pixels)
     control = heldout_errors(test_pixels, fit_gains(train_pixels, with_falloff=False))
     with_falloff = fit_gains(train_pixels, with_falloff=True)
     module = falloff_module(with_falloff.coefficients)

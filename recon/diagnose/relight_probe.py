@@ -38,6 +38,7 @@ from dataclasses import replace
 
 import torch
 
+from recon.config.run_config import DiagnoseConfig
 from recon.diagnose.data import DiagnosisData
 from recon.diagnose.gauss_newton import GaussNewtonProblem
 from recon.diagnose.which import block_halves, bootstrap_reduction
@@ -162,14 +163,20 @@ def unshadowed(relight: DiagnosisData, fitted_lighting: Lighting) -> torch.Tenso
 
 
 def relight_response_probe(
-    relight: DiagnosisData, under_fitted: torch.Tensor, fitted_lighting: Lighting, seed: int = 0
+    relight: DiagnosisData,
+    under_fitted: torch.Tensor,
+    fitted_lighting: Lighting,
+    settings: DiagnoseConfig,
+    seed: int = 0,
 ) -> dict:
     """relight: the relight split rendered under its own light (rendered = R2); under_fitted:
     the same views rendered under the fitted light (R1) [B, H, W, 3]; fitted_lighting: the
     fit's light (its error shapes, and the cast shadows of both lights). Returns {"reduction",
     "interval", "parameters": {"gamma", "effective_gamma", "gamma_with_light_error"}}."""
     batch, height, width, _ = relight.observed.shape
-    first, second = block_halves(batch, height, width, relight.observed.device)
+    first, second = block_halves(
+        batch, height, width, relight.observed.device, settings.block_pixels
+    )
     relight = replace(relight, region=relight.region * unshadowed(relight, fitted_lighting))
     light_basis = light_error_basis(relight.normals, fitted_lighting)
     baseline = _fit(
@@ -177,7 +184,7 @@ def relight_response_probe(
     )
     tested = RelightResponse(light_basis)
     curved = _fit(tested, under_fitted, relight, first, second)
-    reduction, interval = bootstrap_reduction(baseline, curved, seed)
+    reduction, interval = bootstrap_reduction(baseline, curved, settings.bootstrap_samples, seed)
     # The exponent itself comes from the fit without the light-error factor: a power law of the
     # ratio s2 / s1 is in part a function of s1, so with the factor free the exponent is pinned
     # by s2 alone and comes out low even on clean fits (recorded as gamma_with_light_error).

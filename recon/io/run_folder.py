@@ -45,6 +45,21 @@ class RunPaths:
         return self.root / "diagnosis.json"
 
     @property
+    def diagnosis_folder(self) -> Path:
+        """The diagnosis' figures (and its refits' scratch folder)."""
+        return self.root / "diagnosis"
+
+    @property
+    def refit_scratch(self) -> Path:
+        """Checkpoints and history of the diagnosis' refits (overwritten by each diagnosis)."""
+        return self.diagnosis_folder / "refit"
+
+    @property
+    def fit_checkpoint(self) -> Path:
+        """The texture stage's last checkpoint (holds the fit's own effect modules)."""
+        return self.checkpoints / "texture.pt"
+
+    @property
     def resolved_config(self) -> Path:
         return self.root / "config.resolved.yaml"
 

@@ -18,23 +18,21 @@ import torch
 
 from data_synth.shapes import torus
 from recon.camera import orbit_cameras
-from recon.cli import main
-from recon.diagnose import diagnose as diagnose_module
-from recon.diagnose.data import DiagnosisData, build_diagnosis_data, load_diagnosis_data
-from recon.diagnose.diagnose import relight_heldout_gap
+from recon.config.run_config import DiagnoseConfig
+from recon.diagnose import how_far
+from recon.diagnose.data import DiagnosisData, build_diagnosis_data
 from recon.diagnose.domains import DOMAINS, where_analysis
 from recon.diagnose.figures import where_figures, worst_views_figure
 from recon.diagnose.gap import gap_summary, noise_floor, relight_gap
 from recon.effects import make_effect
 from recon.effects.light_transport import view_directions
 from recon.errors import ReconError
-from recon.io.run_folder import open_run_folder
-from recon.metrics.evaluate import render_fitted
 from recon.render.renderer import Renderer, RenderOutput
 from recon.render.shading import DirectionalLight, Lighting
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 SIZE = 48
+SETTINGS = DiagnoseConfig()
 VIEWS = 6
 SUN_DIRECTION = (0.4, 0.8, 0.5)
 # A little sensor noise on every "observed" image, so no test relies on an exact residual.
@@ -212,12 +210,14 @@ def test_relight_heldout_gap_fixes_the_gauge_through_a_response_curve(scene, mon
         observed = noisy(curve(scene.output.color, scene.output.alpha)[0], 0.002, seed=7)
     data = scene.data(observed)
     darker = replace(scene.mesh, texture=scene.mesh.texture * 0.8)
-    truth_error = relight_heldout_gap(data, scene.mesh, [curve])
-    gauged_error = relight_heldout_gap(data, darker, [curve])
+    truth_error = how_far.relight_heldout_gap(data, scene.mesh, [curve], SETTINGS)
+    gauged_error = how_far.relight_heldout_gap(data, darker, [curve], SETTINGS)
     assert gauged_error == pytest.approx(truth_error, rel=0.01)
-    assert relight_heldout_gap(data, darker, []) > 4 * gauged_error  # the curve unmodelled
-    monkeypatch.setattr(diagnose_module, "GAUGE_ITERATIONS", 1)
-    assert relight_heldout_gap(data, darker, [curve]) > 2 * gauged_error
+    assert (
+        how_far.relight_heldout_gap(data, darker, [], SETTINGS) > 4 * gauged_error
+    )  # the curve unmodelled
+    monkeypatch.setattr(how_far, "GAUGE_ITERATIONS", 1)
+    assert how_far.relight_heldout_gap(data, darker, [curve], SETTINGS) > 2 * gauged_error
 
 
 @pytest.mark.parametrize("sigma", [0.01, 0.04])
@@ -376,95 +376,6 @@ def test_where_figures_are_written(scene, tmp_path):
     assert single.stat().st_size > 1000
 
 
-# --------------------------------------------------------------------------------------------
-# a real (tiny) run folder
-# --------------------------------------------------------------------------------------------
-
-
-def test_load_diagnosis_data_renders_the_fitted_scene(tiny_run, tmp_path, device):
-    paths = open_run_folder(tiny_run)
-    data = load_diagnosis_data(paths, "test", device)
-    assert data.observed.shape == (2, 32, 32, 3) and data.split == "test"
-    assert len(data.names) == 2 and data.observed.device.type == "cpu"
-    # The same render as the evaluate stage's.
-    _, colors, alphas = render_fitted(paths, data.cameras, device)
-    assert torch.allclose(data.rendered, colors, atol=1e-5)
-    assert torch.allclose(data.rendered_alpha, alphas, atol=1e-5)
-    covered = data.rendered_mask
-    assert bool(covered.any())
-    assert bool((data.texel_uv[covered] >= 0).all()) and bool((data.depth[covered] > 0).all())
-    assert bool((data.region[..., 0][data.observed_alpha[..., 0] > 0.5] > 0.5).all())
-    gap = gap_summary(data)
-    assert gap["rmse"] > 0 and len(gap["per_view_rmse"]) == 2
-    analysis = where_analysis(data)
-    json.dumps(analysis, allow_nan=False)
-    paths_written = where_figures(data, analysis, tmp_path)
-    assert all(path.stat().st_size > 0 for path in paths_written.values())
-
-
-def test_load_diagnosis_data_applies_model_effects(tiny_run):
-    paths = open_run_folder(tiny_run)
-    plain = load_diagnosis_data(paths, "test")
-    vignetting = make_effect("vignetting")
-    at_identity = load_diagnosis_data(paths, "test", effects=[vignetting])
-    assert torch.allclose(at_identity.rendered, plain.rendered, atol=1e-6)
-    with torch.no_grad():
-        vignetting.coefficients.fill_(-0.5)
-    darkened = load_diagnosis_data(paths, "test", effects=[vignetting])
-    assert not torch.allclose(darkened.rendered, plain.rendered, atol=1e-4)
-    assert torch.equal(darkened.triangle_id, plain.triangle_id)
-
-
-def test_load_diagnosis_data_names_a_missing_fit(tmp_path):
-    (tmp_path / "config.resolved.yaml").write_text("name: x\n")
-    with pytest.raises(ReconError, match="no fitted mesh"):
-        load_diagnosis_data(open_run_folder(tmp_path), "test")
-
-
-def test_diagnose_command_writes_the_documented_schema(tiny_run, capsys):
-    code = main(
-        ["diagnose", str(tiny_run), "--refit", "top", "--effects", "exposure,vignetting,shadows"]
-    )
-    assert code == 0
-    printed = capsys.readouterr().out
-    assert "verdict:" in printed and "visibility fingerprint:" in printed
-    diagnosis = json.loads((tiny_run / "diagnosis.json").read_text())
-    assert {"gap", "where", "ranking", "refits", "verdict", "timings"} <= set(diagnosis)
-    # The fit modelled no effect, so there is nothing to say about its effects.
-    assert "fit_effects_not_in_model" not in diagnosis["gap"]
-    assert {item["effect"] for item in diagnosis["ranking"]} == {
-        "exposure",
-        "vignetting",
-        "shadows",
-    }
-    for item in diagnosis["ranking"]:
-        assert {
-            "effect",
-            "score",
-            "heldout_reduction",
-            "interval",
-            "significant",
-            "parameters",
-            "evidence",
-            "conditional_on",
-            "absorption_discounted_by",
-        } <= set(item)
-        assert item["evidence"] in ("", "probe", "absorption", "fingerprint")
-        assert item["significant"] == bool(item["evidence"])
-    # Vignetting is absorbable: it carries the absorption refit's evidence.
-    vignetting = next(item for item in diagnosis["ranking"] if item["effect"] == "vignetting")
-    assert vignetting["absorption"] is not None and len(vignetting["absorption_interval"]) == 2
-    # Its corner falloff says how far out the object's pixels measured it.
-    assert 0.1 < vignetting["probe_parameters"]["covered_radius"] < 1.0
-    assert set(diagnosis["gap"]["visibility_fingerprint"]) >= {"share", "interval", "names"}
-    for refit in diagnosis["refits"]:
-        assert {"effects", "before", "after", "floor", "closed_fraction", "confirmed"} <= set(refit)
-        assert refit["confirmed"] == (refit["closed_fraction"] >= 0.05)
-    assert diagnosis["confirmed_by_refit"] == [
-        refit["effects"][-1] for refit in diagnosis["refits"] if refit["confirmed"]
-    ]
-
-
 def test_covered_radius_is_the_farthest_object_pixel():
     """covered_radius: the largest normalised radius among covered pixels; a full frame reaches
     the corners (radius about 1), a centred square of half the side about half of that."""
@@ -486,102 +397,3 @@ def test_covered_radius_is_the_farthest_object_pixel():
     assert covered_radius(data) > 0.95
     data.observed_alpha = torch.zeros(1, size, size, 1)
     assert covered_radius(data) == 0.0
-
-
-def test_a_fit_that_modelled_effects_is_told_they_are_not_in_the_diagnosed_model(
-    tiny_run, tmp_path
-):
-    """A run fitted with fit.effects: the diagnosis renders the fitted scene without those
-    modules, and diagnosis.json says so by name."""
-    import shutil
-
-    from recon.config import load_config
-    from recon.config.run_config import RunConfig
-
-    run = tmp_path / "run"
-    shutil.copytree(tiny_run, run)
-    paths = open_run_folder(run)
-    config = load_config(paths.resolved_config, RunConfig)
-    config = replace(config, fit=replace(config.fit, effects=["vignetting", "exposure"]))
-    result = diagnose_module.diagnose_run(
-        paths, config, torch.device("cpu"), refit="none", candidates=["exposure"], absorption=False
-    )
-    note = result["gap"]["fit_effects_not_in_model"]
-    assert note["names"] == ["exposure", "vignetting"]
-    stored = json.loads((run / "diagnosis.json").read_text())
-    assert stored["gap"]["fit_effects_not_in_model"] == note
-
-
-def test_diagnose_command_prints_recovered_parameters_and_voided_evidence(
-    tiny_run, capsys, monkeypatch
-):
-    """The command's lines for a significant effect's recovered parameters (the first refit's
-    over the evidence's) and for an absorption voided beside the conditioning effect."""
-    ranking = [
-        {
-            "effect": "exposure",
-            "heldout_reduction": 0.6,
-            "interval": [0.5, 0.7],
-            "significant": True,
-            "evidence": "probe",
-            "parameters": {"ratios": [0.9, 1.2]},
-        },
-        {
-            "effect": "lens_distortion",
-            "heldout_reduction": 0.01,
-            "interval": [-0.02, 0.03],
-            "significant": False,
-            "evidence": "",
-            "absorption": 0.3,
-            "absorption_discounted_by": "exposure",
-            "parameters": {},
-        },
-    ]
-    result = {
-        "ranking": ranking,
-        "gap": {},
-        "refits": [
-            {
-                "effects": ["exposure"],
-                "before_rmse": 0.1,
-                "after_rmse": 0.05,
-                "closed_fraction": 0.8,
-                "parameters": {"exposure": {"ratios": [0.8, 1.25]}},
-            }
-        ],
-        "verdict": "significant unmodelled effects: exposure",
-        "confirmed_by_refit": ["exposure"],
-    }
-    monkeypatch.setattr(diagnose_module, "diagnose_run", lambda *arguments, **options: result)
-    assert main(["diagnose", str(tiny_run)]) == 0
-    printed = capsys.readouterr().out
-    assert "  exposure (refit): ratios 0.8..1.25 (2)" in printed
-    assert "absorption  0.300 (void beside exposure)" in printed
-    # Not significant: no parameter line.
-    assert "  lens_distortion (" not in printed
-    # The flat field's line, and the reason when its frames were unusable.
-    result["gap"] = {
-        "flat_field": {
-            "frames": 2,
-            "corner_falloff": 0.61,
-            "half_radius_falloff": 0.93,
-            "deviation": 0.39,
-            "allowance": 0.02,
-        }
-    }
-    assert main(["diagnose", str(tiny_run)]) == 0
-    printed = capsys.readouterr().out
-    assert "flat field (2 frames): corner falloff 0.610, half-way 0.930 (vignetting;" in printed
-    result["gap"] = {"flat_field_error": "dataset/flat_field: flat_field.frames[0]: no light"}
-    assert main(["diagnose", str(tiny_run)]) == 0
-    assert "flat field not used: dataset/flat_field: flat_field.frames[0]: no light" in (
-        capsys.readouterr().out
-    )
-    # A fit that modelled effects itself: the diagnosis says it did not.
-    from recon.diagnose.diagnose import fit_effects_note
-
-    result["gap"] = {"fit_effects_not_in_model": fit_effects_note(["vignetting", "exposure"])}
-    assert main(["diagnose", str(tiny_run)]) == 0
-    assert "note: exposure, vignetting modelled by the fit but not by the diagnosis" in (
-        capsys.readouterr().out
-    )

@@ -1,0 +1,1 @@
+"""Stage entry points: the only modules that read or write the run folder (through RunPaths)."""

@@ -1,0 +1,239 @@
+"""The diagnose stage on real (tiny) run folders: the fitted model is loaded as the fit left it
+(its own effects and material included), diagnosis.json is written as a typed Diagnosis with a
+schema version, and `recon diagnose` prints it."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+
+import recon.stages.diagnose as stage
+from recon.cli import main
+from recon.config import load_config
+from recon.config.run_config import RunConfig
+from recon.diagnose.gap import gap_summary
+from recon.diagnose.records import SCHEMA_VERSION, Candidate, Diagnosis, Evidence
+from recon.effects import make_effect
+from recon.errors import ReconError
+from recon.io.run_folder import open_run_folder
+from recon.metrics.evaluate import render_fitted
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+
+
+def config_of(paths) -> RunConfig:
+    return load_config(paths.resolved_config, RunConfig)
+
+
+def test_load_diagnosis_data_renders_the_fitted_scene(tiny_run, device):
+    paths = open_run_folder(tiny_run)
+    data = stage.load_diagnosis_data(paths, "test", config_of(paths), device)
+    assert data.observed.shape == (2, 32, 32, 3) and data.split == "test"
+    assert len(data.names) == 2 and data.observed.device.type == "cpu"
+    # The same render as the evaluate stage's.
+    _, colors, alphas = render_fitted(paths, data.cameras, device)
+    assert torch.allclose(data.rendered, colors, atol=1e-5)
+    assert torch.allclose(data.rendered_alpha, alphas, atol=1e-5)
+    covered = data.rendered_mask
+    assert bool((data.texel_uv[covered] >= 0).all()) and bool((data.depth[covered] > 0).all())
+    assert gap_summary(data)["rmse"] > 0
+
+
+def test_load_diagnosis_data_applies_model_effects(tiny_run):
+    paths = open_run_folder(tiny_run)
+    config = config_of(paths)
+    plain = stage.load_diagnosis_data(paths, "test", config)
+    vignetting = make_effect("vignetting")
+    at_identity = stage.load_diagnosis_data(paths, "test", config, effects=[vignetting])
+    assert torch.allclose(at_identity.rendered, plain.rendered, atol=1e-6)
+    with torch.no_grad():
+        vignetting.coefficients.fill_(-0.5)
+    darkened = stage.load_diagnosis_data(paths, "test", config, effects=[vignetting])
+    assert not torch.allclose(darkened.rendered, plain.rendered, atol=1e-4)
+    assert torch.equal(darkened.triangle_id, plain.triangle_id)
+
+
+def test_a_missing_fit_is_named(tmp_path):
+    (tmp_path / "config.resolved.yaml").write_text("name: x\n")
+    with pytest.raises(ReconError, match="no fitted mesh"):
+        stage.load_fitted_model(open_run_folder(tmp_path), RunConfig(), torch.device("cpu"))
+
+
+def test_diagnose_command_writes_the_typed_diagnosis(tiny_run, capsys):
+    code = main(
+        ["diagnose", str(tiny_run), "--refit", "top", "--effects", "exposure,vignetting,shadows"]
+    )
+    assert code == 0
+    printed = capsys.readouterr().out
+    assert "verdict:" in printed and "visibility fingerprint:" in printed and "why:" in printed
+    stored = json.loads((tiny_run / "diagnosis.json").read_text())
+    assert stored["schema_version"] == SCHEMA_VERSION
+    diagnosis = Diagnosis.from_json(stored)
+    assert diagnosis.to_json() == stored
+    assert diagnosis.model == {"material": "lambert", "light_frame": "world", "effects": []}
+    assert {item.name for item in diagnosis.candidates} == {"exposure", "vignetting", "shadows"}
+    assert diagnosis.settings["refit"] == "top"
+    for candidate in diagnosis.candidates:
+        assert candidate.evidence_of("probe") is not None and candidate.why
+        assert candidate.significant == bool(candidate.decided_by)
+        assert candidate.decided_by in ("", "probe", "absorption", "fingerprint")
+    # Vignetting is absorbable: it carries the absorption regression's evidence, and its
+    # falloff says how far out the object's pixels measured it.
+    vignetting = diagnosis.candidate("vignetting")
+    assert len(vignetting.evidence_of("absorption").interval) == 2
+    assert 0.1 < vignetting.evidence_of("probe").details["parameters"]["covered_radius"] < 1.0
+    assert diagnosis.candidate("shadows").evidence_of("fingerprint") is not None
+    assert set(diagnosis.gap["visibility_fingerprint"]) >= {"share", "interval", "names"}
+    for refit in diagnosis.refits:
+        assert refit["confirmed"] == (refit["closed_fraction"] >= 0.05)
+    assert diagnosis.confirmed_by_refit == [
+        refit["effects"][-1] for refit in diagnosis.refits if refit["confirmed"]
+    ]
+    assert all((tiny_run / path).exists() for path in diagnosis.figures.values())
+
+
+def test_diagnose_command_prints_parameters_and_voided_evidence(tiny_run, capsys, monkeypatch):
+    """The command's lines for a significant effect's recovered parameters (the first refit's
+    over the evidence's) and for an absorption voided beside the conditioning effect."""
+    exposure = Candidate(
+        "exposure", significant=True, status="significant", decided_by="probe", why="clears"
+    )
+    exposure.parameters = {"ratios": [0.9, 1.2]}
+    exposure.add(
+        Evidence(
+            "probe",
+            "exposure",
+            0.5,
+            0.02,
+            True,
+            "probe",
+            {"reduction": 0.6, "interval": [0.5, 0.7]},
+        )
+    )
+    lens = Candidate("lens_distortion", why="does not clear")
+    lens.add(
+        Evidence(
+            "probe",
+            "lens_distortion",
+            -0.02,
+            0.056,
+            False,
+            "probe",
+            {"reduction": 0.01, "interval": [-0.02, 0.03]},
+        )
+    )
+    lens.add(
+        Evidence(
+            "absorption",
+            "lens_distortion",
+            0.2,
+            0.043,
+            True,
+            "absorption",
+            {"reduction": 0.3, "interval": [0.2, 0.4], "discounted_by": "exposure"},
+            void="void beside exposure",
+        )
+    )
+    diagnosis = Diagnosis(
+        candidates=[exposure, lens],
+        refits=[
+            {
+                "effects": ["exposure"],
+                "before_rmse": 0.1,
+                "after_rmse": 0.05,
+                "closed_fraction": 0.8,
+                "parameters": {"exposure": {"ratios": [0.8, 1.25]}},
+            }
+        ],
+        verdict="significant unmodelled effects: exposure",
+        confirmed_by_refit=["exposure"],
+        model={"material": "lambert", "light_frame": "world", "effects": ["vignetting"]},
+    )
+    monkeypatch.setattr(stage, "run_diagnosis", lambda *arguments, **options: diagnosis)
+    assert main(["diagnose", str(tiny_run)]) == 0
+    printed = capsys.readouterr().out
+    assert "  exposure (refit): ratios 0.8..1.25 (2)" in printed
+    assert "absorption  0.300 (void beside exposure)" in printed
+    assert "  lens_distortion (" not in printed  # not significant: no parameter line
+    assert "fit effects vignetting (part of the model, not candidates)" in printed
+    diagnosis.gap = {"flat_field_error": "dataset/flat_field: flat_field.frames[0]: no light"}
+    assert main(["diagnose", str(tiny_run)]) == 0
+    assert "flat field not used: dataset/flat_field: flat_field.frames[0]: no light" in (
+        capsys.readouterr().out
+    )
+
+
+def _fit_with_exposure(folder: Path, fit_effects: list[str]) -> Path:
+    """A tiny run on data with a strong per-view exposure, fitted with fit_effects."""
+    config = yaml.safe_load((REPO_ROOT / "configs" / "quickstart.yaml").read_text())
+    config["stages"] = ["synth", "fit"]
+    config["capture"]["cameras"]["resolution"] = [32, 32]
+    config["capture"].update({"train_views": 8, "val_views": 0, "test_views": 6})
+    config["capture"]["effects"] = [{"name": "exposure", "parameters": {"spread_stops": 1.0}}]
+    config["scene"]["shape"]["resolution"] = 16
+    config["scene"]["material"]["texture_size"] = 32
+    config["fit"] = {
+        "hull_resolution": 16,
+        "geometry": {"steps": 20, "resolutions": [32], "remesh_every": 0},
+        "texture": {"steps": 20, "texture_size": 64},
+        "effects": fit_effects,
+    }
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / "exposure.yaml"
+    path.write_text(yaml.safe_dump(config))
+    out = folder / "run"
+    assert main(["run", str(path), "--out", str(out), "--device", "cpu"]) == 0
+    return out
+
+
+def test_the_fits_own_effects_are_part_of_the_model(tmp_path):
+    """The same data with a per-view exposure, fitted with and without fit.effects: [exposure].
+    Without it, the diagnosis names exposure; with it, exposure is the model's (not a
+    candidate), its held-out gains are fitted per view, and its look-alike (white balance)
+    finds nothing left to explain."""
+    candidates = ["exposure", "white_balance"]
+    plain = open_run_folder(_fit_with_exposure(tmp_path / "plain", []))
+    found = stage.run_diagnosis(plain, config_of(plain), torch.device("cpu"), "none", candidates)
+    assert found.significant[:1] == ["exposure"], found.verdict
+    modelled = open_run_folder(_fit_with_exposure(tmp_path / "modelled", ["exposure"]))
+    config = config_of(modelled)
+    config = replace(config, diagnose=replace(config.diagnose, absorption=False))
+    diagnosis = stage.run_diagnosis(modelled, config, torch.device("cpu"), "none", candidates)
+    assert diagnosis.model["effects"] == ["exposure"]
+    assert [item.name for item in diagnosis.candidates] == ["white_balance"]
+    assert diagnosis.verdict == "no significant unmodelled effect", diagnosis.candidates
+    # The model's render holds the per-view gains (fitted on each held-out view's first half):
+    # its held-out gap is below that of the same fit rendered without its effects.
+    without = stage.load_diagnosis_data(modelled, "test", config)
+    assert diagnosis.gap["rmse"] < 0.95 * gap_summary(without)["rmse"]
+
+
+def test_a_pbr_fit_models_specular(tiny_run, monkeypatch):
+    """With fit.material: pbr, specular is modelled by the material: not a candidate."""
+    paths = open_run_folder(tiny_run)
+    config = config_of(paths)
+    model = stage.load_fitted_model(paths, config, torch.device("cpu"))
+    from recon.diagnose.diagnose import candidate_names
+
+    names = candidate_names(None, replace(model, pbr="a pbr material"), config.diagnose)
+    assert "specular" not in names and "exposure" in names
+    assert "specular" in candidate_names(None, model, config.diagnose)
+
+
+def test_the_entry_point_names_the_stage_module():
+    text = (REPO_ROOT / "pyproject.toml").read_text()
+    assert 'diagnose = "recon.stages.diagnose:diagnose_stage"' in text
+    assert callable(stage.diagnose_stage)
+
+
+@pytest.fixture
+def copied_run(tiny_run, tmp_path):
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    return run
