@@ -168,8 +168,12 @@ class Diagnosis:
     """diagnosis.json: where the gap lies, which causes it, how far it shrinks."""
 
     gap: dict[str, Any] = doc(
-        "Held-out RMSE/PSNR (linear), noise floor, gap above it, relight gap, visibility "
-        "fingerprint, flat field, geometry error against a ground truth when there is one.",
+        "Held-out rmse, psnr, mse and per-view values (linear); noise_floor {a, b, floor_rmse, "
+        "gap_above_floor}; relight (the relight split's gap, or why it is skipped); "
+        "visibility_fingerprint {share, interval, coverage, names}; flat_field {corner_falloff, "
+        "half_radius_falloff, deviation, allowance, frames, profile...} or flat_field_error; "
+        "parameters.geometry {chamfer_l1, normal_consistency, f1@1%} against a ground truth; "
+        "how_far_skipped when no refit could run.",
         default_factory=dict,
     )
     where: dict[str, Any] = doc(

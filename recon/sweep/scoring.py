@@ -126,7 +126,11 @@ def parameter_errors(diagnosis: dict, truth: dict) -> dict:
     # so the refit cannot pin it. The ranking's estimate comes from the relight split, the one
     # place a curve shows (recon.diagnose.relight_probe).
     model_response = next(
-        (item["parameters"] for item in diagnosis["candidates"] if item["name"] == "response_curve"),
+        (
+            item["parameters"]
+            for item in diagnosis["candidates"]
+            if item["name"] == "response_curve"
+        ),
         {},
     )
     true_response = realised_by_split.get("test", {}).get("response_curve", {})

@@ -5,7 +5,6 @@ schema version, and `recon diagnose` prints it."""
 from __future__ import annotations
 
 import json
-import shutil
 from dataclasses import replace
 from pathlib import Path
 
@@ -232,8 +231,117 @@ def test_the_entry_point_names_the_stage_module():
     assert callable(stage.diagnose_stage)
 
 
-@pytest.fixture
-def copied_run(tiny_run, tmp_path):
+# --------------------------------------------------------------------------------------------
+# every dataset layout recon reads: the tiny run's NeRF-synthetic views rewritten as LLFF, a
+# COLMAP model (sparse/) and a plain photo folder with cached structure-from-motion poses
+# (sparse/0/), each fitted from that folder in a few steps and diagnosed
+# --------------------------------------------------------------------------------------------
+
+
+def _all_views(tiny_run: Path):
+    """The tiny run's train and test captures, concatenated (linear, premultiplied, masks)."""
+    from recon.io.datasets import read_captures
+
+    parts = [read_captures(tiny_run / "dataset", split) for split in ("train", "test")]
+    world_to_cam = torch.cat([part.cameras.world_to_cam for part in parts])
+    intrinsics = torch.cat([part.cameras.intrinsics for part in parts])
+    images = torch.cat([part.images for part in parts])
+    masks = torch.cat([part.masks for part in parts])
+    return world_to_cam, intrinsics, images, masks, parts[0].cameras.image_size
+
+
+def _write_photos(folder: Path, images: torch.Tensor, masks: torch.Tensor) -> list[str]:
+    from recon.io.images import write_png
+
+    names = []
+    for index in range(len(images)):
+        name = f"view_{index:02d}.png"
+        write_png(folder / "images" / name, images[index])
+        write_png(folder / "masks" / name, masks[index], encode_srgb=False)
+        names.append(name)
+    return names
+
+
+def _llff(folder: Path, tiny_run: Path) -> Path:
+    """poses_bounds.npy rows: OpenCV camera-to-world [right, down, forward] as LLFF's
+    [down, right, back], then the image size and focal, then near/far bounds."""
+    import numpy as np
+
+    from recon.camera import rigid_inverse
+
+    world_to_cam, intrinsics, images, masks, size = _all_views(tiny_run)
+    _write_photos(folder, images, masks)
+    cam_to_world = rigid_inverse(world_to_cam.double()).numpy()
+    right, down, forward, centre = (cam_to_world[:, :3, column] for column in range(4))
+    focal = float(intrinsics[0, 0, 0])
+    hwf = np.tile([size[0], size[1], focal], (len(cam_to_world), 1))
+    pose = np.stack([down, right, -forward, centre, hwf], axis=-1)
+    bounds = np.tile([1.0, 6.0], (len(cam_to_world), 1))
+    np.save(folder / "poses_bounds.npy", np.concatenate([pose.reshape(-1, 15), bounds], axis=1))
+    return folder
+
+
+def _colmap(folder: Path, tiny_run: Path, model: str) -> Path:
+    """A COLMAP text model (one PINHOLE camera) in folder/model with images/ and masks/."""
+    from scipy.spatial.transform import Rotation
+
+    world_to_cam, intrinsics, images, masks, size = _all_views(tiny_run)
+    names = _write_photos(folder, images, masks)
+    for name in names:  # COLMAP's mask naming: NAME.png.png
+        (folder / "masks" / name).rename(folder / "masks" / f"{name}.png")
+    target = folder / model
+    target.mkdir(parents=True)
+    fx, fy = float(intrinsics[0, 0, 0]), float(intrinsics[0, 1, 1])
+    cx, cy = float(intrinsics[0, 0, 2]), float(intrinsics[0, 1, 2])
+    (target / "cameras.txt").write_text(f"1 PINHOLE {size[1]} {size[0]} {fx} {fy} {cx} {cy}\n")
+    lines = []
+    for index, matrix in enumerate(world_to_cam.double().numpy()):
+        x, y, z, w = Rotation.from_matrix(matrix[:3, :3]).as_quat()
+        t = matrix[:3, 3]
+        lines += [f"{index + 1} {w} {x} {y} {z} {t[0]} {t[1]} {t[2]} 1 {names[index]}", ""]
+    (target / "images.txt").write_text("\n".join(lines) + "\n")
+    (target / "points3D.txt").write_text("1 0.1 0.0 -0.1 200 10 10 0.3\n2 -0.1 0 0.1 1 2 3 0.4\n")
+    return folder
+
+
+LAYOUTS = {
+    "llff": (_llff, "llff"),
+    "colmap": (lambda folder, run: _colmap(folder, run, "sparse"), "colmap"),
+    "cached_sfm": (lambda folder, run: _colmap(folder, run, "sparse/0"), "colmap"),
+}
+
+
+@pytest.mark.parametrize("layout", sorted(LAYOUTS))
+def test_every_dataset_layout_is_diagnosed(layout, tiny_run, tmp_path, capsys):
+    """The tiny run's 6 views in another layout (view 0 held out: every 8th),
+    fitted from that folder and diagnosed: diagnosis.json is written, typed, with a verdict."""
+    if layout != "llff":
+        pytest.importorskip("pycolmap")
+    from recon.io.datasets import dataset_layout
+
+    write, expected = LAYOUTS[layout]
+    data = write(tmp_path / "data", tiny_run)
+    assert dataset_layout(data) == expected
     run = tmp_path / "run"
-    shutil.copytree(tiny_run, run)
-    return run
+    settings = [
+        # The synthetic frame is already centred and scaled (as the NeRF-synthetic run is).
+        "dataset.normalize.enabled=false",
+        "fit.hull_resolution=16",
+        "fit.geometry.steps=3",
+        "fit.geometry.resolutions=[32]",
+        "fit.geometry.remesh_every=0",
+        "fit.texture.steps=1",
+        "fit.texture.texture_size=64",
+    ]
+    overrides = [item for setting in settings for item in ("--set", setting)]
+    config = str(tiny_run.parent / "tiny.yaml")
+    code = main(
+        ["fit", config, "--data", str(data), "--out", str(run), "--device", "cpu", *overrides]
+    )
+    assert code == 0, capsys.readouterr().err
+    code = main(["diagnose", str(run), "--refit", "none", "--effects", "exposure,vignetting"])
+    assert code == 0, capsys.readouterr().err
+    diagnosis = Diagnosis.from_json(json.loads((run / "diagnosis.json").read_text()))
+    assert diagnosis.verdict and diagnosis.gap["pixels"] > 0
+    assert {item.name for item in diagnosis.candidates} == {"exposure", "vignetting"}
+    assert len(diagnosis.gap["per_view_rmse"]) == 1  # view 0
