@@ -761,6 +761,36 @@ class DiagnoseConfig:
         0.05,
         "Least share of the error a given (conditioning) effect is taken to leave when deciding whether absorption refits are worth repeating on top of it.",
     )
+    relight_iterations: int = setting(
+        6, "Gauss-Newton iterations of the relight split's response probe."
+    )
+    relight_tile_pixels: int = setting(
+        16,
+        "Side of the image tiles the relight probe's bootstrap resamples (the exponent is one number for every view, and a relight split has few views).",
+    )
+    relight_shadowed_share: float = setting(
+        0.1,
+        "Pixels whose fitted surface loses more than this share of either light to the mesh itself are left out of the relight probe.",
+    )
+    regression_cells_per_side: int = setting(
+        32,
+        "Texture cells per side of the vignetting regression's cell gains (enough pixels per cell and view, a narrow range of radii per cell).",
+    )
+    regression_interior_margin: int = setting(
+        4,
+        "Pixels in from either silhouette that the vignetting regression leaves out (antialiasing, edge offsets, grazing shading).",
+    )
+    regression_minimum_rendered: float = setting(
+        0.02,
+        "Rendered values (linear, per channel) below which the vignetting regression leaves a pixel out (its log ratio is mostly noise).",
+    )
+    flat_field_half_window: int = setting(
+        6, "Pixels each side of a point in the flat-field frames' local quadratic fits."
+    )
+    flat_field_maximum_clipped_share: float = setting(
+        0.01,
+        "Share of a flat-field frame's pixels at full scale above which the frame is refused (clipping flattens the falloff).",
+    )
     refit_steps: int = setting(80, "Texture-stage steps of a how-far refit (warm start).")
     refit_position_learning_rate: float = setting(
         0.002,
@@ -781,9 +811,20 @@ class DiagnoseConfig:
             "fingerprint_block_pixels",
             "bootstrap_samples",
             "gauss_newton_iterations",
+            "relight_iterations",
+            "relight_tile_pixels",
+            "regression_cells_per_side",
+            "flat_field_half_window",
         ):
             check_range(getattr(self, name), name, low=1)
         check_range(self.band_pixels, "band_pixels", low=0)
+        check_range(self.regression_interior_margin, "regression_interior_margin", low=0)
+        for name in (
+            "relight_shadowed_share",
+            "regression_minimum_rendered",
+            "flat_field_maximum_clipped_share",
+        ):
+            check_range(getattr(self, name), name, low=0.0, high=1.0)
         for name in ("absorption_steps", "geometry_steps", "refit_steps", "max_greedy_effects"):
             check_range(getattr(self, name), name, low=1)
         check_range(self.geometry_resolution, "geometry_resolution", low=MINIMUM_VIEW_SIZE)

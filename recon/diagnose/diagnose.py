@@ -177,7 +177,7 @@ def flat_field_evidence(
         if item.significant and "relight" in diagnosis_facts(item.name).evidence
     ]
     exponent = relight_exponent(found) if found else None
-    measurement = measure_flat_field(frames, response_exponent=exponent)
+    measurement = measure_flat_field(frames, exponent, settings)
     measurement["allowance"] = settings.decision.flat_field_allowance
     for candidate in candidates:
         if "flat_field" not in diagnosis_facts(candidate.name).evidence:

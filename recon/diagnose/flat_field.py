@@ -19,21 +19,18 @@ import math
 
 import torch
 
+from recon.config.run_config import DiagnoseConfig
 from recon.diagnose.residuals import luminance_of
 from recon.errors import ReconError
 
-# Pixels each side of a point in its local quadratic fit (a 13 x 13 window, clipped at the
-# frame's edge): wide enough to average noise, narrow enough that a quadratic follows a falloff
-# that steepens toward the corners.
-HALF_WINDOW = 6
 # Points round the half-way circle (as data_synth realises its half_radius_falloff).
 CIRCLE_POINTS = 64
 # Radial bins of the profile that the figure draws (0 to the corner).
 PROFILE_BINS = 16
-# A frame with more than this share of its pixels at or above CLIPPED_VALUE (an 8-bit white, or a
-# sensor's full well normalised to 1) is refused: clipping flattens the falloff it measures.
+# A pixel at or above this (an 8-bit white, or a sensor's full well normalised to 1) is
+# clipped; a frame with too many (diagnose.flat_field_maximum_clipped_share) is refused:
+# clipping flattens the falloff it measures.
 CLIPPED_VALUE = 0.999
-MAXIMUM_CLIPPED_SHARE = 0.01
 
 
 def local_value(image: torch.Tensor, column: float, row: float, half_window: int) -> float:
@@ -54,14 +51,26 @@ def local_value(image: torch.Tensor, column: float, row: float, half_window: int
     return float(solution[0, 0])
 
 
-def measure_flat_field(frames: torch.Tensor, response_exponent: float | None = None) -> dict:
+def measure_flat_field(
+    frames: torch.Tensor,
+    response_exponent: float | None = None,
+    settings: DiagnoseConfig | None = None,
+) -> dict:
     """Corner and half-way falloff of frames [N, H, W, 3] (linear), each over the image centre.
+
+    settings: the local fits' half window and the largest clipped share a frame may have
+    (diagnose.flat_field_*; the config's defaults when None). The window (13 x 13 at 6,
+    clipped at the frame's edge) is wide enough to average noise, narrow enough that a
+    quadratic follows a falloff that steepens toward the corners.
 
     response_exponent: a response curve's effective exponent g when one was found (observed
     ~ true^g); the measured ratios are raised to 1/g to undo it. Returns corner_falloff,
     half_radius_falloff, per-frame corner falloffs, deviation (the larger distance of either
     falloff from 1), a radial profile (normalised radius, mean relative luminance) and the
     frame count."""
+    settings = settings or DiagnoseConfig()
+    half_window = settings.flat_field_half_window
+    maximum_clipped = settings.flat_field_maximum_clipped_share
     if frames.ndim != 4 or frames.shape[-1] != 3 or frames.shape[0] == 0:
         raise ReconError(
             f"flat_field.frames: expected shape [N >= 1, H, W, 3], got {tuple(frames.shape)}"
@@ -77,10 +86,10 @@ def measure_flat_field(frames: torch.Tensor, response_exponent: float | None = N
             raise ReconError(f"flat_field.frames[{index}]: no light (median luminance 0)")
         # Clipped pixels flatten a falloff: an over-exposed card reads as no vignetting.
         clipped = float((peaks[index] >= CLIPPED_VALUE).double().mean())
-        if clipped > MAXIMUM_CLIPPED_SHARE:
+        if clipped > maximum_clipped:
             raise ReconError(
                 f"flat_field.frames[{index}]: {100 * clipped:.1f} % of the pixels clipped at "
-                f"{CLIPPED_VALUE} or above (at most {100 * MAXIMUM_CLIPPED_SHARE:.0f} % expected); "
+                f"{CLIPPED_VALUE} or above (at most {100 * maximum_clipped:.0f} % expected); "
                 "shoot the card darker"
             )
     # Exposure and white balance scale a frame as a whole: each is taken relative to itself.
@@ -95,11 +104,11 @@ def measure_flat_field(frames: torch.Tensor, response_exponent: float | None = N
     ]
 
     def mean_value(image: torch.Tensor, points: list[tuple[float, float]]) -> float:
-        return sum(local_value(image, u, v, HALF_WINDOW) for u, v in points) / len(points)
+        return sum(local_value(image, u, v, half_window) for u, v in points) / len(points)
 
     def corner_falloff_of(image: torch.Tensor) -> tuple[float, float]:
         """(corner over centre, undone by the exponent; the centre value)."""
-        centre = local_value(image, 0.5 * width, 0.5 * height, HALF_WINDOW)
+        centre = local_value(image, 0.5 * width, 0.5 * height, half_window)
         return (mean_value(image, corners) / centre) ** (1 / exponent), centre
 
     mean_image = luminance.mean(0)

@@ -81,5 +81,5 @@ def test_view_gains_hold_a_per_view_exposure() -> None:
     training, _ = training_and_heldout(0.0)
     gains = torch.linspace(0.7, 1.3, TRAIN)[:, None, None, None]
     training.observed = training.observed * gains
-    fit = fit_gains(InteriorPixels.from_data(training, SETTINGS.block_pixels), with_falloff=True)
+    fit = fit_gains(InteriorPixels.from_data(training, SETTINGS), with_falloff=True)
     assert fit.coefficients.abs().max() < 0.01

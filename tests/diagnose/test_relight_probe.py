@@ -104,7 +104,7 @@ def test_a_wrong_sun_to_ambient_balance_is_not_a_tone_curve():
 
 def test_cast_shadow_pixels_are_left_out():
     relight, _, fitted_light = relight_case(gamma=1.0)
-    keep = unshadowed(relight, fitted_light)
+    keep = unshadowed(relight, fitted_light, SETTINGS.relight_shadowed_share)
     covered = relight.triangle_id >= 0
     kept_share = float(keep[..., 0][covered].mean())
     # The torus hides part of each light from its inner side, not most of its surface.
