@@ -238,6 +238,11 @@ class Diagnosis:
         from recon.errors import ReconError
 
         version = record.get("schema_version")
+        if version is None and "ranking" in record:
+            # Written before the typed records: its measurements become Evidence.
+            from recon.diagnose.legacy import from_legacy
+
+            return from_legacy(record)
         if version != SCHEMA_VERSION:
             raise ReconError(
                 f"diagnosis.json: schema_version expected {SCHEMA_VERSION}, got {version} "

@@ -345,3 +345,18 @@ def test_every_dataset_layout_is_diagnosed(layout, tiny_run, tmp_path, capsys):
     assert diagnosis.verdict and diagnosis.gap["pixels"] > 0
     assert {item.name for item in diagnosis.candidates} == {"exposure", "vignetting"}
     assert len(diagnosis.gap["per_view_rmse"]) == 1  # view 0
+
+
+def test_only_the_stage_touches_the_run_folder():
+    """No module of recon/diagnose imports the run folder's layout or reads a dataset from a
+    path: they take captures, the fitted model and config sections (the stage loads them)."""
+    import ast
+
+    forbidden = {"recon.io.run_folder", "recon.io.meshes", "recon.optimize.fit"}
+    readers = {"read_captures", "load_mesh", "load_fitted_light", "open_run_folder"}
+    for path in sorted((REPO_ROOT / "recon" / "diagnose").glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module:
+                assert node.module not in forbidden, f"{path.name} imports {node.module}"
+                names = {alias.name for alias in node.names}
+                assert not names & readers, f"{path.name} imports {names & readers}"
