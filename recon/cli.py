@@ -102,6 +102,15 @@ def build_parser() -> argparse.ArgumentParser:
         "--effects", default="all", help="candidates: 'all' or a comma-separated list"
     )
     diagnose_parser.add_argument("--device", choices=["auto", "cpu", "cuda"])
+    diagnose_parser.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="diagnose.KEY=VALUE",
+        help="override a diagnose setting of the run's config, e.g. --set "
+        "diagnose.decision.minimum_share=0.03 (repeatable; recorded in diagnosis.json)",
+    )
     compare_parser = commands.add_parser(
         "compare", help="compare a run's metrics with a baseline; exit 1 on a regression"
     )
@@ -192,7 +201,13 @@ def _diagnose(arguments) -> int:
     from recon.stages.diagnose import run_diagnosis
 
     paths = open_run_folder(arguments.run)
-    config = load_config(paths.resolved_config, RunConfig)
+    outside = [item for item in arguments.overrides if not item.startswith("diagnose.")]
+    if outside:
+        raise ReconError(
+            f"--set {outside[0]}: only diagnose.* settings can change after the fit (the fit "
+            "was made with the others)"
+        )
+    config = load_config(paths.resolved_config, RunConfig, overrides=arguments.overrides)
     paths = open_run_folder(arguments.run, arguments.data or config.data)
     # Checked before the diagnosis runs, not when its result cannot be written.
     check_writable(paths.root, "run folder")

@@ -360,3 +360,20 @@ def test_only_the_stage_touches_the_run_folder():
                 assert node.module not in forbidden, f"{path.name} imports {node.module}"
                 names = {alias.name for alias in node.names}
                 assert not names & readers, f"{path.name} imports {names & readers}"
+
+
+def test_diagnose_settings_can_be_set_and_are_recorded(tiny_run, tmp_path, capsys):
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    strict = "diagnose.decision.minimum_share=0.9"
+    arguments = ["diagnose", str(run), "--refit", "none", "--effects", "exposure", "--set", strict]
+    assert main([*arguments, "--set", "diagnose.absorption=false"]) == 0
+    diagnosis = Diagnosis.from_json(json.loads((run / "diagnosis.json").read_text()))
+    assert diagnosis.settings["decision"]["minimum_share"] == 0.9
+    assert diagnosis.candidate("exposure").evidence_of("probe").threshold == 0.9
+    assert diagnosis.verdict == "no significant unmodelled effect"
+    capsys.readouterr()
+    assert main(["diagnose", str(run), "--set", "fit.texture.steps=3"]) == 2
+    assert "only diagnose.* settings can change after the fit" in capsys.readouterr().err
