@@ -213,16 +213,26 @@ def test_the_fits_own_effects_are_part_of_the_model(tmp_path):
     assert diagnosis.gap["rmse"] < 0.95 * gap_summary(without)["rmse"]
 
 
-def test_a_pbr_fit_models_specular(tiny_run, monkeypatch):
-    """With fit.material: pbr, specular is modelled by the material: not a candidate."""
-    paths = open_run_folder(tiny_run)
-    config = config_of(paths)
-    model = stage.load_fitted_model(paths, config, torch.device("cpu"))
-    from recon.diagnose.diagnose import candidate_names
-
-    names = candidate_names(None, replace(model, pbr="a pbr material"), config.diagnose)
-    assert "specular" not in names and "exposure" in names
-    assert "specular" in candidate_names(None, model, config.diagnose)
+def test_a_pbr_fit_is_diagnosed_with_its_material(tiny_run, tmp_path):
+    """With fit.material: pbr the baseline is the pbr render (the held-out render equals the
+    evaluate stage's), specular is modelled by the material (not a candidate), and no refit
+    runs (the refits refit the Lambertian texture), which diagnosis.json says."""
+    config = yaml.safe_load((tiny_run.parent / "tiny.yaml").read_text())
+    config["fit"]["material"] = "pbr"
+    path = tmp_path / "pbr.yaml"
+    path.write_text(yaml.safe_dump(config))
+    assert main(["run", str(path), "--out", str(tmp_path / "run"), "--device", "cpu"]) == 0
+    paths = open_run_folder(tmp_path / "run")
+    run_config = config_of(paths)
+    data = stage.load_diagnosis_data(paths, "test", run_config)
+    _, colors, _ = render_fitted(paths, data.cameras, torch.device("cpu"))
+    assert torch.allclose(data.rendered, colors, atol=1e-5)
+    diagnosis = stage.run_diagnosis(
+        paths, run_config, torch.device("cpu"), "top", ["exposure", "specular"]
+    )
+    assert diagnosis.model["material"] == "pbr"
+    assert [item.name for item in diagnosis.candidates] == ["exposure"]
+    assert diagnosis.refits == [] and "pbr" in diagnosis.gap["how_far_skipped"]
 
 
 def test_the_entry_point_names_the_stage_module():
