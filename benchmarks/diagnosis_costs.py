@@ -49,7 +49,7 @@ def lens_control(paths, config, data) -> dict:
             inputs.model,
             config,
             torch.device("cpu"),
-            paths.refit_scratch,
+            paths.diagnosis_refit,
             refit,
         )
         modules = heldout_modules(names, fitted.modules, data.view_count, "cpu")

@@ -50,7 +50,7 @@ def main(argv: list[str] | None = None) -> int:
     floor = (noise_floor(data).get("floor_rmse") or 0.0) ** 2
     _, relight = relight_views(inputs)
     baseline = RefitBaseline.measure(data, floor, relight and relight[0], config.diagnose)
-    refit_inputs = RefitInputs(inputs.training, inputs.model, config, device, paths.refit_scratch)
+    refit_inputs = RefitInputs(inputs.training, inputs.model, config, device, paths.diagnosis_refit)
     exponent = None
     if arguments.effect == "response_curve" and arguments.response_exponent == "relight":
         stored = redecide(json.loads(paths.diagnosis.read_text()))

@@ -80,7 +80,7 @@ def refit_with(
         device,
         config.seed,
         scratch / f"{'+'.join(names) or 'control'}.pt",
-        History(scratch / "history.jsonl"),
+        History(scratch / "refits.jsonl"),  # the refits' own log, not the run's history
         initial=mesh,
         effects=effects,
         resolution=settings.resolution,

@@ -19,21 +19,14 @@ from recon.diagnose.records import Diagnosis
 from recon.errors import ReconError
 from recon.io.atomic import atomic_write_json
 from recon.io.checkpoints import load_checkpoint
-from recon.io.datasets import (
-    FLAT_FIELD_SPLIT,
-    RELIGHT_LIGHTING,
-    has_split,
-    held_out_split,
-    read_captures,
-    read_nerf_synthetic,
-)
+from recon.io.dataset_layout import RELIGHT_SPLIT
+from recon.io.datasets import FLAT_FIELD_SPLIT, read_captures, read_nerf_synthetic
 from recon.io.meshes import load_mesh
 from recon.io.run_folder import RunPaths
-from recon.metrics.evaluate import _plain
-from recon.optimize.fit import load_fitted_light
-from recon.optimize.material_stage import load_pbr_result
+from recon.metrics.evaluate import plain_json
 from recon.optimize.scene_model import FitEffects
 from recon.render.shading import Lighting
+from recon.stages.fitted_scene import load_fitted_scene
 
 
 def load_fitted_model(paths: RunPaths, config: RunConfig, device: torch.device) -> FittedModel:
@@ -43,22 +36,20 @@ def load_fitted_model(paths: RunPaths, config: RunConfig, device: torch.device) 
         raise ReconError(f"diagnose: no fitted mesh at {paths.fitted_mesh} (run the fit first)")
     if not paths.fitted_light.exists():
         raise ReconError(f"diagnose: no fitted light at {paths.fitted_light} (run the fit first)")
-    mesh = load_mesh(paths.fitted_mesh).to(device)
-    lighting = load_fitted_light(paths, device)
-    pbr = load_pbr_result(paths, device)
+    scene = load_fitted_scene(paths, device)
     effects = []
     if config.fit.effects:
-        checkpoint = load_checkpoint(paths.fit_checkpoint)
+        checkpoint = load_checkpoint(paths.texture_checkpoint)
         if checkpoint is None or "effects" not in checkpoint:
             raise ReconError(
                 f"diagnose: fit.effects {config.fit.effects} but no effect parameters in "
-                f"{paths.fit_checkpoint} (run the fit again)"
+                f"{paths.texture_checkpoint} (run the fit again)"
             )
         view_count = len(read_captures(paths.dataset, "train", config.dataset).cameras)
         fitted = FitEffects(config.fit.effects, view_count, device)
         fitted.load_state_dict(checkpoint["effects"])
         effects = fitted.modules
-    return FittedModel(mesh, lighting, effects, pbr)
+    return FittedModel(scene.mesh.to(device), scene.lighting, effects, scene.pbr)
 
 
 def load_diagnosis_data(
@@ -74,31 +65,31 @@ def load_diagnosis_data(
 
 def diagnosis_inputs(paths: RunPaths, config: RunConfig, device: torch.device) -> DiagnosisInputs:
     """Everything diagnose_run reads, loaded from the run folder and its dataset (any layout
-    recon reads: held-out split by recon.io.datasets.held_out_split; relight and flat-field
-    splits only where the dataset has them)."""
+    recon reads; the layout says which split is held out and whether relight and flat-field
+    splits exist)."""
+    layout = paths.dataset_layout
     model = load_fitted_model(paths, config, device)
-    heldout = read_captures(paths.dataset, held_out_split(paths.dataset), config.dataset)
+    heldout = read_captures(paths.dataset, layout.held_out_split, config.dataset)
     training = read_captures(paths.dataset, "train", config.dataset)
-    inputs = DiagnosisInputs(heldout, training, model, config, device, paths.refit_scratch)
-    if has_split(paths.dataset, "relight"):
-        light_path = paths.dataset / RELIGHT_LIGHTING
-        if light_path.exists():
-            lighting = Lighting.from_json(json.loads(light_path.read_text()), device)
-            captures = read_captures(paths.dataset, "relight", config.dataset)
-            inputs.relight = RelightInputs(captures, lighting)
+    inputs = DiagnosisInputs(heldout, training, model, config, device, paths.diagnosis_refit)
+    if layout.has_relight:
+        if layout.relight_lighting.exists():
+            record = json.loads(layout.relight_lighting.read_text())
+            captures = read_captures(paths.dataset, RELIGHT_SPLIT, config.dataset)
+            inputs.relight = RelightInputs(captures, Lighting.from_json(record, device))
         else:
             inputs.relight_skipped = (
-                f"{light_path} not found: the relight split's light is unknown, so its gap is "
-                "not measured"
+                f"{layout.relight_lighting} not found: the relight split's light is unknown, "
+                "so its gap is not measured"
             )
-    if has_split(paths.dataset, FLAT_FIELD_SPLIT):
+    if layout.has_flat_field:
         try:
             frames = read_nerf_synthetic(
                 paths.dataset, FLAT_FIELD_SPLIT, background=None, prefer_exr=True
             )
             inputs.flat_field = frames.images.double()
         except ReconError as error:
-            inputs.flat_field_error = f"{paths.dataset / FLAT_FIELD_SPLIT}: {error}"
+            inputs.flat_field_error = f"{layout.flat_field}: {error}"
     if paths.reference_mesh.exists():
         reference = load_mesh(paths.reference_mesh)
 
@@ -142,7 +133,7 @@ def run_diagnosis(
     inputs = diagnosis_inputs(paths, config, device)
     diagnosis, data = diagnose_run(inputs, refit, candidates)
     write_figures(diagnosis, data, paths)
-    atomic_write_json(paths.diagnosis, _plain(diagnosis.to_json()))
+    atomic_write_json(paths.diagnosis, plain_json(diagnosis.to_json()))
     return diagnosis
 
 

@@ -5,11 +5,14 @@ as closing the gap (and confirmed) where one without it is not."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
 
+import pytest
 import torch
 from diagnose_scenes import patterned_torus
+from diagnose_where_scene import SETTINGS, make_scene, noisy
 
 import recon.diagnose.how_far as how_far
 from recon.camera import orbit_cameras
@@ -24,6 +27,7 @@ from recon.diagnose.how_far import (
 )
 from recon.diagnose.records import Candidate, Evidence
 from recon.diagnose.refit import RefitSettings
+from recon.effects import make_effect
 from recon.optimize.scene_model import FitEffects
 from recon.render.renderer import Renderer
 from recon.render.shading import Lighting
@@ -90,3 +94,29 @@ def test_measure_refit_scores_a_refit_that_takes_the_effect_back(monkeypatch):
     nothing, _ = measure_refit([], baseline, inputs, RefitSettings(steps=1))
     assert abs(nothing["closed_fraction"]) < 0.05 and not nothing["confirmed"], nothing
     assert baseline.after(record).before == record["after"]
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return make_scene()
+
+
+def test_relight_heldout_gap_fixes_the_gauge_through_a_response_curve(scene, monkeypatch):
+    # The camera's curve x^0.6 on every relight view; the refit's albedo is 0.8 of the truth
+    # (the gauge) and its module holds the curve. A texture gain g becomes g^0.6 after the
+    # curve: one least-squares step leaves 0.8^0.4 = 0.91 of the gain missing, the secant
+    # steps take it to the truth's error.
+    curve = make_effect("response_curve")
+    curve.hold_exponent(0.6)
+    with torch.no_grad():
+        observed = noisy(curve(scene.output.color, scene.output.alpha)[0], 0.002, seed=7)
+    data = scene.data(observed)
+    darker = replace(scene.mesh, texture=scene.mesh.texture * 0.8)
+    truth_error = how_far.relight_heldout_gap(data, scene.mesh, [curve], SETTINGS)
+    gauged_error = how_far.relight_heldout_gap(data, darker, [curve], SETTINGS)
+    assert gauged_error == pytest.approx(truth_error, rel=0.01)
+    assert (
+        how_far.relight_heldout_gap(data, darker, [], SETTINGS) > 4 * gauged_error
+    )  # the curve unmodelled
+    monkeypatch.setattr(how_far, "GAUGE_ITERATIONS", 1)
+    assert how_far.relight_heldout_gap(data, darker, [curve], SETTINGS) > 2 * gauged_error
