@@ -289,32 +289,21 @@ def relight_views(
     return relight_gap(relight), (relight, under_fitted, inputs.model.lighting.to("cpu"))
 
 
-def diagnose_run(
-    inputs: DiagnosisInputs, refit: str | None = None, candidates: list[str] | None = None
-) -> tuple[Diagnosis, DiagnosisData]:
-    """Gap, where, which (probes, fingerprint, relight, flat field, absorption, conditioning
-    on a per-view top effect, the registered producers) and how far (refit: none, top or
-    greedy; default diagnose.refit). Returns the Diagnosis and the held-out views (for the
-    figures)."""
+def which(
+    inputs: DiagnosisInputs,
+    data: DiagnosisData,
+    probe: EffectProbe,
+    relight: tuple | None,
+    gap: dict,
+    lap: _Lap,
+    candidates: list[str] | None = None,
+) -> list[Candidate]:
+    """Which: the probes, the fingerprint, the relight probe, the flat field and the absorption
+    refits; then, when a per-view effect tops the ranking, the others again on top of it; then
+    the registered producers; every candidate decided and ranked. Records the fingerprint and
+    flat field in gap."""
     settings = inputs.config.diagnose
-    refit = refit or settings.refit
-    if refit not in ("none", "top", "greedy"):
-        raise ReconError(f"--refit: expected none, top or greedy, got {refit!r}")
     names = candidate_names(candidates, inputs.model, settings)
-    started = time.perf_counter()
-    stage_seconds: dict[str, float] = {}
-    lap = _Lap(stage_seconds)
-    data, probe = heldout_views(inputs)
-    gap = gap_summary(data)
-    floor = noise_floor(data)
-    gap["noise_floor"] = floor
-    lap("gap")
-    gap_relight, relight = relight_views(inputs)
-    if gap_relight:
-        gap["relight"] = gap_relight
-    lap("relight_gap")
-    where = where_analysis(data)
-    lap("where")
     ranked = rank_candidates(data, names, probe=probe, settings=settings)
     lap("probes")
     gap["visibility_fingerprint"] = fingerprint_evidence(ranked, data, probe, settings)
@@ -350,52 +339,82 @@ def diagnose_run(
         data, probe, inputs.heldout, inputs.training, inputs.model, relight and relight[0]
     )
     gather(PRODUCERS, evidence_inputs, ranked, settings)
-    decide_all(ranked, settings.decision)
     lap("producers")
-    timings = {"diagnose_seconds": round(time.perf_counter() - started, 2), "stages": stage_seconds}
-    geometry_before = None
-    if inputs.geometry_errors is not None:
-        gap["parameters"] = {"geometry": inputs.geometry_errors(data.mesh)}
-        geometry_before = gap["parameters"]["geometry"]["chamfer_l1"]
-    refits: list[dict] = []
-    if refit != "none" and inputs.model.pbr is not None:
+    return decide_all(ranked, settings.decision)
+
+
+def how_far_refits(
+    inputs: DiagnosisInputs,
+    ranked: list[Candidate],
+    data: DiagnosisData,
+    relight: tuple | None,
+    gap: dict,
+    refit: str,
+) -> list[dict]:
+    """How far: the refit ladder against the held-out gap and its noise floor (none for a pbr
+    model, whose material the Lambertian refits cannot refit: said in gap)."""
+    if refit == "none":
+        return []
+    if inputs.model.pbr is not None:
         gap["how_far_skipped"] = (
             "the how-far refits refit the Lambertian texture stage; a fit.material pbr model is "
             "not refitted"
         )
-    elif refit != "none":
-        baseline = RefitBaseline.measure(
-            data, (floor.get("floor_rmse") or 0.0) ** 2, relight and relight[0], settings
-        )
-        refit_inputs = RefitInputs(
-            inputs.training, inputs.model, inputs.config, inputs.device, inputs.scratch
-        )
+        return []
+    settings = inputs.config.diagnose
+    floor = (gap["noise_floor"].get("floor_rmse") or 0.0) ** 2
+    baseline = RefitBaseline.measure(data, floor, relight and relight[0], settings)
+    refit_inputs = RefitInputs(
+        inputs.training, inputs.model, inputs.config, inputs.device, inputs.scratch
+    )
+    chamfer, before = None, None
+    if inputs.geometry_errors is not None:
+        before = gap["parameters"]["geometry"]["chamfer_l1"]
 
         def chamfer(mesh: Mesh) -> float:
             return inputs.geometry_errors(mesh)["chamfer_l1"]
 
-        refits = how_far(
-            ranked,
-            baseline,
-            refit_inputs,
-            refit,
-            chamfer if inputs.geometry_errors is not None else None,
-            geometry_before,
-        )
+    return how_far(ranked, baseline, refit_inputs, refit, chamfer, before)
+
+
+def diagnose_run(
+    inputs: DiagnosisInputs, refit: str | None = None, candidates: list[str] | None = None
+) -> tuple[Diagnosis, DiagnosisData]:
+    """Gap, where, which and how far (refit: none, top or greedy; default diagnose.refit), in
+    that order. Returns the Diagnosis and the held-out views (for the figures)."""
+    settings = inputs.config.diagnose
+    refit = refit or settings.refit
+    if refit not in ("none", "top", "greedy"):
+        raise ReconError(f"--refit: expected none, top or greedy, got {refit!r}")
+    started = time.perf_counter()
+    stage_seconds: dict[str, float] = {}
+    lap = _Lap(stage_seconds)
+    data, probe = heldout_views(inputs)
+    gap = {**gap_summary(data), "noise_floor": noise_floor(data)}
+    lap("gap")
+    gap_relight, relight = relight_views(inputs)
+    gap.update({"relight": gap_relight} if gap_relight else {})
+    lap("relight_gap")
+    where = where_analysis(data)
+    lap("where")
+    ranked = which(inputs, data, probe, relight, gap, lap, candidates)
+    timings = {"diagnose_seconds": round(time.perf_counter() - started, 2), "stages": stage_seconds}
+    if inputs.geometry_errors is not None:  # a ground truth: not part of the method's timing
+        gap["parameters"] = {"geometry": inputs.geometry_errors(data.mesh)}
+    refits = how_far_refits(inputs, ranked, data, relight, gap, refit)
+    if refit != "none" and inputs.model.pbr is None:
         timings["refit_seconds"] = round(
             time.perf_counter() - started - timings["diagnose_seconds"], 2
         )
     mark_radial_coverage(ranked, refits, covered_radius(data), gap.get("flat_field"))
-    # Parameters are copied from the deciding evidence: decided again after the marks.
-    decide_all(ranked, settings.decision)
+    decide_all(ranked, settings.decision)  # parameters are the deciding evidence's: again
     diagnosis = Diagnosis(
         gap=gap,
         where=where,
         candidates=ranked,
         refits=refits,
         verdict=verdict_of(ranked),
-        # The refitted effects whose refit closed at least diagnose.confirming_share: a
-        # significant effect whose refit does not close the gap is more likely a false alarm.
+        # A significant effect whose refit does not close the gap is more likely a false alarm.
         confirmed_by_refit=[record["effects"][-1] for record in refits if record["confirmed"]],
         model=inputs.model.describe(),
         settings=to_dict(settings),
