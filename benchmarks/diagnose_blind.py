@@ -85,7 +85,8 @@ def run_case(
     folder = out / f"{case.label}_seed{case.seed}"
     truth_path = out / "truth" / f"{case.label}_seed{case.seed}.json"
     fit_record_path = folder / "bench_fit.json"
-    digest = config_hash(case_config)
+    # The fit does not depend on the diagnose section: re-deciding with other settings reuses it.
+    digest = config_hash(case_config, exclude=("diagnose",))
     fit_record = json.loads(fit_record_path.read_text()) if fit_record_path.exists() else {}
     if reuse_fits and fit_record.get("config_hash") == digest:
         paths = open_run_folder(folder)
