@@ -17,8 +17,8 @@ and its bootstrap interval over views are the statistic: no tuned allowance, onl
 retained-share bar (a majority of the reduction survives) in SpecificityOptions.
 
 Producers here return recon.diagnose.records.Evidence of kind "specificity": a failed one
-vetoes its candidate and names the mismatch (e.g. view_dependent_reflectance) that explains it
-instead, which gets an Evidence of its own.
+vetoes its candidate, and details["instead"] names the base-model mismatch (e.g.
+view_dependent_reflectance) that explains it, which the decision table names in its place.
 """
 
 from __future__ import annotations
@@ -38,6 +38,7 @@ KIND = "specificity"
 # "the base model cannot represent X").
 VIEW_DEPENDENT_REFLECTANCE = "view_dependent_reflectance"
 CAMERA_FIXED_LIGHT = "camera_fixed_light"
+MISMATCHES = (VIEW_DEPENDENT_REFLECTANCE, CAMERA_FIXED_LIGHT)
 
 DOMAIN_WORDS = {
     "n_dot_h": "n.h",
@@ -249,9 +250,8 @@ def signature_evidence(
     options: SpecificityOptions,
     significant: bool = True,
 ) -> list[Evidence]:
-    """The specificity Evidence of one gain-like candidate (and, when its gain follows a
-    confusable domain instead, an Evidence for the mismatch or effect that does; it passes
-    only when the candidate itself was significant: an insignificant gain explains nothing)."""
+    """The specificity Evidence of one gain-like candidate (details["instead"]: the mismatch
+    that explains it, when one does and the candidate was significant)."""
     signature = SIGNATURES[name]
     confusers = _confusers(signature, data)
     base = list(signature.base)
@@ -343,32 +343,25 @@ def signature_evidence(
             f"{slope['slope_error']:.2f} per unit, r = {slope['correlation']:.2f}) across "
             f"{views} views; "
         )
+    # A mismatch is named in the vetoed candidate's place (details["instead"], read by the
+    # decision table) only when the held-out pixels agree that the domain takes most of the
+    # reduction, and only for a significant candidate: an insignificant gain explains nothing.
+    named = (
+        bool(alternative)
+        and signature.names_alternative
+        and alternative in MISMATCHES
+        and significant
+        and share < options.retained_share
+    )
+    if named:
+        details["instead"] = alternative
     instead = f"{alternative}, not {name}" if alternative else f"not {name}"
     reason = (
         f"{follows}once a common profile of {word} is modelled, {name}'s gain no longer "
         f"stands out ({test} against its scatter across the bins; it {kept} of its held-out "
         f"reduction of {100 * relative:.1f} %): {instead}"
     )
-    evidence = [Evidence(KIND, name, p_value, options.alpha, False, reason, details)]
-    if alternative and signature.names_alternative:
-        # The alternative is named only when the held-out pixels agree: most of the
-        # candidate's reduction is gone once the domain is modelled.
-        named = significant and share < options.retained_share
-        verb = "explains" if named else "may explain"
-        evidence.append(
-            Evidence(
-                KIND,
-                alternative,
-                share,
-                options.retained_share,
-                named,
-                f"{alternative}: {verb} {name}'s apparent signature ({name}'s gain {test} "
-                f"against its scatter across bins of {word}; it {kept} of its held-out "
-                "reduction there)",
-                {"from": name, "domain": worst, **record},
-            )
-        )
-    return evidence
+    return [Evidence(KIND, name, p_value, options.alpha, False, reason, details)]
 
 
 def specificity_evidence(
@@ -382,8 +375,8 @@ def specificity_evidence(
 
     data: the held-out views (observations beside the fitted scene's render). Candidates
     without a gain signature (lens distortion, blurs, pose error) get no Evidence here.
-    significant: the candidates found significant so far (probe and null); a vetoed one names
-    its confuser only if it is among them (None: every candidate counts as significant)."""
+    significant: the candidates found significant so far; a vetoed one names a mismatch
+    instead only if it is among them (None: every candidate counts as significant)."""
     options = options or SpecificityOptions()
     names = [name for name in (candidates or list(SIGNATURES)) if name in SIGNATURES]
     if not names:

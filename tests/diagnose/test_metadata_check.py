@@ -26,8 +26,8 @@ OPTIONS = MetadataOptions(permutations=500)
 
 
 def exposure_ratios(data) -> torch.Tensor:
-    probe = next(item for item in rank_candidates(data, ["exposure"]))
-    return torch.tensor(probe.parameters["ratios"])
+    probe = next(item for item in rank_candidates(data, ["exposure"])).evidence_of("probe")
+    return torch.tensor(probe.details["parameters"]["ratios"])
 
 
 def test_recovered_gains_that_follow_exif_agree():

@@ -24,8 +24,20 @@ from recon.diagnose.which import rank_candidates
 OPTIONS = NullOptions(placebo_draws=12, permutations=300)
 
 
+class Probed:
+    """A candidate's probe result: significant, reduction, interval."""
+
+    def __init__(self, data, name):
+        candidate = next(item for item in rank_candidates(data, [name]) if item.name == name)
+        evidence = candidate.evidence_of("probe")
+        self.effect = name
+        self.significant = candidate.significant
+        self.heldout_reduction = evidence.details["reduction"]
+        self.interval = evidence.interval
+
+
 def probe(data, name):
-    return next(item for item in rank_candidates(data, [name]) if item.effect == name)
+    return Probed(data, name)
 
 
 def test_placebos_have_the_candidate_s_parameters():
@@ -50,7 +62,7 @@ def test_a_20_db_albedo_mismatch_does_not_turn_into_effects():
     # significant; against placebos of their own size on this fit, three are not.
     data = albedo_error_views(seed=1)
     names = ["exposure", "response_curve", "vignetting"]
-    for candidate in rank_candidates(data, names):
+    for candidate in (probe(data, name) for name in names):
         assert candidate.significant, candidate.effect
         evidence = null_evidence(
             data, candidate.effect, candidate.heldout_reduction, candidate.interval, OPTIONS
