@@ -706,6 +706,126 @@ class DecisionConfig:
 
 
 @dataclass
+class SpecificityConfig:
+    """The specificity checks (recon.diagnose.specificity): is a gain-like candidate's gain its
+    own, or a confusable domain's profile? Block size and bootstrap resamples are the
+    section's (diagnose.block_pixels, diagnose.bootstrap_samples)."""
+
+    angle_bins: int = setting(
+        6,
+        "Quantile bins of n.h, n.v and radius: enough to follow a highlight's falloff, few enough that every view has pixels in most bins at 32-64 px.",
+    )
+    intensity_bins: int = setting(6, "Quantile bins of the rendered intensity.")
+    surface_cells: int = setting(
+        3, "Cells per axis of the grid over the fitted object's bounding box (surface regions)."
+    )
+    position_cells: int = setting(3, "Cells per axis of the image-position grid.")
+    alpha: float = setting(
+        0.01,
+        "The F-test's level: a candidate is specific when its own gain stands out above its scatter across every confusable domain's bins at this level (conventional, not tuned).",
+    )
+    retained_share: float = setting(
+        0.5,
+        "Share of the held-out reduction that must survive the domain's profile (interval reaching it); a failed candidate names the mismatch only when its point estimate is below it.",
+    )
+    interval: float = setting(
+        0.9, "Probability of the central bootstrap interval of the retained share."
+    )
+    seed: int = setting(0, "Random seed of the retained share's bootstrap over views.")
+
+    def __post_init__(self) -> None:
+        for name in ("angle_bins", "intensity_bins", "surface_cells", "position_cells"):
+            check_range(getattr(self, name), name, low=1)
+        for name in ("alpha", "retained_share", "interval"):
+            check_range(getattr(self, name), name, low=0.0, high=1.0)
+
+
+@dataclass
+class NullConfig:
+    """The run-derived nulls (recon.diagnose.nulls): placebo effects of a candidate's size and
+    split-half agreement of per-view gains against permuted views."""
+
+    placebo_draws: int = setting(
+        20,
+        "Random placebo effects per candidate: enough for the quantile to be read off (20: the largest but one for 95 %).",
+    )
+    quantile: float = setting(
+        0.95,
+        "Placebo quantile a candidate's reduction (its interval's lower bound) must exceed: a one-sided 5 % test.",
+    )
+    field_cells: int = setting(
+        4,
+        "Placebo fields are bilinear upsamplings of a field_cells^2 grid of normal draws less their mean: smooth like an effect, never its own signature.",
+    )
+    permutations: int = setting(1000, "View permutations of the split-half agreement's null.")
+    seed: int = setting(0, "Random seed of the placebos and permutations.")
+
+    def __post_init__(self) -> None:
+        for name in ("placebo_draws", "field_cells", "permutations"):
+            check_range(getattr(self, name), name, low=1)
+        check_range(self.quantile, "quantile", low=0.0, high=1.0)
+
+
+@dataclass
+class IdentifiabilityConfig:
+    """The identifiability conditions (recon.diagnose.identifiability): what the capture must
+    hold for an effect to be told apart."""
+
+    minimum_exposure_ratio: float = setting(
+        2.0 ** (1 / 3),
+        "Known exposure range (largest over smallest per-view gain) that lets a tone curve be read off: a third of a stop, the finest common bracketing step.",
+    )
+    corner_radius: float = setting(
+        0.9,
+        "Normalised radius (half diagonal = 1) the object must reach for a corner falloff to be measured rather than extrapolated.",
+    )
+    minimum_radius_spread: float = setting(
+        0.1,
+        "How far apart (normalised radius) the same surface region must be seen across views for a falloff to be told from the albedo.",
+    )
+    reference_corner_shift: float = setting(
+        0.1,
+        "Distortion judged when none was recovered: corner displacement over the half diagonal (a strong consumer-lens barrel).",
+    )
+    minimum_distinguishable_pixels: float = setting(
+        0.5,
+        "RMS (pixels) of the distortion flow no per-view zoom, shift and rotation reproduces, below which a pose correction explains it as well.",
+    )
+    maximum_edge_coherence: float = setting(
+        0.8,
+        "Edge orientation coherence (0 = all orientations, 1 = one) above which a directional blur is a blur along the only edges.",
+    )
+    surface_cells: int = setting(
+        3, "Cells per axis of the grid over the object for the radius spread."
+    )
+
+    def __post_init__(self) -> None:
+        check_range(self.minimum_exposure_ratio, "minimum_exposure_ratio", low=1.0)
+        check_range(self.corner_radius, "corner_radius", low=0.0, high=2.0)
+        check_range(self.minimum_radius_spread, "minimum_radius_spread", low=0.0, high=2.0)
+        check_range(self.reference_corner_shift, "reference_corner_shift", low=0.0, high=1.0)
+        check_range(self.minimum_distinguishable_pixels, "minimum_distinguishable_pixels", low=0.0)
+        check_range(self.maximum_edge_coherence, "maximum_edge_coherence", low=0.0, high=1.0)
+        check_range(self.surface_cells, "surface_cells", low=1)
+
+
+@dataclass
+class MetadataConfig:
+    """The capture-metadata check (recon.diagnose.metadata_check): recovered exposure against
+    EXIF exposure."""
+
+    permutations: int = setting(2000, "View permutations of the correlation's p-value.")
+    alpha: float = setting(
+        0.05, "The correlation's level (one-sided, positive): the conventional 5 %."
+    )
+    seed: int = setting(0, "Random seed of the permutations.")
+
+    def __post_init__(self) -> None:
+        check_range(self.permutations, "permutations", low=1)
+        check_range(self.alpha, "alpha", low=0.0, high=1.0)
+
+
+@dataclass
 class DiagnoseConfig:
     """The gap diagnosis (recon diagnose): which candidates, how each kind of evidence is
     measured, how far the refits go, and the decision's allowances."""
@@ -803,6 +923,19 @@ class DiagnoseConfig:
     )
     decision: DecisionConfig = setting(
         factory=DecisionConfig, doc="The significance decision's allowances."
+    )
+    specificity: SpecificityConfig = setting(
+        factory=SpecificityConfig, doc="Specificity checks of the gain-like candidates."
+    )
+    nulls: NullConfig = setting(
+        factory=NullConfig, doc="Nulls from the run: placebo effects and split-half agreement."
+    )
+    identifiability: IdentifiabilityConfig = setting(
+        factory=IdentifiabilityConfig,
+        doc="Identifiability conditions on the capture (what would settle each effect).",
+    )
+    metadata: MetadataConfig = setting(
+        factory=MetadataConfig, doc="Recovered exposure against the capture's EXIF exposure."
     )
 
     def __post_init__(self) -> None:

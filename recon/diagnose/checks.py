@@ -24,15 +24,14 @@ from typing import TYPE_CHECKING
 from recon.config.run_config import DiagnoseConfig
 from recon.diagnose.identifiability import (
     CaptureConditions,
-    IdentifiabilityOptions,
     motion_blur_evidence,
     radius_spread,
     response_curve_evidence,
 )
 from recon.diagnose.metadata_check import exif_exposure_gains, metadata_evidence
-from recon.diagnose.nulls import NullOptions, null_evidence, split_half_evidence
+from recon.diagnose.nulls import null_evidence, split_half_evidence
 from recon.diagnose.records import Candidate, Evidence
-from recon.diagnose.specificity import SIGNATURES, SpecificityOptions, specificity_evidence
+from recon.diagnose.specificity import SIGNATURES, specificity_evidence
 from recon.effects.registry import MODEL_EFFECTS
 
 if TYPE_CHECKING:  # producers imports this module to register the checks
@@ -53,7 +52,6 @@ def null_producer(
 ) -> list[Evidence]:
     """Placebo nulls (and split-half agreement of per-view gains) for the candidates whose
     probe alone clears its allowance."""
-    options = NullOptions(block_pixels=settings.block_pixels)
     evidence = []
     for candidate in candidates:
         probe = candidate.evidence_of("probe")
@@ -63,8 +61,8 @@ def null_producer(
             continue
         interval = probe.interval or (probe.statistic, probe.statistic)
         reduction = float(probe.details.get("reduction", interval[0]))
-        evidence.append(null_evidence(inputs.data, candidate.name, reduction, interval, options))
-        agreement = split_half_evidence(inputs.data, candidate.name, options)
+        evidence.append(null_evidence(inputs.data, candidate.name, reduction, interval, settings))
+        agreement = split_half_evidence(inputs.data, candidate.name, settings)
         if agreement is not None:
             evidence.append(agreement)
     return evidence
@@ -76,10 +74,7 @@ def specificity_producer(
     """Specificity of the gain-like candidates against their confusable domains."""
     names = [candidate.name for candidate in candidates if candidate.name in SIGNATURES]
     significant = {candidate.name for candidate in candidates if candidate.significant}
-    options = SpecificityOptions(
-        block_pixels=settings.block_pixels, bootstrap_samples=settings.bootstrap_samples
-    )
-    return specificity_evidence(inputs.data, names, options, significant)
+    return specificity_evidence(inputs.data, names, settings, significant)
 
 
 def _exposure_gains(inputs: EvidenceInputs):
@@ -92,7 +87,7 @@ def identifiability_producer(
 ) -> list[Evidence]:
     """Identifiability of the candidates whose identifiability the capture decides."""
     names = {candidate.name for candidate in candidates}
-    options = IdentifiabilityOptions()
+    options = settings.identifiability
     flat_field = any(candidate.evidence_of("flat_field") for candidate in candidates)
     conditions = CaptureConditions(
         relight=inputs.relight is not None,
@@ -162,7 +157,7 @@ def metadata_producer(
     ratios = (probe.details.get("parameters") or {}).get("ratios") if probe else None
     if known is None or ratios is None or len(ratios) != len(known):
         return []
-    return [metadata_evidence(ratios, known, "exposure")]
+    return [metadata_evidence(ratios, known, "exposure", settings.metadata)]
 
 
 CHECK_PRODUCERS = [null_producer, specificity_producer, identifiability_producer, metadata_producer]

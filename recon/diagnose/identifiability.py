@@ -20,44 +20,12 @@ from dataclasses import dataclass
 
 import torch
 
+from recon.config.run_config import IdentifiabilityConfig
 from recon.diagnose.data import DiagnosisData
 from recon.diagnose.pixel_table import pixel_table
 from recon.diagnose.records import Evidence
 
 KIND = "identifiability"
-
-
-@dataclass(frozen=True)
-class IdentifiabilityOptions:
-    """Choices of the identifiability conditions (movable to the `diagnose:` config section).
-
-    minimum_exposure_ratio: the known exposure range (largest over smallest per-view gain)
-        that lets a tone curve be read off: one third of a stop (2^(1/3)), the finest common
-        bracketing step.
-    corner_radius: the normalised radius (half image diagonal = 1) the object must reach for
-        a falloff at the corners to be measured rather than extrapolated; the corners are at
-        1, and beyond 0.9 the even polynomial's extrapolation is short.
-    minimum_radius_spread: how far apart (normalised radius) the same surface region must be
-        seen across views for a falloff to be told from the albedo (which is the same in every
-        view): a tenth of the half diagonal.
-    reference_corner_shift: the distortion judged when none was recovered: its displacement at
-        the image corners over the half diagonal (a tenth: a strong consumer-lens barrel, so
-        that "not identifiable" means even a strong distortion would hide).
-    minimum_distinguishable_pixels: the RMS (pixels) of the part of that distortion's flow
-        over the object that no per-view zoom, shift and rotation reproduces, below which a
-        pose correction explains it as well: half a pixel, about what the probes resolve.
-    maximum_edge_coherence: the views' edge orientation coherence (structure tensor, 0 = all
-        orientations, 1 = one) above which a directional blur is a blur along the only edges.
-    surface_cells: cells per axis of the grid over the object for the radius spread.
-    """
-
-    minimum_exposure_ratio: float = 2.0 ** (1 / 3)
-    corner_radius: float = 0.9
-    minimum_radius_spread: float = 0.1
-    reference_corner_shift: float = 0.1
-    minimum_distinguishable_pixels: float = 0.5
-    maximum_edge_coherence: float = 0.8
-    surface_cells: int = 3
 
 
 @dataclass(frozen=True)
@@ -75,7 +43,7 @@ class CaptureConditions:
 
 
 def response_curve_evidence(
-    data: DiagnosisData, conditions: CaptureConditions, options: IdentifiabilityOptions
+    data: DiagnosisData, conditions: CaptureConditions, options: IdentifiabilityConfig
 ) -> Evidence:
     """A tone curve is identifiable when some texel is seen at two intensities: under a second
     light (relight split), at known different exposures, or under a light that turns with the
@@ -144,7 +112,7 @@ def covered_radius(data: DiagnosisData) -> float:
     return float(radius[covered].max()) if bool(covered.any()) else 0.0
 
 
-def radius_spread(data: DiagnosisData, options: IdentifiabilityOptions) -> float:
+def radius_spread(data: DiagnosisData, options: IdentifiabilityConfig) -> float:
     """Median over surface regions of how far apart (normalised radius) the views see it."""
     table = pixel_table(data, surface_cells=options.surface_cells)
     cells = table.labels["surface"]
@@ -163,7 +131,7 @@ def radius_spread(data: DiagnosisData, options: IdentifiabilityOptions) -> float
 
 
 def vignetting_evidence(
-    data: DiagnosisData, conditions: CaptureConditions, options: IdentifiabilityOptions
+    data: DiagnosisData, conditions: CaptureConditions, options: IdentifiabilityConfig
 ) -> Evidence:
     """A falloff is measured where the object is: up to its covered radius, and told from the
     albedo only if the same surface is seen at different radii. Flat-field frames measure it
@@ -257,7 +225,7 @@ def similarity_share(data: DiagnosisData) -> tuple[float, float, int]:
 
 def lens_distortion_evidence(
     data: DiagnosisData,
-    options: IdentifiabilityOptions,
+    options: IdentifiabilityConfig,
     corner_shift_pixels: float | None = None,
 ) -> Evidence:
     """A radial distortion is told from a pose error by the part of its flow that no per-view
@@ -324,7 +292,7 @@ def edge_coherence(data: DiagnosisData) -> float:
     return float((difference / trace).median())
 
 
-def motion_blur_evidence(data: DiagnosisData, options: IdentifiabilityOptions) -> Evidence:
+def motion_blur_evidence(data: DiagnosisData, options: IdentifiabilityConfig) -> Evidence:
     """A motion blur is told from a defocus blur by edges across its direction: in views
     whose edges all run one way, the blur along them is invisible and across them it is any
     blur."""
@@ -351,7 +319,7 @@ def motion_blur_evidence(data: DiagnosisData, options: IdentifiabilityOptions) -
 def identifiability_evidence(
     data: DiagnosisData,
     conditions: CaptureConditions | None = None,
-    options: IdentifiabilityOptions | None = None,
+    options: IdentifiabilityConfig | None = None,
     corner_shift_pixels: float | None = None,
 ) -> list[Evidence]:
     """Identifiability Evidence of the effects whose identifiability depends on the capture:
@@ -359,7 +327,7 @@ def identifiability_evidence(
     recovered distortion's displacement at the corners, when known) and motion_blur (against
     defocus_blur)."""
     conditions = conditions or CaptureConditions()
-    options = options or IdentifiabilityOptions()
+    options = options or IdentifiabilityConfig()
     return [
         response_curve_evidence(data, conditions, options),
         vignetting_evidence(data, conditions, options),

@@ -14,30 +14,16 @@ The producer returns recon.diagnose.records.Evidence of kind "metadata".
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
 from typing import Any
 
 import torch
 
+from recon.config.run_config import MetadataConfig
 from recon.diagnose.records import Evidence
 from recon.errors import ReconError
 from recon.io.exif import exposure_value
 
 KIND = "metadata"
-
-
-@dataclass(frozen=True)
-class MetadataOptions:
-    """Choices of the metadata check (movable to the `diagnose:` config section as is).
-
-    permutations: view permutations for the correlation's p-value.
-    alpha: the correlation's level (one-sided, positive): the conventional 5 %.
-    seed: the permutations' random seed.
-    """
-
-    permutations: int = 2000
-    alpha: float = 0.05
-    seed: int = 0
 
 
 def exif_exposure_gains(metadata: Sequence[dict[str, Any]] | None) -> torch.Tensor | None:
@@ -71,13 +57,13 @@ def metadata_evidence(
     recovered: Sequence[float] | torch.Tensor,
     known: Sequence[float] | torch.Tensor,
     candidate: str = "exposure",
-    options: MetadataOptions | None = None,
+    options: MetadataConfig | None = None,
 ) -> Evidence:
     """Recovered per-view exposure gains [B] (e.g. the exposure probe's "ratios") against the
     known ones [B] (EXIF, in the same view order): median ratio error, log correlation with a
     permutation p-value, and the all-equal baseline's error. Passes when the recovered gains
     beat the baseline and correlate with the EXIF gains."""
-    options = options or MetadataOptions()
+    options = options or MetadataConfig()
     recovered = torch.as_tensor(recovered, dtype=torch.float64).flatten()
     known = torch.as_tensor(known, dtype=torch.float64).flatten()
     if recovered.shape != known.shape:

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import torch
 
+from recon.config.run_config import DiagnoseConfig
 from recon.diagnose.data import DiagnosisData
 from recon.diagnose.records import Evidence
 from recon.effects.registry import make_effect
@@ -33,31 +34,6 @@ KIND = "null"
 # Candidates whose image change is a movement of the render (not a scaling of it): their
 # placebo is a displacement along random smooth fields.
 GEOMETRIC_EFFECTS = ("lens_distortion", "defocus_blur", "motion_blur", "pose_error")
-
-
-@dataclass(frozen=True)
-class NullOptions:
-    """Choices of the run-derived nulls (movable to the `diagnose:` config section as is).
-
-    placebo_draws: random placebo effects per candidate: enough for a 95 % quantile to be
-        read off (20 draws: the largest but one).
-    quantile: the placebo quantile a candidate's reduction (its interval's lower bound) must
-        exceed: a one-sided 5 % test against effects of its size that mean nothing.
-    field_cells: the random fields are bilinear upsamplings of a field_cells^2 grid of normal
-        draws, less their mean over the object: smooth, like an effect's image change, not
-        pixel noise (which held-out pixels already reject), and never the candidate's own
-        signature (a uniform gain or shift).
-    block_pixels: the checkerboard blocks of the held-out halves (the probes' BLOCK_PIXELS).
-    permutations: view permutations for the split-half agreement's null.
-    seed: random seed of the placebos and permutations.
-    """
-
-    placebo_draws: int = 20
-    quantile: float = 0.95
-    field_cells: int = 4
-    block_pixels: int = 4
-    permutations: int = 1000
-    seed: int = 0
 
 
 def parameter_layout(name: str, view_count: int) -> tuple[int, int]:
@@ -138,7 +114,7 @@ def placebo_bases(
     size: tuple[int, int, int],
     count: int,
     geometric: bool,
-    options: NullOptions,
+    settings: DiagnoseConfig,
     generator,
     shared: bool = False,
 ) -> torch.Tensor:
@@ -149,7 +125,7 @@ def placebo_bases(
     per view."""
     batch, height, width = size
     views = 1 if shared else batch
-    fields = smooth_fields(count * views * 2, height, width, options.field_cells, generator)
+    fields = smooth_fields(count * views * 2, height, width, settings.nulls.field_cells, generator)
     fields = fields.view(count, views, 2, height, width)
     view = torch.zeros_like(pixels.view) if shared else pixels.view
     values = fields.permute(1, 3, 4, 0, 2)[view, pixels.row, pixels.column]  # [N, count, 2]
@@ -176,13 +152,13 @@ def _least_squares(bases: torch.Tensor, target: torch.Tensor, fit: torch.Tensor)
 
 
 def placebo_reduction(
-    data: DiagnosisData, per_view: int, shared: int, geometric: bool, options: NullOptions, seed
+    data: DiagnosisData, per_view: int, shared: int, geometric: bool, settings: DiagnoseConfig, seed
 ) -> float:
     """The held-out reduction of one random placebo with per_view parameters per view and
     shared global ones, fitted by linear least squares on the first half of the blocks (the
     residual's projection on the placebo's basis) and scored on the second."""
-    pixels = _Pixels.of(data, options.block_pixels)
-    return _placebo_reduction(pixels, data, per_view, shared, geometric, options, seed)
+    pixels = _Pixels.of(data, settings.block_pixels)
+    return _placebo_reduction(pixels, data, per_view, shared, geometric, settings, seed)
 
 
 def _placebo_reduction(
@@ -191,7 +167,7 @@ def _placebo_reduction(
     per_view: int,
     shared: int,
     geometric: bool,
-    options: NullOptions,
+    settings: DiagnoseConfig,
     seed: int,
 ) -> float:
     generator = torch.Generator().manual_seed(seed)
@@ -199,7 +175,7 @@ def _placebo_reduction(
     residual = pixels.residual
     explained = torch.zeros_like(residual)
     if per_view:
-        bases = placebo_bases(pixels, size, per_view, geometric, options, generator)
+        bases = placebo_bases(pixels, size, per_view, geometric, settings, generator)
         for view in range(data.view_count):
             here = pixels.view == view
             if not bool((here & pixels.first).any()):
@@ -208,7 +184,7 @@ def _placebo_reduction(
             theta = _least_squares(local, residual[here], pixels.first[here])
             explained[here] += torch.einsum("p,pnc->nc", theta, local.double())
     if shared:
-        bases = placebo_bases(pixels, size, shared, geometric, options, generator, shared=True)
+        bases = placebo_bases(pixels, size, shared, geometric, settings, generator, shared=True)
         theta = _least_squares(bases, residual - explained, pixels.first)
         explained += torch.einsum("p,pnc->nc", theta, bases.double())
     test = ~pixels.first
@@ -218,19 +194,23 @@ def _placebo_reduction(
 
 
 def placebo_null(
-    data: DiagnosisData, name: str, options: NullOptions | None = None
+    data: DiagnosisData, name: str, settings: DiagnoseConfig | None = None
 ) -> tuple[float, list[float]]:
-    """The candidate's null: the options.quantile of its placebos' held-out reductions on this
+    """The candidate's null: the settings.nulls.quantile of its placebos' held-out reductions on this
     run, and the draws."""
-    options = options or NullOptions()
+    settings = settings or DiagnoseConfig()
     per_view, shared = parameter_layout(name, data.view_count)
     geometric = name in GEOMETRIC_EFFECTS
-    pixels = _Pixels.of(data, options.block_pixels)
+    pixels = _Pixels.of(data, settings.block_pixels)
     draws = [
-        _placebo_reduction(pixels, data, per_view, shared, geometric, options, options.seed + d)
-        for d in range(options.placebo_draws)
+        _placebo_reduction(
+            pixels, data, per_view, shared, geometric, settings, settings.nulls.seed + d
+        )
+        for d in range(settings.nulls.placebo_draws)
     ]
-    threshold = float(torch.quantile(torch.tensor(draws, dtype=torch.float64), options.quantile))
+    threshold = float(
+        torch.quantile(torch.tensor(draws, dtype=torch.float64), settings.nulls.quantile)
+    )
     return threshold, draws
 
 
@@ -246,12 +226,12 @@ def null_evidence(
     name: str,
     reduction: float,
     interval: tuple[float, float],
-    options: NullOptions | None = None,
+    settings: DiagnoseConfig | None = None,
 ) -> Evidence:
     """Whether a candidate's held-out reduction (the probe's, with its bootstrap interval over
     views) clears its placebo null on this run, with the reason in one line."""
-    options = options or NullOptions()
-    threshold, draws = placebo_null(data, name, options)
+    settings = settings or DiagnoseConfig()
+    threshold, draws = placebo_null(data, name, settings)
     per_view, shared = parameter_layout(name, data.view_count)
     size = f"{per_view} per view" if per_view else f"{shared}"
     if per_view and shared:
@@ -263,7 +243,7 @@ def null_evidence(
     reason = (
         f"{name} removes {100 * reduction:.1f} % of the held-out error (lower bound "
         f"{100 * low:.1f} %); {len(draws)} placebo effects with the same parameters "
-        f"({size}) remove up to {100 * threshold:.1f} % ({100 * options.quantile:.0f}th "
+        f"({size}) remove up to {100 * threshold:.1f} % ({100 * settings.nulls.quantile:.0f}th "
         f"percentile) on this {psnr:.1f} dB fit: {verdict}"
     )
     return Evidence(
@@ -296,7 +276,7 @@ def per_view_log_gains(data: DiagnosisData, weight: torch.Tensor) -> torch.Tenso
 
 
 def split_half_evidence(
-    data: DiagnosisData, name: str, options: NullOptions | None = None
+    data: DiagnosisData, name: str, settings: DiagnoseConfig | None = None
 ) -> Evidence | None:
     """Split-half agreement of a per-view gain's parameters (exposure: the luminance log gain
     per view; white balance: red and blue over green): fitted on each half of the held-out
@@ -304,10 +284,10 @@ def split_half_evidence(
     permuted. None for other candidates (their parameters need the probe's fit)."""
     if name not in ("exposure", "white_balance"):
         return None
-    options = options or NullOptions()
+    settings = settings or DiagnoseConfig()
     batch, height, width, _ = data.observed.shape
-    first = checkerboard(batch, height, width, options.block_pixels) * data.region
-    second = (1 - checkerboard(batch, height, width, options.block_pixels)) * data.region
+    first = checkerboard(batch, height, width, settings.block_pixels) * data.region
+    second = (1 - checkerboard(batch, height, width, settings.block_pixels)) * data.region
     halves = []
     for weight in (first, second):
         gains = per_view_log_gains(data, weight)
@@ -322,13 +302,13 @@ def split_half_evidence(
         return float((a * b).sum() / ((a * a).sum() * (b * b).sum()).sqrt().clamp_min(1e-30))
 
     observed = correlation(one, other)
-    generator = torch.Generator().manual_seed(options.seed)
+    generator = torch.Generator().manual_seed(settings.nulls.seed)
     permuted = []
-    for _ in range(options.permutations):
+    for _ in range(settings.nulls.permutations):
         order = torch.randperm(batch, generator=generator)
         permuted.append(correlation(one, halves[1][order].flatten()))
     null = torch.tensor(permuted, dtype=torch.float64)
-    threshold = float(torch.quantile(null, options.quantile))
+    threshold = float(torch.quantile(null, settings.nulls.quantile))
     p_value = float((1 + (null >= observed).sum()) / (1 + len(permuted)))
     passed = observed > threshold
     reason = (

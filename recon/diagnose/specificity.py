@@ -14,7 +14,7 @@ views), and what it still removes (E_domain - E_domain+own) is its retained shar
 exposure keeps its whole reduction whatever else is modelled (its gains are per view, not per
 bin); a per-view gain made of highlight composition loses it to the n.h profile. The share
 and its bootstrap interval over views are the statistic: no tuned allowance, only the
-retained-share bar (a majority of the reduction survives) in SpecificityOptions.
+retained-share bar (a majority of the reduction survives) in the `diagnose.specificity` config.
 
 Producers here return recon.diagnose.records.Evidence of kind "specificity": a failed one
 vetoes its candidate, and details["instead"] names the base-model mismatch (e.g.
@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import torch
 from scipy import stats
 
+from recon.config.run_config import DiagnoseConfig
 from recon.diagnose.data import DiagnosisData
 from recon.diagnose.pixel_table import GainModels, PixelTable, Term, pixel_table
 from recon.diagnose.records import Evidence
@@ -126,56 +127,19 @@ SIGNATURES: dict[str, Signature] = {
 }
 
 
-@dataclass(frozen=True)
-class SpecificityOptions:
-    """Choices of the specificity checks (movable to the `diagnose:` config section as is).
-
-    angle_bins, intensity_bins: quantile bins of n.h / n.v / radius and of the rendered
-        intensity: enough to follow a highlight's falloff, few enough that every view has
-        pixels in most bins at 32-64 px.
-    surface_cells: cells per axis of the grid over the fitted object's bounding box (regions of
-        the fitted surface, with or without UVs).
-    position_cells: cells per axis of the image grid.
-    block_pixels: the checkerboard blocks of the held-out halves (the probes' BLOCK_PIXELS, so
-        that the same pixels are held out).
-    alpha: the F-test's level: a candidate is specific when, in every confusable domain, its
-        own gain stands out above its scatter across that domain's bins at this level (the
-        conventional 1 %; not tuned on any benchmark).
-    retained_share: ... and when on held-out pixels its reduction is not mostly gone once the
-        domain's profile is modelled (the share that survives has an interval reaching this
-        value); a failed candidate names the domain's mismatch only when its point estimate
-        is below it. One half: the point where the reduction is more the domain's than the
-        candidate's.
-    bootstrap_samples, interval: the bootstrap over views of the retained share (a central
-        interval of this probability).
-    seed: the bootstrap's random seed.
-    """
-
-    angle_bins: int = 6
-    intensity_bins: int = 6
-    surface_cells: int = 3
-    position_cells: int = 3
-    block_pixels: int = 4
-    alpha: float = 0.01
-    retained_share: float = 0.5
-    bootstrap_samples: int = 400
-    interval: float = 0.9
-    seed: int = 0
-
-
 def share_interval(
-    gained: torch.Tensor, reference: torch.Tensor, options: SpecificityOptions
+    gained: torch.Tensor, reference: torch.Tensor, settings: DiagnoseConfig
 ) -> tuple[float, float, float]:
     """sum(gained) / sum(reference) over per-view values [B] and its bootstrap interval over
     views (resampling views keeps each view's pixels together: they share one exposure)."""
     gained, reference = gained.double(), reference.double()
     share = float(gained.sum() / reference.sum())
-    generator = torch.Generator().manual_seed(options.seed)
+    generator = torch.Generator().manual_seed(settings.specificity.seed)
     count = gained.shape[0]
-    picks = torch.randint(0, count, (options.bootstrap_samples, count), generator=generator)
+    picks = torch.randint(0, count, (settings.bootstrap_samples, count), generator=generator)
     sampled = gained[picks].sum(1) / reference[picks].sum(1)
     sampled = torch.nan_to_num(sampled, nan=0.0, posinf=0.0, neginf=0.0)
-    tail = (1 - options.interval) / 2
+    tail = (1 - settings.specificity.interval) / 2
     low, high = torch.quantile(sampled, torch.tensor([tail, 1 - tail], dtype=sampled.dtype))
     return share, float(low), float(high)
 
@@ -247,7 +211,7 @@ def signature_evidence(
     name: str,
     table: PixelTable,
     data: DiagnosisData,
-    options: SpecificityOptions,
+    settings: DiagnoseConfig,
     significant: bool = True,
 ) -> list[Evidence]:
     """The specificity Evidence of one gain-like candidate (details["instead"]: the mismatch
@@ -261,7 +225,7 @@ def signature_evidence(
     before = own_models.heldout_errors(base)
     alone = before - own_models.heldout_errors(base + own)
     views = table.view_count
-    relative, relative_low, _ = share_interval(alone, before, options)
+    relative, relative_low, _ = share_interval(alone, before, settings)
     if relative_low <= 0:
         # Without a reduction of its own there is no signature to check (and naming a
         # mismatch from a ratio of two noises would be a false alarm).
@@ -270,7 +234,7 @@ def signature_evidence(
                 kind=KIND,
                 candidate=name,
                 statistic=float("nan"),
-                threshold=options.alpha,
+                threshold=settings.specificity.alpha,
                 passed=True,
                 reason=f"{name}: not tested, its gain removes no held-out error "
                 f"({100 * relative:.1f} %, interval from {100 * relative_low:.1f} %)",
@@ -283,7 +247,7 @@ def signature_evidence(
         models = GainModels(table, factors_here)
         conditioned = base + [(domain, "channel")]
         given = models.heldout_errors(conditioned) - models.heldout_errors(conditioned + own)
-        share, low, high = share_interval(given, alone, options)
+        share, low, high = share_interval(given, alone, settings)
         statistic, p_value, numerator_df, denominator_df = f_test(
             GainModels(table, factors_here, all_pixels=True), base, own, domain
         )
@@ -305,7 +269,8 @@ def signature_evidence(
     failing = [
         domain
         for domain, record in domains.items()
-        if record["p_value"] >= options.alpha or record["interval"][1] < options.retained_share
+        if record["p_value"] >= settings.specificity.alpha
+        or record["interval"][1] < settings.specificity.retained_share
     ]
     passed = not failing
     if passed:
@@ -332,7 +297,7 @@ def signature_evidence(
             f"every domain (least clear: {word}, {test}; it {kept} of its held-out "
             f"reduction of {100 * relative:.1f} % there)"
         )
-        return [Evidence(KIND, name, p_value, options.alpha, True, reason, details)]
+        return [Evidence(KIND, name, p_value, settings.specificity.alpha, True, reason, details)]
     alternative = record["alternative"]
     details["alternative"] = alternative
     slope = record.get("view_slope")
@@ -351,7 +316,7 @@ def signature_evidence(
         and signature.names_alternative
         and alternative in MISMATCHES
         and significant
-        and share < options.retained_share
+        and share < settings.specificity.retained_share
     )
     if named:
         details["instead"] = alternative
@@ -361,13 +326,13 @@ def signature_evidence(
         f"stands out ({test} against its scatter across the bins; it {kept} of its held-out "
         f"reduction of {100 * relative:.1f} %): {instead}"
     )
-    return [Evidence(KIND, name, p_value, options.alpha, False, reason, details)]
+    return [Evidence(KIND, name, p_value, settings.specificity.alpha, False, reason, details)]
 
 
 def specificity_evidence(
     data: DiagnosisData,
     candidates: list[str] | None = None,
-    options: SpecificityOptions | None = None,
+    settings: DiagnoseConfig | None = None,
     significant: set[str] | None = None,
 ) -> list[Evidence]:
     """Specificity Evidence for each gain-like candidate (default: every one in SIGNATURES):
@@ -377,20 +342,20 @@ def specificity_evidence(
     without a gain signature (lens distortion, blurs, pose error) get no Evidence here.
     significant: the candidates found significant so far; a vetoed one names a mismatch
     instead only if it is among them (None: every candidate counts as significant)."""
-    options = options or SpecificityOptions()
+    settings = settings or DiagnoseConfig()
     names = [name for name in (candidates or list(SIGNATURES)) if name in SIGNATURES]
     if not names:
         return []
     table = pixel_table(
         data,
-        angle_bins=options.angle_bins,
-        intensity_bins=options.intensity_bins,
-        surface_cells=options.surface_cells,
-        position_cells=options.position_cells,
-        block_pixels=options.block_pixels,
+        angle_bins=settings.specificity.angle_bins,
+        intensity_bins=settings.specificity.intensity_bins,
+        surface_cells=settings.specificity.surface_cells,
+        position_cells=settings.specificity.position_cells,
+        block_pixels=settings.block_pixels,
     )
     evidence: list[Evidence] = []
     for name in names:
         counts = significant is None or name in significant
-        evidence.extend(signature_evidence(name, table, data, options, counts))
+        evidence.extend(signature_evidence(name, table, data, settings, counts))
     return evidence

@@ -7,13 +7,18 @@ from __future__ import annotations
 
 import json
 import shutil
+from types import SimpleNamespace
+
+from diagnose_scenes import glossy_torus_views
 
 from recon.camera import orbit_cameras
 from recon.cli import main
-from recon.diagnose.checks import CHECK_PRODUCERS
+from recon.config.run_config import DiagnoseConfig, IdentifiabilityConfig
+from recon.diagnose.checks import CHECK_PRODUCERS, identifiability_producer
 from recon.diagnose.data import build_diagnosis_data
 from recon.diagnose.pixel_table import dominant_light_direction, view_directions
 from recon.diagnose.producers import PRODUCERS
+from recon.diagnose.records import Candidate
 from recon.io.datasets import write_nerf_synthetic
 from recon.io.meshes import load_mesh
 from recon.io.run_folder import RunPaths
@@ -68,3 +73,15 @@ def test_a_glossy_object_at_constant_exposure_is_not_named_exposure(tiny_run, tm
 
 def test_the_checks_are_registered_producers():
     assert set(CHECK_PRODUCERS) <= set(PRODUCERS)
+
+
+def test_the_producers_read_their_sections_from_the_diagnose_config():
+    data, _ = glossy_torus_views(size=32, views=8)
+    inputs = SimpleNamespace(data=data, relight=None, heldout=SimpleNamespace(metadata=None))
+    candidates = [Candidate("motion_blur")]
+    strict = DiagnoseConfig(identifiability=IdentifiabilityConfig(maximum_edge_coherence=0.0))
+    lax = DiagnoseConfig(identifiability=IdentifiabilityConfig(maximum_edge_coherence=1.0))
+    (refused,) = identifiability_producer(inputs, candidates, strict)
+    (accepted,) = identifiability_producer(inputs, candidates, lax)
+    assert not refused.passed and accepted.passed
+    assert refused.threshold == 0.0 and accepted.threshold == 1.0

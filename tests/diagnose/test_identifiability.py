@@ -15,9 +15,9 @@ from dataclasses import replace
 import torch
 from diagnose_scenes import glossy_torus_views
 
+from recon.config.run_config import IdentifiabilityConfig
 from recon.diagnose.identifiability import (
     CaptureConditions,
-    IdentifiabilityOptions,
     covered_radius,
     identifiability_evidence,
     motion_blur_evidence,
@@ -81,7 +81,7 @@ def test_a_small_centred_object_cannot_tell_distortion_from_pose():
 
 def test_edges_that_all_run_one_way_cannot_tell_motion_blur_from_defocus():
     data, _ = glossy_torus_views(specular=0.0, size=32, views=4)
-    options = IdentifiabilityOptions()
+    options = IdentifiabilityConfig()
     assert motion_blur_evidence(data, options).passed
     rows = torch.arange(32, dtype=torch.float32)
     stripes = (0.5 + 0.4 * torch.sin(rows / 2))[None, :, None, None].expand(4, 32, 32, 3)

@@ -14,15 +14,15 @@ import pytest
 import torch
 from diagnose_scenes import glossy_torus_views
 
+from recon.config.run_config import MetadataConfig
 from recon.diagnose.metadata_check import (
-    MetadataOptions,
     exif_exposure_gains,
     metadata_evidence,
 )
 from recon.diagnose.which import rank_candidates
 from recon.errors import ReconError
 
-OPTIONS = MetadataOptions(permutations=500)
+OPTIONS = MetadataConfig(permutations=500)
 
 
 def exposure_ratios(data) -> torch.Tensor:

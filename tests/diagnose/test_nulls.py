@@ -12,8 +12,8 @@ import json
 import torch
 from diagnose_scenes import albedo_error_views, glossy_torus_views
 
+from recon.config.run_config import DiagnoseConfig, NullConfig
 from recon.diagnose.nulls import (
-    NullOptions,
     null_evidence,
     parameter_layout,
     placebo_null,
@@ -21,7 +21,7 @@ from recon.diagnose.nulls import (
 )
 from recon.diagnose.which import rank_candidates
 
-OPTIONS = NullOptions(placebo_draws=12, permutations=300)
+OPTIONS = DiagnoseConfig(nulls=NullConfig(placebo_draws=12, permutations=300))
 
 
 class Probed:
@@ -52,7 +52,7 @@ def test_the_null_grows_with_the_fit_s_mismatch():
     glossy, _ = glossy_torus_views(specular=1.5, shininess=2.0, size=32)
     clean_null, _ = placebo_null(clean, "white_balance", OPTIONS)
     glossy_null, draws = placebo_null(glossy, "white_balance", OPTIONS)
-    assert len(draws) == OPTIONS.placebo_draws
+    assert len(draws) == OPTIONS.nulls.placebo_draws
     assert clean_null < 0.005
     assert glossy_null > 0.03 and glossy_null > 10 * max(clean_null, 1e-4)
 
@@ -104,6 +104,8 @@ def test_split_half_agreement_tells_real_per_view_gains_from_noise():
 
 def test_geometric_placebos_move_the_render():
     data, _ = glossy_torus_views(specular=0.0, size=32, views=6)
-    threshold, draws = placebo_null(data, "pose_error", NullOptions(placebo_draws=4))
+    threshold, draws = placebo_null(
+        data, "pose_error", DiagnoseConfig(nulls=NullConfig(placebo_draws=4))
+    )
     assert all(torch.isfinite(torch.tensor(draws)))
     assert threshold < 0.05

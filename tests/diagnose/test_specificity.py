@@ -15,9 +15,9 @@ import pytest
 import torch
 from diagnose_scenes import glossy_torus_views
 
+from recon.config.run_config import DiagnoseConfig
 from recon.diagnose.specificity import (
     VIEW_DEPENDENT_REFLECTANCE,
-    SpecificityOptions,
     specificity_evidence,
 )
 from recon.diagnose.which import rank_candidates
@@ -102,7 +102,7 @@ def test_white_balance_on_a_glossy_object_passes_and_clean_data_is_not_tested():
 def test_geometric_candidates_get_no_evidence_and_records_are_json():
     data, _ = glossy_torus_views(size=32, views=8)
     assert specificity_evidence(data, ["lens_distortion", "pose_error"]) == []
-    options = SpecificityOptions(bootstrap_samples=50)
+    options = DiagnoseConfig(bootstrap_samples=50)
     for item in specificity_evidence(data, ["exposure", "specular"], options):
         json.dumps(item.to_json())
 
