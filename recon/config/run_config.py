@@ -819,10 +819,15 @@ class MetadataConfig:
         0.05, "The correlation's level (one-sided, positive): the conventional 5 %."
     )
     seed: int = setting(0, "Random seed of the permutations.")
+    equal_tolerance: float = setting(
+        0.01,
+        "When the known exposure is the same in every view (fixed exposure, or images already divided by their EXIF exposure): the median ratio error up to which the recovered exposure agrees (1 %, about an 8-bit photo's mid-tone step).",
+    )
 
     def __post_init__(self) -> None:
         check_range(self.permutations, "permutations", low=1)
         check_range(self.alpha, "alpha", low=0.0, high=1.0)
+        check_range(self.equal_tolerance, "equal_tolerance", low=0.0, high=1.0)
 
 
 @dataclass

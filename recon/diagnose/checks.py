@@ -14,12 +14,15 @@ built-in evidence; the decision table (recon.diagnose.decision) says what each k
   surface point, a falloff the albedo can absorb, a directional blur with edges one way only:
   "not identifiable from this data, because ..." with details["capture"] (what would settle it).
 - metadata (recon.diagnose.metadata_check): the recovered exposure against EXIF exposure when
-  every held-out view has it (informs the verdict, never decides it).
+  every held-out view has it, or against equal gains when the images were already divided by
+  it (dataset.exposure 'exif'); informs the verdict, never decides it.
 """
 
 from __future__ import annotations
 
 from typing import TYPE_CHECKING
+
+import torch
 
 from recon.config.run_config import DiagnoseConfig
 from recon.diagnose.identifiability import (
@@ -157,7 +160,12 @@ def metadata_producer(
     ratios = (probe.details.get("parameters") or {}).get("ratios") if probe else None
     if known is None or ratios is None or len(ratios) != len(known):
         return []
-    return [metadata_evidence(ratios, known, "exposure", settings.metadata)]
+    # With dataset.exposure 'exif' the held-out images were already divided by these gains:
+    # the exposure left to recover is none, so equal gains are the truth to compare with.
+    divided = inputs.heldout.known_gains is not None
+    if divided:
+        known = torch.ones_like(known)
+    return [metadata_evidence(ratios, known, "exposure", settings.metadata, divided=divided)]
 
 
 CHECK_PRODUCERS = [null_producer, specificity_producer, identifiability_producer, metadata_producer]

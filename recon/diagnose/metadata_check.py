@@ -58,11 +58,16 @@ def metadata_evidence(
     known: Sequence[float] | torch.Tensor,
     candidate: str = "exposure",
     options: MetadataConfig | None = None,
+    divided: bool = False,
 ) -> Evidence:
     """Recovered per-view exposure gains [B] (e.g. the exposure probe's "ratios") against the
     known ones [B] (EXIF, in the same view order): median ratio error, log correlation with a
     permutation p-value, and the all-equal baseline's error. Passes when the recovered gains
-    beat the baseline and correlate with the EXIF gains."""
+    beat the baseline and correlate with the EXIF gains; when the known gains are all equal, when
+    their median ratio error is at most options.equal_tolerance.
+
+    divided: the images were divided by their EXIF exposure on load (dataset.exposure 'exif'),
+    so known is all ones (the exposure left to recover) and the reason says why."""
     options = options or MetadataConfig()
     recovered = torch.as_tensor(recovered, dtype=torch.float64).flatten()
     known = torch.as_tensor(known, dtype=torch.float64).flatten()
@@ -86,14 +91,21 @@ def metadata_evidence(
     ]
     p_value = (1 + sum(value >= correlation for value in permuted)) / (1 + len(permuted))
     spread = float(known.max() / known.min())
-    if spread == 1.0:
-        # Known equal exposures: the baseline is exact and any recovered spread is an error.
-        passed = error <= baseline
+    if divided:
+        agreement = (
+            f"the images were divided by their EXIF exposure on load (dataset.exposure: exif), "
+            f"so the recovered exposure is compared with equal gains in all {known.numel()} views"
+        )
+    else:
         agreement = f"EXIF exposure is the same in all {known.numel()} views"
+    if spread == 1.0:
+        # Known equal exposures: the baseline is exact, so only a spread within the tolerance
+        # (pixel quantisation and noise) agrees.
+        passed = error <= baseline + options.equal_tolerance
     else:
         passed = error < baseline and p_value < options.alpha
         agreement = (
-            f"r = {correlation:.2f} with EXIF exposure (p = {p_value:.2g}, spanning "
+            f"r = {correlation:.2f} with the known exposure (p = {p_value:.2g}, spanning "
             f"x{spread:.2f} over {known.numel()} views)"
         )
     verdict = "agrees with" if passed else "does not agree with"
@@ -116,5 +128,8 @@ def metadata_evidence(
             "p_value": p_value,
             "known_spread": spread,
             "views": int(known.numel()),
+            "compared_with": "equal gains (images divided by EXIF exposure)"
+            if divided
+            else "EXIF exposure",
         },
     )

@@ -74,6 +74,9 @@ class CaptureSet:
     mask_source: str = "alpha"
     # Per image: EXIF exposure_time, f_number, iso, camera_model (None where absent); or None.
     metadata: list[dict] | None = None
+    # Per-view gains [B] the images were divided by on load (dataset.exposure 'exif': the EXIF
+    # exposure over the median), or None when the pixels are as stored.
+    known_gains: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
         count = len(self.cameras)
@@ -997,7 +1000,8 @@ def read_captures(folder: str | os.PathLike, split: str, options: Any = None) ->
         )
     captures = _apply_background_key(captures, folder, options)
     if getattr(options, "exposure", "none") == "exif":
-        captures.images = captures.images / exif_gains(captures, folder)[:, None, None, None]
+        captures.known_gains = exif_gains(captures, folder)
+        captures.images = captures.images / captures.known_gains[:, None, None, None]
     return captures
 
 

@@ -1,25 +1,34 @@
 """The checks end to end: `recon diagnose` on a run whose held-out views show a glossy object
 at constant exposure. The diffuse fit's per-view gains absorb the highlight, so the exposure
 probe alone calls exposure significant; with the checks the verdict names view-dependent
-reflectance (the base model's mismatch) and not exposure."""
+reflectance (the base model's mismatch) and not exposure. Also: the producers read their
+config sections, and the metadata check's reference (EXIF gains, or equal gains when the images
+were divided by them on load)."""
 
 from __future__ import annotations
 
 import json
 import shutil
+from pathlib import Path
 from types import SimpleNamespace
 
+import numpy as np
+import pytest
+import torch
 from diagnose_scenes import glossy_torus_views
+from PIL import Image
 
-from recon.camera import orbit_cameras
+from recon.camera import look_at, orbit_cameras, rigid_inverse
 from recon.cli import main
-from recon.config.run_config import DiagnoseConfig, IdentifiabilityConfig
-from recon.diagnose.checks import CHECK_PRODUCERS, identifiability_producer
+from recon.config.run_config import DatasetConfig, DiagnoseConfig, IdentifiabilityConfig
+from recon.diagnose.checks import CHECK_PRODUCERS, identifiability_producer, metadata_producer
 from recon.diagnose.data import build_diagnosis_data
+from recon.diagnose.metadata_check import exif_exposure_gains, metadata_evidence
 from recon.diagnose.pixel_table import dominant_light_direction, view_directions
 from recon.diagnose.producers import PRODUCERS
 from recon.diagnose.records import Candidate
-from recon.io.datasets import write_nerf_synthetic
+from recon.diagnose.which import rank_candidates
+from recon.io.datasets import read_captures, write_nerf_synthetic
 from recon.io.meshes import load_mesh
 from recon.io.run_folder import RunPaths
 from recon.render.renderer import Renderer
@@ -85,3 +94,59 @@ def test_the_producers_read_their_sections_from_the_diagnose_config():
     (accepted,) = identifiability_producer(inputs, candidates, lax)
     assert not refused.passed and accepted.passed
     assert refused.threshold == 0.0 and accepted.threshold == 1.0
+
+
+def exif_photo_folder(folder: Path, exposure_times: list[float]) -> None:
+    """An LLFF folder of tiny JPEG photos (a grey square on white) whose EXIF (written by
+    Pillow) holds the given exposure times at f/8, ISO 400."""
+    count = len(exposure_times)
+    eyes = torch.tensor([[0.5 * index - 1.0, 0.2, 4.0] for index in range(count)])
+    cam_to_world = rigid_inverse(look_at(eyes, torch.zeros(count, 3)).double()).numpy()
+    right, down, forward, centre = (cam_to_world[:, :3, column] for column in range(4))
+    hwf = np.tile([24, 32, 30.0], (count, 1))
+    rows = np.stack([down, right, -forward, centre, hwf], axis=-1).reshape(-1, 15)
+    np.save(folder / "poses_bounds.npy", np.concatenate([rows, [[2.0, 6.0]] * count], 1))
+    (folder / "images").mkdir()
+    for index, exposure_time in enumerate(exposure_times):
+        photo = np.full((24, 32, 3), 255, np.uint8)
+        photo[6:16, 8:20] = 96
+        tags = Image.Exif()
+        sub = tags.get_ifd(0x8769)  # the EXIF sub-IFD
+        sub[0x829A], sub[0x829D], sub[0x8827] = exposure_time, 8.0, 400
+        Image.fromarray(photo).save(folder / "images" / f"IMG_{index}.jpg", exif=tags)
+
+
+@pytest.mark.parametrize("exposure", ["none", "exif"])
+def test_metadata_compares_with_equal_gains_when_the_images_were_divided(tmp_path, exposure):
+    times = [0.01, 0.02, 0.01, 0.005, 0.01, 0.016, 0.008, 0.0125, 0.01]
+    exif_photo_folder(tmp_path, times)
+    dataset = DatasetConfig(background_key=[1.0, 1.0, 1.0], exposure=exposure)
+    heldout = read_captures(tmp_path, "train", dataset)
+    gains = exif_exposure_gains(heldout.metadata).float()
+    assert (heldout.known_gains is not None) == (exposure == "exif")
+
+    # The held-out views as the fit sees them: raw photos carry the EXIF gains; divided ones
+    # carry none (the exposure left to recover is equal in every view).
+    def as_seen(observed, output):
+        return observed * gains[:, None, None, None] if exposure == "none" else observed
+
+    data, _ = glossy_torus_views(views=len(heldout), size=32, specular=0.0, transform=as_seen)
+    candidates = rank_candidates(data, ["exposure"])
+    inputs = SimpleNamespace(data=data, heldout=heldout)
+    (evidence,) = metadata_producer(inputs, candidates, DiagnoseConfig())
+    assert evidence.kind == "metadata" and evidence.passed, evidence.reason
+    assert evidence.details["median_ratio_error"] < 0.01
+    divided = exposure == "exif"
+    assert ("divided by their EXIF exposure" in evidence.reason) == divided
+    assert evidence.details["compared_with"] == (
+        "equal gains (images divided by EXIF exposure)" if divided else "EXIF exposure"
+    )
+    # The same recovered gains against the other reference disagree: the reference matters.
+    ratios = evidence_ratios(candidates)
+    other = torch.ones_like(gains) if exposure == "none" else gains
+    assert not metadata_evidence(ratios, other, options=DiagnoseConfig().metadata).passed
+
+
+def evidence_ratios(candidates) -> list[float]:
+    probe = next(item for item in candidates if item.name == "exposure").evidence_of("probe")
+    return probe.details["parameters"]["ratios"]
