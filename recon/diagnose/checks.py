@@ -11,8 +11,11 @@ built-in evidence; the decision table (recon.diagnose.decision) says what each k
   confusable domain is vetoed; details["instead"] names the base-model mismatch (e.g.
   view_dependent_reflectance) when that domain is a mismatch's and the held-out pixels agree.
 - identifiability (recon.diagnose.identifiability): a tone curve with no second intensity of any
-  surface point, a falloff the albedo can absorb, a directional blur with edges one way only:
-  "not identifiable from this data, because ..." with details["capture"] (what would settle it).
+  surface point, a falloff measured short of the corners or absorbable by the albedo, a lens
+  distortion a per-view pose correction reproduces (judged at its recovered size when it
+  cleared), a directional blur with edges one way only: details["capture"] says what would
+  settle it; the decision makes a miss "not identifiable from this data, because ..." and a
+  cleared candidate confusable with a named effect ambiguous.
 - metadata (recon.diagnose.metadata_check): the recovered exposure against EXIF exposure when
   every held-out view has it, or against equal gains when the images were already divided by
   it (dataset.exposure 'exif'); informs the verdict, never decides it.
@@ -27,9 +30,10 @@ import torch
 from recon.config.run_config import DiagnoseConfig
 from recon.diagnose.identifiability import (
     CaptureConditions,
+    lens_distortion_evidence,
     motion_blur_evidence,
-    radius_spread,
     response_curve_evidence,
+    vignetting_evidence,
 )
 from recon.diagnose.metadata_check import exif_exposure_gains, metadata_evidence
 from recon.diagnose.nulls import null_evidence, split_half_evidence
@@ -98,31 +102,33 @@ def identifiability_producer(
         flat_field=flat_field,
     )
     evidence = []
+    by_name = {candidate.name: candidate for candidate in candidates}
     if "response_curve" in names:
         evidence.append(_as_condition(response_curve_evidence(inputs.data, conditions, options)))
-    if "vignetting" in names and not flat_field:
-        spread = radius_spread(inputs.data, options)
-        if spread < options.minimum_radius_spread:
-            evidence.append(
-                Evidence(
-                    "identifiability",
-                    "vignetting",
-                    spread,
-                    options.minimum_radius_spread,
-                    False,
-                    "each surface region is seen at nearly one distance from the image centre "
-                    f"in every view (median spread {spread:.2f} of the half diagonal), so the "
-                    "albedo absorbs any falloff",
-                    {
-                        "radius_spread": spread,
-                        "capture": "flat-field frames, or views with the object moving across "
-                        "the image",
-                    },
-                )
-            )
+    if "vignetting" in names:
+        # Corner coverage and regions seen at one radius (flat-field frames settle both).
+        evidence.append(_as_condition(vignetting_evidence(inputs.data, conditions, options)))
+    if "lens_distortion" in names:
+        shift = _recovered_corner_shift(by_name["lens_distortion"])
+        evidence.append(_as_condition(lens_distortion_evidence(inputs.data, options, shift)))
     if "motion_blur" in names:
         evidence.append(_as_condition(motion_blur_evidence(inputs.data, options)))
     return evidence
+
+
+def _recovered_corner_shift(candidate: Candidate) -> float | None:
+    """The corner displacement (pixels) of the distortion a significant lens_distortion
+    candidate recovered (its absorption's or probe's parameters), to judge that distortion
+    against a pose correction; None for one that did not clear (then the condition judges the
+    reference strength: whether even a strong distortion would hide in a pose error)."""
+    if not candidate.significant:
+        return None
+    for kind in ("absorption", "probe"):
+        item = candidate.evidence_of(kind)
+        parameters = (item.details.get("parameters") or {}) if item is not None else {}
+        if parameters.get("corner_shift_px") is not None:
+            return float(parameters["corner_shift_px"])
+    return None
 
 
 def _as_condition(evidence: Evidence) -> Evidence:

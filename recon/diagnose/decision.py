@@ -22,7 +22,12 @@ specificity   veto          a failed check says the signature is not the candida
                             significant, and ``details["instead"]`` (a base-model mismatch
                             such as view_dependent_reflectance) is named in its place, with the
                             vetoed candidate's rank, when the vetoed one had cleared
-identifiability  qualify    a failed check: "not identifiable from this data, because ..."
+identifiability  qualify    a failed check on a candidate that did not clear: "not
+                            identifiable from this data, because ..." (not a silent miss); on
+                            one that cleared and whose condition names a confusable effect
+                            (details["confused_with"]): significant but ambiguous, "A or B:
+                            not separable from this data, because ..."; otherwise the
+                            condition qualifies its why
 metadata      inform        recorded (e.g. EXIF agreement), no effect on the decision
 ============  ============  =================================================================
 
@@ -225,17 +230,48 @@ def decide(candidate: Candidate, config: DecisionConfig) -> Candidate:
         status, why = "vetoed", vetoes[0].reason
     unidentifiable = [item for item in _role_evidence(candidate, "qualify") if not item.passed]
     if unidentifiable:
-        status = "not_identifiable"
-        capture = unidentifiable[0].details.get("capture")
-        why = f"not identifiable from this data, because {unidentifiable[0].reason}"
-        why += f"; {capture} would make it identifiable" if capture else ""
+        condition = unidentifiable[0]
+        capture = condition.details.get("capture")
+        settle = f"; {capture} would make it identifiable" if capture else ""
+        confusable = _confusable(condition)
+        if status != "significant":
+            # A miss the data could not have avoided: say so instead of a silent miss.
+            status = "not_identifiable"
+            why = f"not identifiable from this data, because {condition.reason}{settle}"
+        elif confusable is not None:
+            # Cleared, but the data cannot tell it from a named effect: both are reported.
+            status = "ambiguous"
+            why = (
+                f"{explain(deciding)}; {candidate.name} or {confusable}: not separable from "
+                f"this data, because {condition.reason}{settle}"
+            )
+        else:
+            # Cleared; the condition qualifies what was recovered (e.g. an extrapolation).
+            why = f"{explain(deciding)}; but {condition.reason}{settle}"
     candidate.status = status
-    candidate.significant = status == "significant"
+    candidate.significant = status in ("significant", "ambiguous")
     candidate.decided_by = deciding.kind if candidate.significant else ""
     candidate.why = why
     kinds = RULES[deciding.kind].parameters_from if candidate.significant else ()
     candidate.parameters = _parameters(candidate, kinds or UNDECIDED_PARAMETERS)
     return candidate
+
+
+def _confusable(condition: Evidence) -> str | None:
+    """The first effect a failed identifiability condition names in details["confused_with"]
+    (entries that are no effect, such as the albedo, are skipped), or None."""
+    for name in condition.details.get("confused_with") or ():
+        if diagnosis_facts(name) is not None:
+            return name
+    return None
+
+
+def ambiguous_with(candidate: Candidate) -> str | None:
+    """The effect an ambiguous candidate cannot be told from (None when it is not ambiguous)."""
+    condition = candidate.evidence_of("identifiability")
+    if candidate.status != "ambiguous" or condition is None:
+        return None
+    return _confusable(condition)
 
 
 def _why_not(candidate: Candidate) -> str:
@@ -347,14 +383,28 @@ def decide_all(candidates: list[Candidate], config: DecisionConfig) -> list[Cand
 
 
 def verdict_of(candidates: list[Candidate]) -> str:
-    """The significant candidates in order (or that there is none), then the ones the data
-    cannot identify."""
-    significant = [candidate.name for candidate in candidates if candidate.significant]
+    """The significant candidates in order (or that there is none; an ambiguous one as "A or
+    B", with why the data cannot separate them), then the ones the data cannot identify."""
+    significant = [
+        f"{candidate.name} or {ambiguous_with(candidate)}"
+        if ambiguous_with(candidate)
+        else candidate.name
+        for candidate in candidates
+        if candidate.significant
+    ]
     verdict = (
         "significant unmodelled effects: " + ", ".join(significant)
         if significant
         else NOTHING_SIGNIFICANT
     )
+    for candidate in candidates:
+        confusable = ambiguous_with(candidate)
+        if confusable:
+            condition = candidate.evidence_of("identifiability")
+            verdict += (
+                f"; {candidate.name} or {confusable}: not separable from this data, because "
+                f"{condition.reason}"
+            )
     unidentifiable = [item.name for item in candidates if item.status == "not_identifiable"]
     if unidentifiable:
         verdict += "; not identifiable from this data: " + ", ".join(unidentifiable)

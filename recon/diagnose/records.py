@@ -93,7 +93,7 @@ class Evidence:
         )
 
 
-Status = Literal["significant", "not_significant", "vetoed", "not_identifiable"]
+Status = Literal["significant", "ambiguous", "not_significant", "vetoed", "not_identifiable"]
 
 
 @dataclass
@@ -110,8 +110,10 @@ class Candidate:
     )
     significant: bool = doc("Whether the decision names it as a cause.", default=False)
     status: Status = doc(
-        "significant, not_significant, vetoed (a specificity check says the signature is "
-        "another cause's) or not_identifiable (the data cannot tell it apart).",
+        "significant, ambiguous (significant, but the data cannot tell it from the effect its "
+        "identifiability evidence names; scored as naming this candidate), not_significant, "
+        "vetoed (a specificity check says the signature is another cause's) or "
+        "not_identifiable (it did not clear and the data cannot tell it apart).",
         default="not_significant",
     )
     decided_by: str = doc(

@@ -191,18 +191,16 @@ def test_a_failed_null_from_the_run_raises_the_bar():
     assert decide(exposure, CONFIG).significant
 
 
-def test_failed_identifiability_says_why_and_what_capture_would_settle_it():
-    curve = candidate("response_curve", probe=(0.3, 0.4))
+def condition(name, reason, **details):
+    """A failed identifiability condition on `name` (a condition: NaN statistic)."""
+    return Evidence("identifiability", name, math.nan, math.nan, False, reason, details)
+
+
+def test_a_miss_the_data_cannot_avoid_says_not_identifiable_and_the_capture():
+    # The probe did not clear: without the condition this is a silent miss.
+    curve = candidate("response_curve", probe=(0.005, 0.01))
     curve.add(
-        Evidence(
-            "identifiability",
-            "response_curve",
-            math.nan,
-            math.nan,
-            False,
-            "one light and no exposure change",
-            {"capture": "a second light"},
-        )
+        condition("response_curve", "one light and no exposure change", capture="a second light")
     )
     ranking = decide_all([curve, candidate("exposure", probe=(0.0, 0.01))], CONFIG)
     assert curve.status == "not_identifiable" and not curve.significant
@@ -213,6 +211,42 @@ def test_failed_identifiability_says_why_and_what_capture_would_settle_it():
     assert verdict_of(ranking) == (
         "no significant unmodelled effect; not identifiable from this data: response_curve"
     )
+
+
+def test_a_cleared_candidate_confusable_with_a_named_effect_is_significant_but_ambiguous():
+    curve = candidate("response_curve", probe=(0.3, 0.4))
+    curve.add(
+        condition(
+            "response_curve",
+            "every surface point is seen at one intensity",
+            capture="bracketed exposures",
+            confused_with=["albedo", "exposure"],
+        )
+    )
+    ranking = decide_all([candidate("vignetting", probe=(0.0, 0.01)), curve], CONFIG)
+    assert curve.significant and curve.status == "ambiguous" and curve.decided_by == "probe"
+    assert "response_curve or exposure: not separable from this data, because every" in curve.why
+    assert curve.why.endswith("bracketed exposures would make it identifiable")
+    # Scored as naming the first: the significant set is the candidate alone.
+    assert [item.name for item in ranking if item.significant] == ["response_curve"]
+    assert verdict_of(ranking) == (
+        "significant unmodelled effects: response_curve or exposure; response_curve or "
+        "exposure: not separable from this data, because every surface point is seen at one "
+        "intensity"
+    )
+    # The ambiguity is re-derived from the stored evidence.
+    again = redecide(Diagnosis(candidates=ranking, verdict="", settings={}))
+    assert again.verdict == verdict_of(ranking)
+    assert again.candidates[0].status == "ambiguous"
+
+
+def test_a_cleared_candidate_whose_condition_names_no_effect_stays_significant_and_qualified():
+    falloff = candidate("vignetting", probe=(0.3, 0.4))
+    falloff.add(condition("vignetting", "the corner falloff is an extrapolation"))
+    decide(falloff, CONFIG)
+    assert falloff.significant and falloff.status == "significant"
+    assert falloff.why.endswith("; but the corner falloff is an extrapolation")
+    assert verdict_of([falloff]) == "significant unmodelled effects: vignetting"
 
 
 def test_metadata_and_unknown_kinds_inform_only():
