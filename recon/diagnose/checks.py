@@ -141,7 +141,7 @@ def _as_condition(evidence: Evidence) -> Evidence:
     capture = None
     if "; " in because and because.endswith("would settle it"):
         because, capture = because.rsplit("; ", 1)
-        capture = capture.removesuffix(" would settle it")
+        capture = capture.removesuffix(" would settle it").rstrip(", ")
     details = dict(evidence.details)
     if capture:
         details["capture"] = capture

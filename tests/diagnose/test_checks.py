@@ -26,7 +26,7 @@ from recon.diagnose.data import build_diagnosis_data
 from recon.diagnose.metadata_check import exif_exposure_gains, metadata_evidence
 from recon.diagnose.pixel_table import dominant_light_direction, view_directions
 from recon.diagnose.producers import PRODUCERS
-from recon.diagnose.records import Candidate
+from recon.diagnose.records import Candidate, Evidence
 from recon.diagnose.which import rank_candidates
 from recon.io.datasets import read_captures, write_nerf_synthetic
 from recon.io.meshes import load_mesh
@@ -150,3 +150,28 @@ def test_metadata_compares_with_equal_gains_when_the_images_were_divided(tmp_pat
 def evidence_ratios(candidates) -> list[float]:
     probe = next(item for item in candidates if item.name == "exposure").evidence_of("probe")
     return probe.details["parameters"]["ratios"]
+
+
+def test_vignetting_short_of_the_corners_and_distortion_against_pose_are_registered():
+    # The torus covers the image centre only (radius about 0.64 of the half diagonal).
+    data, _ = glossy_torus_views(size=32, views=8)
+    inputs = SimpleNamespace(data=data, relight=None, heldout=SimpleNamespace(metadata=None))
+    distortion = Candidate("lens_distortion", significant=True, status="significant")
+    parameters = {"parameters": {"corner_shift_px": 20.0}}
+    distortion.add(Evidence("probe", "lens_distortion", 0.2, 0.05, True, "probe", parameters))
+    falloff, judged = identifiability_producer(
+        inputs, [Candidate("vignetting"), distortion], DiagnoseConfig()
+    )
+    assert falloff.candidate == "vignetting" and not falloff.passed
+    assert "corner falloff is an extrapolation" in falloff.reason
+    assert falloff.details["capture"].startswith("flat-field frames")
+    # A cleared distortion is judged at its recovered size: 20 px at the corners leaves flow
+    # over the object that no per-view zoom, shift and rotation makes.
+    assert judged.passed and judged.details["corner_shift_pixels"] == 20.0
+    # One that did not clear is judged at the reference strength (a tenth of the half
+    # diagonal, 2.3 px at 32 px): it would hide in a pose correction.
+    distortion.significant, distortion.status = False, "not_significant"
+    (reference,) = identifiability_producer(inputs, [distortion], DiagnoseConfig())
+    assert not reference.passed and reference.details["corner_shift_pixels"] < 2.5
+    assert reference.details["confused_with"] == ["pose_error"]
+    assert not reference.details["capture"].endswith(",")
