@@ -32,8 +32,13 @@ def diagnosis_lines(diagnosis: Diagnosis) -> list[str]:
         flag = f"significant ({candidate.decided_by})" if candidate.significant else ""
         if candidate.status in ("vetoed", "not_identifiable"):
             flag = candidate.status.replace("_", " ")
+        elif candidate.status == "ambiguous":
+            flag += ", ambiguous"
         lines.append(f"{candidate.name:16} {_measurement(candidate)} {flag}".rstrip())
         lines.append(f"  why: {candidate.why}")
+        metadata = candidate.evidence_of("metadata")
+        if metadata is not None:
+            lines.append(f"  capture metadata: {metadata.reason}")
     record = diagnosis.to_json()
     for effect, source, parameters in recovered_parameters(record):
         lines.append(f"  {effect} ({source}): {summarise_parameters(parameters)}")
