@@ -12,14 +12,124 @@ For example the clean calibration seeds of the benchmark (fitted with
 100-102 are scored):
 
     recon-bench calibrate runs/bench_diagnose/*/none_seed10[345]
+
+``calibrate_thresholds`` is the same rule as a function over stored diagnoses, returning the
+flat threshold set of benchmarks.blind_decide (the form the diagnosis' ``diagnose:`` config
+section takes); the broadened blind check (recon-bench diagnose-blind --worlds) calls it once per
+held-out scene, on the other scenes' clean cases only.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
+import subprocess
 import sys
 from pathlib import Path
+
+# An allowance is this many times the largest statistic seen on the clean calibration fits.
+CALIBRATION_MARGIN = 2.0
+
+
+def clean_statistics(diagnosis: dict) -> dict[str, float]:
+    """The statistics of one clean diagnosis that its thresholds are compared with, by
+    threshold name (benchmarks.blind_decide): each probe's held-out reduction, each absorption
+    refit's reduction, the relight probe's, the flat field's deviation and the visibility
+    fingerprint's lower bound."""
+    found: dict[str, float] = {}
+
+    def keep(name: str, value: float | None) -> None:
+        if value is not None:
+            found[name] = max(found.get(name, float("-inf")), float(value))
+
+    for item in diagnosis["ranking"]:
+        effect = item["effect"]
+        keep(f"probe.{effect}", item.get("heldout_reduction"))
+        keep(f"absorption.{effect}", item.get("absorption"))
+        keep("relight", item.get("relight_reduction"))
+        if item.get("flat_field"):
+            keep("flat_field", item["flat_field"].get("deviation"))
+    fingerprint = (diagnosis.get("gap") or {}).get("visibility_fingerprint") or {}
+    if fingerprint.get("interval"):
+        keep("visibility_share", fingerprint["interval"][0])
+    return found
+
+
+def threshold_floors() -> dict[str, float]:
+    """The least value of each threshold, whatever the clean fits show: the code's floors
+    (recon.diagnose.calibration), the flat field's allowance and the fingerprint's minimum."""
+    from benchmarks.blind_decide import code_thresholds
+    from recon.diagnose import calibration
+    from recon.effects.registry import MODEL_EFFECTS
+
+    floors = dict(code_thresholds())
+    for effect in MODEL_EFFECTS:
+        floors[f"probe.{effect}"] = calibration.MINIMUM_SHARE
+        floors[f"absorption.{effect}"] = calibration.absorption_minimum_share(effect)
+    floors["relight"] = calibration.MINIMUM_SHARE
+    return floors
+
+
+def calibrate_thresholds(
+    diagnoses: list[dict], margin: float = CALIBRATION_MARGIN
+) -> dict[str, float]:
+    """Thresholds from clean diagnoses: margin x the largest statistic of each (clean_statistics),
+    floored at threshold_floors(); thresholds no clean diagnosis measured keep their floor, and
+    shadow_share (a physical split, not a null) keeps the code's value."""
+    if not diagnoses:
+        from recon.errors import ReconError
+
+        raise ReconError("calibrate_thresholds: no clean diagnoses to calibrate on")
+    largest: dict[str, float] = {}
+    for diagnosis in diagnoses:
+        for name, value in clean_statistics(diagnosis).items():
+            largest[name] = max(largest.get(name, float("-inf")), value)
+    thresholds = threshold_floors()
+    for name, value in largest.items():
+        if name in thresholds and name != "shadow_share":
+            thresholds[name] = round(max(thresholds[name], margin * value), 4)
+    return thresholds
+
+
+def git_commit(folder: Path) -> str:
+    """HEAD of the repository at folder (with '+dirty' when the tree has changes), or
+    'unknown'."""
+    try:
+        head = subprocess.run(
+            ["git", "-C", str(folder), "rev-parse", "--short=12", "HEAD"],
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "-C", str(folder), "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+    return head + ("+dirty" if dirty else "")
+
+
+def calibration_record(
+    thresholds: dict[str, float], calibrated_on: list[dict], base_config: dict
+) -> dict:
+    """thresholds with their provenance: the commit, the hash of the base config the cases were
+    made from, and the clean cases (world, scene, seed) they were calibrated on."""
+    canonical = json.dumps(base_config, sort_keys=True, separators=(",", ":"), default=str)
+    return {
+        "thresholds": thresholds,
+        "provenance": {
+            "commit": git_commit(Path(__file__).resolve().parents[1]),
+            "base_config_sha256": hashlib.sha256(canonical.encode()).hexdigest()[:12],
+            "rule": f"max(floor, {CALIBRATION_MARGIN:g} x largest clean statistic)",
+            "calibrated_on": calibrated_on,
+            "scenes": sorted({case["scene"] for case in calibrated_on}),
+            "seeds": sorted({case["seed"] for case in calibrated_on}),
+        },
+    }
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -88,3 +88,167 @@ def test_blind_vignetting_is_measured_out_to_the_corners(tiny_config, tmp_path):
     assert vignetting["evidence"] == "flat_field"
     assert vignetting["parameters"]["falloff_source"] == "flat_field"
     assert diagnosis["gap"]["flat_field"]["frames"] == 2
+
+
+# ---------------------------------------------------------------------------------------------
+# The broadened check (issue 20): worlds, scenes, leave-one-scene-out calibration.
+# ---------------------------------------------------------------------------------------------
+
+
+def _fake_record(tmp_path: Path, world: str, scene: str, withheld: tuple, pose: float) -> dict:
+    """A collected case whose stored diagnosis has a pose probe reaching `pose` and an exposure
+    probe reaching 0.5 where exposure was withheld (no fit: the scoring is what is tested)."""
+    folder = tmp_path / world / scene / ("+".join(withheld) or "none")
+    folder.mkdir(parents=True)
+    exposure = 0.5 if "exposure" in withheld else 0.0
+
+    def item(effect: str, reduction: float) -> dict:
+        return {
+            "effect": effect,
+            "score": reduction,
+            "heldout_reduction": reduction,
+            "interval": [0.9 * reduction, 1.1 * reduction],
+            "significant": False,
+        }
+
+    diagnosis = {
+        "ranking": [item("pose_error", pose), item("exposure", exposure)],
+        "refits": [],
+        "gap": {},
+        "timings": {"diagnose_seconds": 1.0},
+    }
+    (folder / "diagnosis.json").write_text(json.dumps(diagnosis))
+    truth = tmp_path / "truth" / f"{world}_{scene}_{'+'.join(withheld)}.json"
+    truth.parent.mkdir(parents=True, exist_ok=True)
+    truth.write_text(json.dumps({"withheld": [], "realised": {}}))
+    return {
+        "case": {"world": world, "scene": scene, "withheld": list(withheld), "seed": 0},
+        "run_folder": str(folder),
+        "truth_file": str(truth),
+        "fit_seconds": 10.0,
+        "diagnose_seconds": 1.0,
+    }
+
+
+def test_leave_one_scene_out_never_scores_a_scene_it_calibrated_on(tmp_path):
+    from benchmarks.blind_score import leave_one_scene_out, load_collected, summarise_world
+
+    # The torus' clean fit leaves a large pose misfit (0.3); the blob's a small one (0.01).
+    records = [
+        _fake_record(tmp_path, "own", "torus", (), pose=0.3),
+        _fake_record(tmp_path, "own", "torus", ("exposure",), pose=0.3),
+        _fake_record(tmp_path, "own", "blob", (), pose=0.01),
+        _fake_record(tmp_path, "own", "blob", ("exposure",), pose=0.01),
+        _fake_record(tmp_path, "mitsuba", "spot_glossy", (), pose=0.01),
+        _fake_record(tmp_path, "real", "ethiopian_head", (), pose=0.01),
+    ]
+    for record in records[4:5]:
+        record["case"]["intrinsic"] = ["specular"]
+    loaded = [load_collected(record) for record in records]
+    scored, calibrations = leave_one_scene_out(loaded, {"name": "test"})
+    assert len(scored) == len(records)
+    for record in scored:
+        assert record["scene"] not in record["calibrated_on"]
+    # The torus is scored with the blob's (and spot's glossy: no clean case) allowance: its own
+    # pose misfit of 0.3 clears twice the blob's 0.01 and is named, a spurious second effect.
+    torus = {record["case"]: record for record in scored if record["scene"] == "torus"}
+    assert calibrations["torus"]["thresholds"]["probe.pose_error"] == pytest.approx(0.02)
+    assert torus["none"]["significant"] == ["pose_error"]
+    assert torus["none"]["false_positive"] is True
+    assert torus["exposure"]["top1_correct"] and not torus["exposure"]["exact_set"]
+    # The blob calibrated on the torus: pose allowance 0.6, its own 0.01 stays silent.
+    blob = {record["case"]: record for record in scored if record["scene"] == "blob"}
+    assert calibrations["blob"]["thresholds"]["probe.pose_error"] == pytest.approx(0.6)
+    assert blob["none"]["significant"] == [] and blob["exposure"]["exact_set"]
+    # The real photos are calibrated on every synthetic scene with a clean case, never on
+    # themselves; the glossy spot has no clean case (its truth is specular), so it calibrates
+    # nothing.
+    real = next(record for record in scored if record["world"] == "real")
+    assert real["calibrated_on"] == ["blob", "torus"]
+    glossy = next(record for record in scored if record["scene"] == "spot_glossy")
+    assert glossy["kind"] == "single" and glossy["truth"] == ["specular"]
+    summary = summarise_world([record for record in scored if record["world"] == "own"])
+    assert summary["false_positive_rate"] == 0.5
+    assert summary["top1_accuracy"] == 1.0
+    assert summary["exact_set_accuracy"] == 0.5
+    provenance = calibrations["blob"]["provenance"]
+    assert provenance["scenes"] == ["torus"] and provenance["seeds"] == [0]
+    assert provenance["commit"]
+
+
+def _tiny_worlds_config(tmp_path: Path) -> Path:
+    config = yaml.safe_load(
+        (REPO_ROOT / "configs" / "bench" / "diagnose_blind_48.yaml").read_text()
+    )
+    config["capture"]["cameras"]["resolution"] = [32, 32]
+    config["capture"]["train_views"] = 6
+    config["capture"]["test_views"] = 3
+    config["capture"]["relight"]["views"] = 0
+    config["capture"]["flat_field"]["views"] = 0
+    config["scene"]["shape"]["resolution"] = 24
+    config["fit"] = {
+        "hull_resolution": 32,
+        "geometry": {"steps": 16, "resolutions": [32], "remesh_every": 0},
+        "texture": {"steps": 8, "texture_size": 64},
+        "simplify": {"target_faces": 1500},
+    }
+    path = tmp_path / "tiny_worlds.yaml"
+    path.write_text(yaml.safe_dump(config))
+    return path
+
+
+def test_tiny_broadened_benchmark_writes_every_metric(tmp_path):
+    """Two procedural scenes of the own world, two effects and a clean case each, fitted in a
+    few steps at 32 px: the harness collects, calibrates leave-one-scene-out and writes the
+    metrics, the confusion matrix, the page and an engine-ready calibration (not accuracy)."""
+    from benchmarks.diagnose_blind import diagnose_blind_worlds
+
+    torch.set_num_threads(1)
+    out = tmp_path / "bench"
+    doc = tmp_path / "docs" / "blind.md"
+    doc.parent.mkdir()
+    summary = diagnose_blind_worlds(
+        _tiny_worlds_config(tmp_path),
+        out,
+        torch.device("cpu"),
+        worlds=["own"],
+        scenes=["torus", "blob"],
+        effects=["exposure", "vignetting"],
+        seeds=[0],
+        pairs=[],
+        doc=doc,
+        command="test",
+    )
+    result = json.loads((out / "blind.json").read_text())
+    cases = result["loso"]["cases"]
+    assert len(cases) == 6 and not result["provenance"]["skipped"]
+    for record in cases:
+        assert record["scene"] not in record["calibrated_on"] and record["calibrated_on"]
+    own = summary["loso"]["own"]
+    assert own["cases"] == {"single": 4, "pair": 0, "clean": 2}
+    for key in ("top1_accuracy", "exact_set_accuracy", "false_positive_rate"):
+        assert 0.0 <= own[key] <= 1.0
+    assert own["median_fit_seconds"] > 0 and own["median_diagnose_seconds"] > 0
+    matrix = result["loso"]["confusion"]["own"]["matrix"]
+    assert sum(map(sum, matrix)) == 6
+    calibration = json.loads((out / "calibration.json").read_text())
+    assert calibration["provenance"]["scenes"] == ["blob", "torus"]
+    assert calibration["thresholds"]["probe.exposure"] >= 0.02
+    page = doc.read_text()
+    assert "leave-one-scene-out" in page and "| own |" in page
+    assert (doc.parent / "blind_confusion.png").stat().st_size > 0
+    # Collected once: a second call re-scores the stored evidence without fitting again.
+    started = json.loads((out / "collected.json").read_text())["cases"][0]
+    again = diagnose_blind_worlds(
+        _tiny_worlds_config(tmp_path),
+        out,
+        torch.device("cpu"),
+        worlds=["own"],
+        scenes=["torus", "blob"],
+        effects=["exposure", "vignetting"],
+        seeds=[0],
+        pairs=[],
+        command="test",
+    )
+    assert again["loso"] == summary["loso"]
+    assert json.loads((out / "collected.json").read_text())["cases"][0] == started
