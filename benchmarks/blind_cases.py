@@ -46,6 +46,21 @@ REAL_EFFECTS = (
     "defocus_blur",
 )
 WORLDS = ("own", "mitsuba", "real")
+# The order in which an interrupted run covers the effects: camera and light-transport effects
+# alternate.
+EFFECT_ORDER = (
+    "exposure",
+    "shadows",
+    "vignetting",
+    "specular",
+    "lens_distortion",
+    "interreflection",
+    "response_curve",
+    "white_balance",
+    "defocus_blur",
+    "motion_blur",
+    "pose_error",
+)
 # The world the real photos' scene lives in, and its name.
 REAL_SCENE = "ethiopian_head"
 
@@ -262,23 +277,45 @@ def missing_inputs(scene: str) -> str | None:
 
 def interleaved(cases: list[BlindCase]) -> list[BlindCase]:
     """cases reordered so that an interrupted run has scored something of everything: clean
-    cases first (calibration needs them in every scene group), then single effects effect by
-    effect across worlds and scenes, then pairs."""
-    effect_order = {
-        name: rank for rank, name in enumerate(CAMERA_EFFECTS + LIGHT_TRANSPORT_EFFECTS)
-    }
-    scene_order = {name: rank for rank, name in enumerate(dict.fromkeys(c.scene for c in cases))}
+    cases first (calibration needs them in every scene group), then rounds: in round k every
+    effect (and every pair) runs on the k-th scene of its own rotation of the scenes (so each
+    round spreads the effects over all scenes), in both synthetic worlds and the real one."""
+    effects = list(EFFECT_ORDER)
+    pairs = list(dict.fromkeys(case.withheld for case in cases if len(case.withheld) > 1))
+    synthetic = list(
+        dict.fromkeys(scene_group(case.scene) for case in cases if case.world != "real")
+    )
+    scenes = [*synthetic, REAL_SCENE]
     world_order = {name: rank for rank, name in enumerate(WORLDS)}
 
     def key(case: BlindCase) -> tuple:
-        kind = {"clean": 0, "single": 1, "pair": 2}[case.kind]
-        first = effect_order.get(case.withheld[0], -1) if case.withheld else -1
+        if not case.withheld and not case.intrinsic:
+            return (
+                0,
+                0,
+                0,
+                case.seed,
+                scenes.index(scene_group(case.scene)),
+                world_order[case.world],
+            )
+        if len(case.withheld) > 1:
+            rank = len(effects) + pairs.index(case.withheld)
+        elif case.withheld:
+            rank = effects.index(case.withheld[0])
+        else:
+            rank = -1  # a glossy object alone: the case built to fool the diagnosis
+        # The real world has one scene: its few cases all go in the first round.
+        rotation = (
+            0
+            if case.world == "real"
+            else (synthetic.index(scene_group(case.scene)) - max(rank, 0)) % len(synthetic)
+        )
         return (
-            kind,
-            len(case.withheld),
-            first,
+            1 + rotation,
             case.seed,
-            scene_order[case.scene],
+            rank,
+            0,
+            scenes.index(scene_group(case.scene)),
             world_order[case.world],
         )
 
