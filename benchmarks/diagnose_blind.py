@@ -382,7 +382,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--seeds", default="0,1,2", help="comma-separated seeds")
     parser.add_argument("--clean", type=int, default=3, help="clean datasets")
     parser.add_argument("--no-pairs", action="store_true", help="skip two-effect cases")
-    parser.add_argument("--refit", choices=["none", "top", "greedy"], default="top")
+    parser.add_argument(
+        "--refit",
+        choices=["none", "top", "greedy"],
+        help="refit after the diagnosis (default: top; none with --worlds)",
+    )
     parser.add_argument(
         "--reuse-fits",
         action="store_true",
@@ -425,6 +429,16 @@ def build_parser() -> argparse.ArgumentParser:
     broad.add_argument("--real-view-every", type=int, default=2, help="keep every N-th photo")
     broad.add_argument("--doc", help="also write the Markdown page here (and its figure beside)")
     broad.add_argument("--collect-only", action="store_true", help="collect evidence, do not score")
+    broad.add_argument(
+        "--score-only",
+        action="store_true",
+        help="score the cases collected so far (an interrupted run); collect nothing",
+    )
+    broad.add_argument(
+        "--shard",
+        default="0/1",
+        help="I/N: collect every N-th case from the I-th (parallel collectors), no scoring",
+    )
     return parser
 
 
@@ -448,7 +462,7 @@ def main(argv: list[str] | None = None) -> int:
             effects=None if arguments.effects == "all" else arguments.effects.split(","),
             seeds=[int(seed) for seed in arguments.seeds.split(",")],
             pairs=pairs,
-            refit=arguments.refit if "--refit" in (argv or sys.argv) else "none",
+            refit=arguments.refit or "none",
             real_options=RealOptions(
                 max_resolution=arguments.real_resolution, view_every=arguments.real_view_every
             ),
@@ -468,7 +482,7 @@ def main(argv: list[str] | None = None) -> int:
         seeds=[int(seed) for seed in arguments.seeds.split(",")],
         pairs=[] if arguments.no_pairs else None,
         clean=arguments.clean,
-        refit=arguments.refit,
+        refit=arguments.refit or "top",
         overrides=arguments.overrides,
         reuse_fits=arguments.reuse_fits,
         fits_only=arguments.fits_only,
