@@ -43,12 +43,22 @@ def truth_path(out: Path, case: BlindCase) -> Path:
     return out / "truth" / (case.folder_name.replace("/", "__") + ".json")
 
 
-def _stored(record_path: Path, digest: str, refit: str) -> dict | None:
+def _stored(
+    record_path: Path, digest: str, refit: str, paths: RunPaths, config: RunConfig, device
+) -> dict | None:
+    """The case's stored record when its fit was made under the same config (digest): as it is
+    when its diagnosis ran with the same refit mode, else diagnosed again on the same fit."""
     if not record_path.exists():
         return None
     record = json.loads(record_path.read_text())
-    done = record.get("config_hash") == digest and record.get("refit") == refit
-    return record if done and (record_path.parent / "diagnosis.json").exists() else None
+    if record.get("config_hash") != digest or not paths.fitted_mesh.exists():
+        return None
+    if record.get("refit") == refit and (record_path.parent / "diagnosis.json").exists():
+        return record
+    record["diagnose_seconds"] = round(_diagnose(paths, config, device, refit), 2)
+    record["refit"] = refit
+    atomic_write_json(record_path, record)
+    return record
 
 
 def finished_case(case: BlindCase, out: Path) -> dict | None:
@@ -83,9 +93,10 @@ def collect_synthetic(
     config = load_config(config_file, RunConfig, overrides=[f"seed={case.seed}"])
     digest = config_hash(config)
     record_path = folder / "bench_case.json"
-    stored = _stored(record_path, digest, refit)
-    if stored is not None:
-        return stored
+    if record_path.exists():
+        stored = _stored(record_path, digest, refit, open_run_folder(folder), config, device)
+        if stored is not None:
+            return stored
     truth = truth_path(out, case)
     paths = prepare_run_folder(folder, force=True)
     dump_resolved(config, paths.resolved_config)
@@ -130,9 +141,12 @@ def collect_real(
     )
     digest = config_hash(config)
     record_path = folder / "bench_case.json"
-    stored = _stored(record_path, digest, refit)
-    if stored is not None and dataset.is_dir():
-        return stored
+    if dataset.is_dir() and record_path.exists():
+        stored = _stored(
+            record_path, digest, refit, open_run_folder(folder, dataset), config, device
+        )
+        if stored is not None:
+            return stored
     truth = truth_path(out, case)
     derive_real_dataset(
         options.source,
