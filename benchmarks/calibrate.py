@@ -75,8 +75,9 @@ def calibrate_thresholds(
     diagnoses: list[dict], margin: float = CALIBRATION_MARGIN
 ) -> dict[str, float]:
     """Thresholds from clean diagnoses: margin x the largest statistic of each (clean_statistics),
-    floored at threshold_floors(); thresholds no clean diagnosis measured keep their floor, and
-    shadow_share (a physical split, not a null) keeps the code's value."""
+    floored at threshold_floors(); thresholds no clean diagnosis measured keep the code's value
+    (benchmarks.blind_decide.code_thresholds), and so does shadow_share (a physical split, not a
+    null)."""
     if not diagnoses:
         from recon.errors import ReconError
 
@@ -85,10 +86,13 @@ def calibrate_thresholds(
     for diagnosis in diagnoses:
         for name, value in clean_statistics(diagnosis).items():
             largest[name] = max(largest.get(name, float("-inf")), value)
-    thresholds = threshold_floors()
+    from benchmarks.blind_decide import code_thresholds
+
+    floors = threshold_floors()
+    thresholds = code_thresholds()
     for name, value in largest.items():
         if name in thresholds and name != "shadow_share":
-            thresholds[name] = round(max(thresholds[name], margin * value), 4)
+            thresholds[name] = round(max(floors[name], margin * value), 4)
     return thresholds
 
 

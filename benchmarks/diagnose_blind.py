@@ -371,6 +371,23 @@ def diagnose_blind_worlds(
     return {key: result[key]["summary"] for key in ("loso", "code")}
 
 
+def _reproducing_command(argv: list[str]) -> str:
+    """The command that collects and scores what this call scores: --score-only and --shard
+    only split the same work (any split gives the same cases)."""
+    kept, skip = [], False
+    for argument in argv:
+        if skip:
+            skip = False
+            continue
+        if argument == "--shard":
+            skip = True
+            continue
+        if argument == "--score-only" or argument.startswith("--shard="):
+            continue
+        kept.append(argument)
+    return "recon-bench diagnose-blind " + " ".join(kept)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The options of `recon-bench diagnose-blind` (formerly `recon diagnose-bench`)."""
     parser = argparse.ArgumentParser(
@@ -467,7 +484,7 @@ def main(argv: list[str] | None = None) -> int:
                 max_resolution=arguments.real_resolution, view_every=arguments.real_view_every
             ),
             doc=arguments.doc,
-            command="recon-bench diagnose-blind " + " ".join(argv or sys.argv[1:]),
+            command=_reproducing_command(argv if argv is not None else sys.argv[1:]),
             collect_only=arguments.collect_only,
             score_only=arguments.score_only,
             shard=tuple(int(part) for part in arguments.shard.split("/")),
