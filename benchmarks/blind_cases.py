@@ -46,6 +46,16 @@ REAL_EFFECTS = (
     "defocus_blur",
 )
 WORLDS = ("own", "mitsuba", "real")
+# Effects physically present in every case of a world without being injected: naming them is
+# neither required nor an error (scored apart, as "present, named"), and a clean case's evidence
+# for them is no null measurement (left out of calibration). The path tracer traces the
+# visibility of the scene's own sun, so its renders carry cast shadows; real photos carry the
+# object's real light transport.
+PRESENT_IN_WORLD: dict[str, tuple[str, ...]] = {
+    "own": (),
+    "mitsuba": ("shadows",),
+    "real": LIGHT_TRANSPORT_EFFECTS,
+}
 # The order in which an interrupted run covers the effects: camera and light-transport effects
 # alternate.
 EFFECT_ORDER = (
@@ -161,6 +171,14 @@ class BlindCase:
     @property
     def truth(self) -> tuple[str, ...]:
         return tuple(dict.fromkeys(self.intrinsic + self.withheld))
+
+    @property
+    def present(self) -> tuple[str, ...]:
+        """Effects the world puts in this case without injecting them (PRESENT_IN_WORLD),
+        unless they are part of its truth."""
+        return tuple(
+            name for name in PRESENT_IN_WORLD.get(self.world, ()) if name not in self.truth
+        )
 
     @property
     def label(self) -> str:

@@ -32,11 +32,13 @@ from pathlib import Path
 CALIBRATION_MARGIN = 2.0
 
 
-def clean_statistics(diagnosis: dict) -> dict[str, float]:
+def clean_statistics(diagnosis: dict, present: tuple[str, ...] = ()) -> dict[str, float]:
     """The statistics of one clean diagnosis that its thresholds are compared with, by
     threshold name (benchmarks.blind_decide): each probe's held-out reduction, each absorption
     refit's reduction, the relight probe's, the flat field's deviation and the visibility
-    fingerprint's lower bound."""
+    fingerprint's lower bound. present: effects the data holds although nothing was injected
+    (a path tracer's cast shadows): their statistics measure the effect, not the null, and are
+    left out (the visibility fingerprint with shadows or interreflection)."""
     found: dict[str, float] = {}
 
     def keep(name: str, value: float | None) -> None:
@@ -45,13 +47,15 @@ def clean_statistics(diagnosis: dict) -> dict[str, float]:
 
     for item in diagnosis["ranking"]:
         effect = item["effect"]
+        if effect in present:
+            continue
         keep(f"probe.{effect}", item.get("heldout_reduction"))
         keep(f"absorption.{effect}", item.get("absorption"))
         keep("relight", item.get("relight_reduction"))
         if item.get("flat_field"):
             keep("flat_field", item["flat_field"].get("deviation"))
     fingerprint = (diagnosis.get("gap") or {}).get("visibility_fingerprint") or {}
-    if fingerprint.get("interval"):
+    if fingerprint.get("interval") and not {"shadows", "interreflection"} & set(present):
         keep("visibility_share", fingerprint["interval"][0])
     return found
 
@@ -72,10 +76,13 @@ def threshold_floors() -> dict[str, float]:
 
 
 def calibrate_thresholds(
-    diagnoses: list[dict], margin: float = CALIBRATION_MARGIN
+    diagnoses: list[dict],
+    present: list[tuple[str, ...]] | None = None,
+    margin: float = CALIBRATION_MARGIN,
 ) -> dict[str, float]:
     """Thresholds from clean diagnoses: margin x the largest statistic of each (clean_statistics),
-    floored at threshold_floors(); thresholds no clean diagnosis measured keep the code's value
+    floored at threshold_floors(), leaving out each diagnosis' present effects
+    (clean_statistics); thresholds no clean diagnosis measured keep the code's value
     (benchmarks.blind_decide.code_thresholds), and so does shadow_share (a physical split, not a
     null)."""
     if not diagnoses:
@@ -83,8 +90,9 @@ def calibrate_thresholds(
 
         raise ReconError("calibrate_thresholds: no clean diagnoses to calibrate on")
     largest: dict[str, float] = {}
-    for diagnosis in diagnoses:
-        for name, value in clean_statistics(diagnosis).items():
+    present = present or [()] * len(diagnoses)
+    for diagnosis, held in zip(diagnoses, present, strict=True):
+        for name, value in clean_statistics(diagnosis, held).items():
             largest[name] = max(largest.get(name, float("-inf")), value)
     from benchmarks.blind_decide import code_thresholds
 

@@ -95,9 +95,12 @@ def test_blind_vignetting_is_measured_out_to_the_corners(tiny_config, tmp_path):
 # ---------------------------------------------------------------------------------------------
 
 
-def _fake_record(tmp_path: Path, world: str, scene: str, withheld: tuple, pose: float) -> dict:
-    """A collected case whose stored diagnosis has a pose probe reaching `pose` and an exposure
-    probe reaching 0.5 where exposure was withheld (no fit: the scoring is what is tested)."""
+def _fake_record(
+    tmp_path: Path, world: str, scene: str, withheld: tuple, pose: float, shadows: float = 0.0
+) -> dict:
+    """A collected case whose stored diagnosis has a pose probe reaching `pose`, a shadows probe
+    reaching `shadows`, and an exposure probe reaching 0.5 where exposure was withheld (no fit:
+    the scoring is what is tested)."""
     folder = tmp_path / world / scene / ("+".join(withheld) or "none")
     folder.mkdir(parents=True)
     exposure = 0.5 if "exposure" in withheld else 0.0
@@ -112,7 +115,11 @@ def _fake_record(tmp_path: Path, world: str, scene: str, withheld: tuple, pose: 
         }
 
     diagnosis = {
-        "ranking": [item("pose_error", pose), item("exposure", exposure)],
+        "ranking": [
+            item("pose_error", pose),
+            item("exposure", exposure),
+            item("shadows", shadows),
+        ],
         "refits": [],
         "gap": {},
         "timings": {"diagnose_seconds": 1.0},
@@ -140,9 +147,12 @@ def test_leave_one_scene_out_never_scores_a_scene_it_calibrated_on(tmp_path):
         _fake_record(tmp_path, "own", "blob", (), pose=0.01),
         _fake_record(tmp_path, "own", "blob", ("exposure",), pose=0.01),
         _fake_record(tmp_path, "mitsuba", "spot_glossy", (), pose=0.01),
+        # The path tracer's cast shadows are in every render: a clean case's shadows evidence
+        # (0.4) is neither a false positive nor a null for calibration.
+        _fake_record(tmp_path, "mitsuba", "blob", (), pose=0.01, shadows=0.4),
         _fake_record(tmp_path, "real", "ethiopian_head", (), pose=0.01),
     ]
-    for record in records[4:5]:
+    for record in records[4:5]:  # the glossy spot
         record["case"]["intrinsic"] = ["specular"]
     loaded = [load_collected(record) for record in records]
     scored, calibrations = leave_one_scene_out(loaded, {"name": "test"})
@@ -167,6 +177,10 @@ def test_leave_one_scene_out_never_scores_a_scene_it_calibrated_on(tmp_path):
     assert real["calibrated_on"] == ["blob", "torus"]
     glossy = next(record for record in scored if record["scene"] == "spot_glossy")
     assert glossy["kind"] == "single" and glossy["truth"] == ["specular"]
+    mitsuba_blob = next(r for r in scored if r["world"] == "mitsuba" and r["scene"] == "blob")
+    assert mitsuba_blob["false_positive"] is False and mitsuba_blob["exact_set"]
+    assert mitsuba_blob["present_named"] == ["shadows"] and not mitsuba_blob["exact_set_strict"]
+    assert calibrations["torus"]["thresholds"]["probe.shadows"] == pytest.approx(0.02)
     summary = summarise_world([record for record in scored if record["world"] == "own"])
     assert summary["false_positive_rate"] == 0.5
     assert summary["top1_accuracy"] == 1.0
