@@ -19,7 +19,7 @@ from pathlib import Path
 import matplotlib
 import matplotlib.pyplot as plt
 
-from benchmarks.blind_cases import BlindCase, scene_group
+from benchmarks.blind_cases import REAL_SCENE, BlindCase, scene_group
 from benchmarks.blind_decide import code_thresholds, redecide_with, significant_effects
 from benchmarks.calibrate import calibrate_thresholds, calibration_record
 from recon.effects.registry import MODEL_EFFECTS
@@ -210,7 +210,7 @@ def by_world(scored: list[dict]) -> dict[str, list[dict]]:
 def confusion_figure(scored: list[dict], path: Path) -> None:
     """One confusion matrix per world, side by side (PNG)."""
     worlds = by_world(scored)
-    figure, axes = plt.subplots(1, len(worlds), figsize=(5.2 * len(worlds), 5), squeeze=False)
+    figure, axes = plt.subplots(1, len(worlds), figsize=(6 * len(worlds), 5.5), squeeze=False)
     for axis, (world, records) in zip(axes[0], worlds.items(), strict=True):
         labels, matrix = confusion(records)
         used = [
@@ -230,6 +230,7 @@ def confusion_figure(scored: list[dict], path: Path) -> None:
             for column, value in enumerate(values):
                 if value:
                     axis.text(column, row, str(value), ha="center", va="center", fontsize=7)
+    figure.tight_layout()
     with atomic_path(path) as temporary:
         figure.savefig(temporary, dpi=100, bbox_inches="tight", format="png")
     plt.close(figure)
@@ -339,7 +340,8 @@ def markdown(result: dict, provenance: dict) -> str:
     names = sorted({name for record in calibrations.values() for name in record["thresholds"]})
     code = code_thresholds()
     groups = list(calibrations)
-    lines.append("| threshold | code | " + " | ".join(f"without {g}" for g in groups) + " |")
+    headers = ["for the real photos" if g == REAL_SCENE else f"without {g}" for g in groups]
+    lines.append("| threshold | code | " + " | ".join(headers) + " |")
     lines.append("|---" * (len(groups) + 2) + "|")
     for name in names:
         values = [calibrations[g]["thresholds"].get(name) for g in groups]
