@@ -368,6 +368,10 @@ def diagnose_blind_worlds(
         doc = Path(doc)
         atomic_write_text(doc, (out / "blind.md").read_text())
         shutil.copyfile(out / "blind_confusion.png", doc.parent / "blind_confusion.png")
+        if (out / "calibration.json").exists():
+            # The thresholds from every synthetic scene with their provenance: the form a
+            # `diagnose:` config section takes.
+            shutil.copyfile(out / "calibration.json", doc.parent / "blind_calibration.json")
     return {key: result[key]["summary"] for key in ("loso", "code")}
 
 
@@ -444,7 +448,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     broad.add_argument("--real-resolution", type=int, default=96, help="photos' longer side")
     broad.add_argument("--real-view-every", type=int, default=2, help="keep every N-th photo")
-    broad.add_argument("--doc", help="also write the Markdown page here (and its figure beside)")
+    broad.add_argument(
+        "--doc",
+        help="also write the Markdown page here (its figure and calibration.json beside it)",
+    )
     broad.add_argument("--collect-only", action="store_true", help="collect evidence, do not score")
     broad.add_argument(
         "--score-only",

@@ -251,6 +251,7 @@ def test_tiny_broadened_benchmark_writes_every_metric(tmp_path):
     page = doc.read_text()
     assert "leave-one-scene-out" in page and "| own |" in page
     assert (doc.parent / "blind_confusion.png").stat().st_size > 0
+    assert json.loads((doc.parent / "blind_calibration.json").read_text()) == calibration
     # Collected once: a second call re-scores the stored evidence without fitting again.
     started = json.loads((out / "collected.json").read_text())["cases"][0]
     again = diagnose_blind_worlds(
