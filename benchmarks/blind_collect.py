@@ -44,7 +44,13 @@ def truth_path(out: Path, case: BlindCase) -> Path:
 
 
 def _stored(
-    record_path: Path, digest: str, refit: str, paths: RunPaths, config: RunConfig, device
+    record_path: Path,
+    digest: str,
+    refit: str,
+    paths: RunPaths,
+    config: RunConfig,
+    device,
+    candidates: list[str] | None = None,
 ) -> dict | None:
     """The case's stored record when its fit was made under the same config (digest): as it is
     when its diagnosis ran with the same refit mode, else diagnosed again on the same fit."""
@@ -53,10 +59,11 @@ def _stored(
     record = json.loads(record_path.read_text())
     if record.get("config_hash") != digest or not paths.fitted_mesh.exists():
         return None
-    if record.get("refit") == refit and (record_path.parent / "diagnosis.json").exists():
+    same = record.get("refit") == refit and record.get("candidates") == candidates
+    if same and (record_path.parent / "diagnosis.json").exists():
         return record
-    record["diagnose_seconds"] = round(_diagnose(paths, config, device, refit), 2)
-    record["refit"] = refit
+    record["diagnose_seconds"] = round(_diagnose(paths, config, device, refit, candidates), 2)
+    record["refit"], record["candidates"] = refit, candidates
     atomic_write_json(record_path, record)
     return record
 
@@ -69,16 +76,28 @@ def finished_case(case: BlindCase, out: Path) -> dict | None:
     return json.loads(record_path.read_text())
 
 
-def _diagnose(paths: RunPaths, config: RunConfig, device: torch.device, refit: str) -> float:
+def _diagnose(
+    paths: RunPaths,
+    config: RunConfig,
+    device: torch.device,
+    refit: str,
+    candidates: list[str] | None = None,
+) -> float:
+    """Diagnose a fitted case (candidates: the effects considered, None = all); its seconds."""
     from recon.diagnose.diagnose import diagnose_run
 
     started = time.perf_counter()
-    diagnose_run(paths, config, device, refit=refit)
+    diagnose_run(paths, config, device, refit=refit, candidates=candidates)
     return time.perf_counter() - started
 
 
 def collect_synthetic(
-    case: BlindCase, base: dict, out: Path, device: torch.device, refit: str
+    case: BlindCase,
+    base: dict,
+    out: Path,
+    device: torch.device,
+    refit: str,
+    candidates: list[str] | None = None,
 ) -> dict:
     """Synth (effects withheld) -> fit -> diagnose one case of the own or Mitsuba world."""
     from recon.pipeline import run_stages
@@ -94,7 +113,9 @@ def collect_synthetic(
     digest = config_hash(config)
     record_path = folder / "bench_case.json"
     if record_path.exists():
-        stored = _stored(record_path, digest, refit, open_run_folder(folder), config, device)
+        stored = _stored(
+            record_path, digest, refit, open_run_folder(folder), config, device, candidates
+        )
         if stored is not None:
             return stored
     truth = truth_path(out, case)
@@ -106,11 +127,12 @@ def collect_synthetic(
     fit_seconds = time.perf_counter() - started
     if not case.withheld:
         atomic_write_json(truth, {"withheld": [], "realised": {}})
-    diagnose_seconds = _diagnose(paths, config, device, refit)
+    diagnose_seconds = _diagnose(paths, config, device, refit, candidates)
     record = {
         "case": case.to_json(),
         "config_hash": digest,
         "refit": refit,
+        "candidates": candidates,
         "run_folder": str(folder),
         "truth_file": str(truth),
         "fit_seconds": round(fit_seconds, 2),
@@ -121,7 +143,12 @@ def collect_synthetic(
 
 
 def collect_real(
-    case: BlindCase, options: RealOptions, out: Path, device: torch.device, refit: str
+    case: BlindCase,
+    options: RealOptions,
+    out: Path,
+    device: torch.device,
+    refit: str,
+    candidates: list[str] | None = None,
 ) -> dict:
     """Derive the photos with the case's effects injected -> fit (LLFF, the real-capture
     settings) -> diagnose."""
@@ -143,7 +170,7 @@ def collect_real(
     record_path = folder / "bench_case.json"
     if dataset.is_dir() and record_path.exists():
         stored = _stored(
-            record_path, digest, refit, open_run_folder(folder, dataset), config, device
+            record_path, digest, refit, open_run_folder(folder, dataset), config, device, candidates
         )
         if stored is not None:
             return stored
@@ -164,11 +191,14 @@ def collect_real(
     started = time.perf_counter()
     run_stages(config, paths, device, ["fit"], {})
     fit_seconds = time.perf_counter() - started
-    diagnose_seconds = _diagnose(open_run_folder(folder, dataset), config, device, refit)
+    diagnose_seconds = _diagnose(
+        open_run_folder(folder, dataset), config, device, refit, candidates
+    )
     record = {
         "case": case.to_json(),
         "config_hash": digest,
         "refit": refit,
+        "candidates": candidates,
         "run_folder": str(folder),
         "dataset": str(dataset),
         "truth_file": str(truth),

@@ -288,13 +288,15 @@ def diagnose_blind_worlds(
     collect_only: bool = False,
     score_only: bool = False,
     shard: tuple[int, int] = (0, 1),
+    candidates: list[str] | None = None,
 ) -> dict:
     """The broadened blind check: collect every case's evidence (skipping finished ones), then
     score leave-one-scene-out per world. Cases whose inputs are absent (../shared) are skipped
     with a note; a case that fails is recorded and skipped, never scored. score_only: score the
     cases collected so far (an interrupted run), collecting nothing. shard (i, n): collect only
     every n-th case from the i-th (several processes on one folder), then stop; score the whole
-    with a later score_only call."""
+    with a later score_only call. candidates: the effects each diagnosis considers (None: all;
+    the suite's tiny benchmark narrows it)."""
     import platform
     import shutil
     import traceback
@@ -338,9 +340,9 @@ def diagnose_blind_worlds(
             continue
         try:
             if case.world == "real":
-                record = collect_real(case, real_options, out, device, refit)
+                record = collect_real(case, real_options, out, device, refit, candidates)
             else:
-                record = collect_synthetic(case, base, out, device, refit)
+                record = collect_synthetic(case, base, out, device, refit, candidates)
         except Exception as error:  # noqa: BLE001 - one failed case must not end the run
             skipped.append({"case": case.to_json(), "reason": f"{type(error).__name__}: {error}"})
             print(traceback.format_exc(), file=sys.stderr)

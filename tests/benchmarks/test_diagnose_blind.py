@@ -232,6 +232,7 @@ def test_tiny_broadened_benchmark_writes_every_metric(tmp_path):
         pairs=[],
         doc=doc,
         command="test",
+        candidates=["exposure", "vignetting", "pose_error"],
     )
     result = json.loads((out / "blind.json").read_text())
     cases = result["loso"]["cases"]
@@ -264,6 +265,7 @@ def test_tiny_broadened_benchmark_writes_every_metric(tmp_path):
         seeds=[0],
         pairs=[],
         command="test",
+        candidates=["exposure", "vignetting", "pose_error"],
     )
     assert again["loso"] == summary["loso"]
     assert json.loads((out / "collected.json").read_text())["cases"][0] == started
