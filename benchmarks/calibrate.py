@@ -14,7 +14,7 @@ For example the clean calibration seeds of the benchmark (fitted with
     recon-bench calibrate runs/bench_diagnose/*/none_seed10[345]
 
 ``calibrate_thresholds`` is the same rule as a function over stored diagnoses, returning the
-flat threshold set of benchmarks.blind_decide (the form the diagnosis' ``diagnose:`` config
+flat threshold set of benchmarks.blind.decide (the form the diagnosis' ``diagnose:`` config
 section takes); the broadened blind check (recon-bench diagnose-blind --worlds) calls it once per
 held-out scene, on the other scenes' clean cases only.
 """
@@ -34,7 +34,7 @@ CALIBRATION_MARGIN = 2.0
 
 def clean_statistics(diagnosis: dict, present: tuple[str, ...] = ()) -> dict[str, float]:
     """The statistics of one clean diagnosis that its thresholds are compared with, by
-    threshold name (benchmarks.blind_decide): each probe's held-out reduction, each absorption
+    threshold name (benchmarks.blind.decide): each probe's held-out reduction, each absorption
     refit's reduction, the relight probe's, the flat field's deviation and the visibility
     fingerprint's lower bound. present: effects the data holds although nothing was injected
     (a path tracer's cast shadows): their statistics measure the effect, not the null, and are
@@ -63,7 +63,7 @@ def clean_statistics(diagnosis: dict, present: tuple[str, ...] = ()) -> dict[str
 def threshold_floors() -> dict[str, float]:
     """The least value of each threshold, whatever the clean fits show: the code's floors
     (recon.diagnose.calibration), the flat field's allowance and the fingerprint's minimum."""
-    from benchmarks.blind_decide import code_thresholds
+    from benchmarks.blind.decide import code_thresholds
     from recon.diagnose import calibration
     from recon.effects.registry import MODEL_EFFECTS
 
@@ -83,7 +83,7 @@ def calibrate_thresholds(
     """Thresholds from clean diagnoses: margin x the largest statistic of each (clean_statistics),
     floored at threshold_floors(), leaving out each diagnosis' present effects
     (clean_statistics); thresholds no clean diagnosis measured keep the code's value
-    (benchmarks.blind_decide.code_thresholds), and so does shadow_share (a physical split, not a
+    (benchmarks.blind.decide.code_thresholds), and so does shadow_share (a physical split, not a
     null)."""
     if not diagnoses:
         from recon.errors import ReconError
@@ -94,7 +94,7 @@ def calibrate_thresholds(
     for diagnosis, held in zip(diagnoses, present, strict=True):
         for name, value in clean_statistics(diagnosis, held).items():
             largest[name] = max(largest.get(name, float("-inf")), value)
-    from benchmarks.blind_decide import code_thresholds
+    from benchmarks.blind.decide import code_thresholds
 
     floors = threshold_floors()
     thresholds = code_thresholds()

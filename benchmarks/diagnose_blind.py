@@ -10,7 +10,7 @@ Writes bench.json, confusion.png and bench.md.
     recon-bench diagnose-blind CONFIG --out DIR [--effects all] [--seeds 0,1,2] [--clean 3]
 
 Broadened (issue 20): several worlds and scenes, scored leave-one-scene-out
-(benchmarks.blind_cases, blind_collect, blind_score):
+(the benchmarks.blind package):
 
     recon-bench diagnose-blind configs/bench/diagnose_blind_48.yaml --out DIR \
         --worlds own,mitsuba,real --scenes spot,bob,bunny,teapot,torus,spot_glossy,torus_glossy \
@@ -303,14 +303,14 @@ def diagnose_blind_worlds(
 
     import yaml
 
-    from benchmarks.blind_cases import WORLDS, build_cases, interleaved, missing_inputs
-    from benchmarks.blind_collect import (
+    from benchmarks.blind.cases import WORLDS, build_cases, interleaved, missing_inputs
+    from benchmarks.blind.collect import (
         RealOptions,
         collect_real,
         collect_synthetic,
         finished_case,
     )
-    from benchmarks.blind_score import score_and_write
+    from benchmarks.blind.score import score_and_write
     from benchmarks.calibrate import calibration_record
     from recon.errors import ReconError
 
@@ -441,7 +441,7 @@ def build_parser() -> argparse.ArgumentParser:
     broad.add_argument(
         "--scenes",
         default="spot,bob,bunny,teapot,torus,spot_glossy,torus_glossy",
-        help="comma-separated scenes of the synthetic worlds (benchmarks/blind_cases.py)",
+        help="comma-separated scenes of the synthetic worlds (benchmarks/blind/cases.py)",
     )
     broad.add_argument(
         "--pairs",
@@ -474,7 +474,7 @@ def main(argv: list[str] | None = None) -> int:
 
     arguments = build_parser().parse_args(argv)
     if arguments.worlds:
-        from benchmarks.blind_collect import RealOptions
+        from benchmarks.blind.collect import RealOptions
 
         pairs = [
             tuple(pair.split("+")) for pair in arguments.pairs.split(",") if pair and "+" in pair

@@ -7,7 +7,7 @@ A world is where the observed images come from:
   shadows, interreflection and specular come from the path tracer, the camera effects are
   data_synth's world effects applied on top of the path-traced linear radiance;
 - ``real``: photos of a real object (../shared/captures, fixed exposure) with known camera
-  effects applied in linear space (benchmarks.blind_real), the untouched photos as the clean case.
+  effects applied in linear space (benchmarks.blind.real), the untouched photos as the clean case.
 
 A scene is a mesh and material; glossy variants carry a specular lobe that is always there (the
 object is glossy), so their truth always holds ``specular``. Scenes in one ``group`` share a
@@ -20,7 +20,7 @@ import copy
 from dataclasses import dataclass, field
 from pathlib import Path
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
+REPO_ROOT = Path(__file__).resolve().parents[2]
 SHARED = REPO_ROOT.parent / "shared"
 MESHES = SHARED / "meshes"
 

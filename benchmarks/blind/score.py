@@ -1,7 +1,7 @@
 """Scoring of the broadened blind check: leave-one-scene-out calibration, metrics per world,
 confusion matrices, and the Markdown/JSON/figure outputs.
 
-Every collected case (benchmarks.blind_collect) holds its diagnosis' evidence. For each held-out
+Every collected case (benchmarks.blind.collect) holds its diagnosis' evidence. For each held-out
 scene group the thresholds are calibrated (benchmarks.calibrate.calibrate_thresholds) on the
 clean cases of the *other* groups of the synthetic worlds, and the held-out group's cases are
 scored by re-deciding their stored evidence with those thresholds; the real-photo world is
@@ -19,12 +19,13 @@ from pathlib import Path
 import matplotlib
 import matplotlib.pyplot as plt
 
-from benchmarks.blind_cases import REAL_SCENE, BlindCase, scene_group
-from benchmarks.blind_decide import code_thresholds, redecide_with, significant_effects
+from benchmarks.blind.cases import REAL_SCENE, BlindCase, scene_group
+from benchmarks.blind.decide import code_thresholds, redecide_with, significant_effects
 from benchmarks.calibrate import calibrate_thresholds, calibration_record
 from recon.effects.registry import MODEL_EFFECTS
 from recon.errors import ReconError
 from recon.io.atomic import atomic_path, atomic_write_json, atomic_write_text
+from recon.io.run_folder import RunPaths
 from recon.sweep.scoring import NONE, parameter_errors
 
 matplotlib.use("Agg")
@@ -40,10 +41,10 @@ PARAMETER_OWNER = {
 
 def load_collected(record: dict) -> dict:
     """A collected case with its diagnosis and truth read back (the truth only for scoring)."""
-    folder = Path(record["run_folder"])
+    paths = RunPaths(Path(record["run_folder"]))
     return {
         **record,
-        "diagnosis": json.loads((folder / "diagnosis.json").read_text()),
+        "diagnosis": json.loads(paths.diagnosis.read_text()),
         "truth_record": json.loads(Path(record["truth_file"]).read_text()),
     }
 

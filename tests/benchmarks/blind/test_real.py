@@ -1,4 +1,4 @@
-"""benchmarks/blind_real.py: real photos with known camera effects injected in linear space."""
+"""benchmarks/blind/real.py: real photos with known camera effects injected in linear space."""
 
 from __future__ import annotations
 
@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 import torch
 
-from benchmarks.blind_real import derive_real_dataset, split_realised
+from benchmarks.blind.real import derive_real_dataset, split_realised
 from recon.errors import ReconError
 from recon.io.datasets import read_llff
 from recon.io.images import write_png
 
-SHARED_CAPTURE = Path(__file__).resolve().parents[2].parent / "shared" / "captures"
+SHARED_CAPTURE = Path(__file__).resolve().parents[3].parent / "shared" / "captures"
 
 
 def _llff_folder(folder: Path, views: int = 6, size: int = 16) -> Path:

@@ -1,5 +1,5 @@
 """Collect the evidence of one blind case: synthesise (or derive) its data, fit without effects,
-diagnose without reading the truth. Scoring comes later (benchmarks.blind_score), with
+diagnose without reading the truth. Scoring comes later (benchmarks.blind.score), with
 thresholds calibrated on other scenes: the evidence is collected once and re-decided.
 
 Layout under the benchmark folder OUT:
@@ -21,7 +21,7 @@ from pathlib import Path
 import torch
 import yaml
 
-from benchmarks.blind_cases import SHARED, BlindCase, case_config
+from benchmarks.blind.cases import SHARED, BlindCase, case_config
 from recon.config import config_hash, dump_resolved, load_config
 from recon.config.run_config import RunConfig
 from recon.io.atomic import atomic_write_json, atomic_write_text
@@ -34,7 +34,7 @@ class RealOptions:
     which views are kept, and the fit config (configs/real_capture.yaml's settings scaled)."""
 
     source: Path = SHARED / "captures" / "ethiopian_head"
-    config: Path = Path(__file__).resolve().parents[1] / "configs" / "bench" / "blind_real.yaml"
+    config: Path = Path(__file__).resolve().parents[2] / "configs" / "bench" / "blind_real.yaml"
     max_resolution: int = 96
     view_every: int = 2
 
@@ -60,7 +60,7 @@ def _stored(
     if record.get("config_hash") != digest or not paths.fitted_mesh.exists():
         return None
     same = record.get("refit") == refit and record.get("candidates") == candidates
-    if same and (record_path.parent / "diagnosis.json").exists():
+    if same and paths.diagnosis.exists():
         return record
     record["diagnose_seconds"] = round(_diagnose(paths, config, device, refit, candidates), 2)
     record["refit"], record["candidates"] = refit, candidates
@@ -71,7 +71,7 @@ def _stored(
 def finished_case(case: BlindCase, out: Path) -> dict | None:
     """The stored record of a case collected earlier (whatever its config), or None."""
     record_path = out / "cases" / case.folder_name / "bench_case.json"
-    if not record_path.exists() or not (record_path.parent / "diagnosis.json").exists():
+    if not record_path.exists() or not RunPaths(record_path.parent).diagnosis.exists():
         return None
     return json.loads(record_path.read_text())
 
@@ -152,7 +152,7 @@ def collect_real(
 ) -> dict:
     """Derive the photos with the case's effects injected -> fit (LLFF, the real-capture
     settings) -> diagnose."""
-    from benchmarks.blind_real import derive_real_dataset
+    from benchmarks.blind.real import derive_real_dataset
     from recon.pipeline import run_stages
 
     folder = out / "cases" / case.folder_name
