@@ -377,6 +377,37 @@ def diagnose_blind_worlds(
     return {key: result[key]["summary"] for key in ("loso", "code")}
 
 
+TITLE = "Blind diagnosis check"
+
+
+def markdown(result: dict) -> str:
+    """The record's summary (recon-bench diagnose-blind --record): with --worlds, the
+    leave-one-scene-out metrics per world beside the code's thresholds; else the generic table."""
+    if "loso" not in result:
+        from benchmarks.record import generic_markdown
+
+        return generic_markdown(result)
+    from benchmarks.blind.score import SUMMARY_ROWS
+
+    worlds = list(result["loso"])
+    lines = [
+        "| measure | " + " | ".join(f"{w} (held out) | {w} (code)" for w in worlds) + " |",
+        "|---" * (2 * len(worlds) + 1) + "|",
+    ]
+    for title, field in SUMMARY_ROWS:
+        cells = []
+        for world in worlds:
+            for key in ("loso", "code"):
+                value = result[key].get(world, {}).get(field)
+                cells.append("" if value is None else f"{value:g}")
+        lines.append(f"| {title} | " + " | ".join(cells) + " |")
+    lines += [
+        "",
+        "Cases, confusion matrices and thresholds: [diagnosis/blind.md](diagnosis/blind.md).",
+    ]
+    return "\n".join(lines)
+
+
 def _reproducing_command(argv: list[str]) -> str:
     """The command that collects and scores what this call scores: --score-only and --shard
     only split the same work (any split gives the same cases)."""
