@@ -130,9 +130,13 @@ def calibration_record(
 ) -> dict:
     """thresholds with their provenance: the commit, the hash of the base config the cases were
     made from, and the clean cases (world, scene, seed) they were calibrated on."""
+    from benchmarks.blind.decide import diagnose_section
+
     canonical = json.dumps(base_config, sort_keys=True, separators=(",", ":"), default=str)
     return {
         "thresholds": thresholds,
+        # The same values as a run config's `diagnose:` section (the diagnosis engine's form).
+        "diagnose": diagnose_section(thresholds) if thresholds else {},
         "provenance": {
             "commit": git_commit(Path(__file__).resolve().parents[1]),
             "base_config_sha256": hashlib.sha256(canonical.encode()).hexdigest()[:12],

@@ -94,6 +94,30 @@ def redecide_with(diagnosis: dict, thresholds: dict[str, float] | None = None) -
         return redecide(diagnosis)
 
 
+def diagnose_section(thresholds: dict[str, float]) -> dict:
+    """thresholds in the shape of a run config's ``diagnose:`` section (its ``decision``
+    allowances, as the diagnosis engine reads them): every probe and absorption threshold per
+    effect, the relight, flat-field, fingerprint and shadow-share values."""
+
+    def per_effect(prefix: str) -> dict[str, float]:
+        return {
+            name.split(".", 1)[1]: value
+            for name, value in sorted(thresholds.items())
+            if name.startswith(prefix + ".")
+        }
+
+    return {
+        "decision": {
+            "probe_allowance": per_effect("probe"),
+            "absorption_allowance": per_effect("absorption"),
+            "relight_allowance": thresholds["relight"],
+            "flat_field_allowance": thresholds["flat_field"],
+            "visibility_share_minimum": thresholds["visibility_share"],
+            "shadow_share": thresholds["shadow_share"],
+        }
+    }
+
+
 def significant_effects(diagnosis: dict) -> list[str]:
     """The significant effects of a (re-decided) diagnosis, strongest first."""
     return [item["effect"] for item in diagnosis["ranking"] if item["significant"]]

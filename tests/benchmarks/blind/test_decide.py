@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
-from benchmarks.blind.decide import code_thresholds, redecide_with, significant_effects
+from benchmarks.blind.decide import (
+    code_thresholds,
+    diagnose_section,
+    redecide_with,
+    significant_effects,
+)
 from recon.diagnose import which
 
 
@@ -49,3 +54,11 @@ def test_the_fingerprint_is_re_decided_with_its_threshold():
     assert "shadows" not in significant_effects(redecide_with(stored, {"visibility_share": 0.5}))
     # Above a share of 0.8 only a shadow is "shadows": 0.7 now names interreflection.
     assert "shadows" not in significant_effects(redecide_with(stored, {"shadow_share": 0.8}))
+
+
+def test_thresholds_as_a_diagnose_section():
+    section = diagnose_section(code_thresholds())["decision"]
+    assert section["probe_allowance"]["pose_error"] == 0.108
+    assert section["absorption_allowance"]["lens_distortion"] == 0.043
+    assert section["relight_allowance"] == 0.03 and section["shadow_share"] == 0.6
+    assert set(section["probe_allowance"]) == set(section["absorption_allowance"])
