@@ -84,10 +84,10 @@ def _diagnose(
     candidates: list[str] | None = None,
 ) -> float:
     """Diagnose a fitted case (candidates: the effects considered, None = all); its seconds."""
-    from recon.diagnose.diagnose import diagnose_run
+    from recon.stages.diagnose import run_diagnosis
 
     started = time.perf_counter()
-    diagnose_run(paths, config, device, refit=refit, candidates=candidates)
+    run_diagnosis(paths, config, device, refit=refit, candidates=candidates)
     return time.perf_counter() - started
 
 

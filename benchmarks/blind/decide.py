@@ -9,95 +9,38 @@ A threshold set maps names to values:
     visibility_share      the visibility fingerprint's lower bound that makes it name an effect
     shadow_share          above this share the fingerprint names shadows, below interreflection
 
-``code_thresholds()`` is the set the diagnosis uses today (recon.diagnose.calibration);
-``redecide_with(diagnosis, thresholds)`` re-decides a stored diagnosis.json with another set,
-keeping its evidence. The diagnosis engine's ``redecide(diagnosis, diagnose_config)`` takes the
-same evidence with a ``diagnose:`` config section; until it lands on main this module swaps the
-thresholds of recon.diagnose.which for the duration of one call (recon.diagnose is not edited
-from the benchmarks).
+``code_thresholds()`` is the set the diagnosis uses by default (the ``diagnose.decision``
+section's defaults, resolved per effect); ``diagnose_section(thresholds)`` is the same set as a
+``diagnose:`` config section, and ``redecide_with(diagnosis, thresholds)`` re-decides a stored
+diagnosis.json with it through the diagnosis' own ``redecide`` (the evidence is kept).
 """
 
 from __future__ import annotations
 
-import contextlib
-import copy
-import threading
-from collections.abc import Iterator
-
+from recon.config.run_config import DecisionConfig, DiagnoseConfig
 from recon.effects.registry import MODEL_EFFECTS
 
-_LOCK = threading.Lock()
 
+def code_thresholds(config: DecisionConfig | None = None) -> dict[str, float]:
+    """The thresholds of a decision config (default: the diagnosis' defaults), per effect."""
+    from recon.diagnose.decision import absorption_threshold, probe_threshold
 
-def code_thresholds() -> dict[str, float]:
-    """The thresholds recon.diagnose uses today, resolved per effect."""
-    from recon.diagnose import calibration, flat_field
-
+    config = config or DecisionConfig()
     thresholds: dict[str, float] = {}
     for effect in sorted(MODEL_EFFECTS):
-        thresholds[f"probe.{effect}"] = calibration.probe_threshold(effect)
-        thresholds[f"absorption.{effect}"] = calibration.absorption_threshold(effect)
-    thresholds["relight"] = calibration.RELIGHT_ALLOWANCE
-    thresholds["flat_field"] = flat_field.FLAT_FIELD_ALLOWANCE
-    thresholds["visibility_share"] = calibration.VISIBILITY_SHARE_MINIMUM
-    thresholds["shadow_share"] = calibration.SHADOW_SHARE
+        thresholds[f"probe.{effect}"] = probe_threshold(effect, config)
+        thresholds[f"absorption.{effect}"] = absorption_threshold(effect, config)
+    thresholds["relight"] = config.relight_allowance
+    thresholds["flat_field"] = config.flat_field_allowance
+    thresholds["visibility_share"] = config.visibility_share_minimum
+    thresholds["shadow_share"] = config.shadow_share
     return thresholds
 
 
-@contextlib.contextmanager
-def _thresholds_of_which(thresholds: dict[str, float]) -> Iterator[None]:
-    """recon.diagnose.which deciding with thresholds (restored afterwards)."""
-    from recon.diagnose import which
-
-    saved = {
-        name: getattr(which, name)
-        for name in (
-            "probe_threshold",
-            "absorption_threshold",
-            "RELIGHT_ALLOWANCE",
-            "FLAT_FIELD_ALLOWANCE",
-        )
-    }
-    with _LOCK:
-        which.probe_threshold = lambda effect: thresholds[f"probe.{effect}"]
-        which.absorption_threshold = lambda effect: thresholds[f"absorption.{effect}"]
-        which.RELIGHT_ALLOWANCE = thresholds["relight"]
-        which.FLAT_FIELD_ALLOWANCE = thresholds["flat_field"]
-        try:
-            yield
-        finally:
-            for name, value in saved.items():
-                setattr(which, name, value)
-
-
-def _fingerprint_names(fingerprint: dict, thresholds: dict[str, float]) -> str | None:
-    """The effect the visibility fingerprint names under thresholds (None: not significant)."""
-    from recon.diagnose.fingerprint import MINIMUM_COVERAGE
-
-    testable = fingerprint.get("coverage", 0.0) >= MINIMUM_COVERAGE
-    if not (testable and fingerprint["interval"][0] > thresholds["visibility_share"]):
-        return None
-    return "shadows" if fingerprint["share"] >= thresholds["shadow_share"] else "interreflection"
-
-
-def redecide_with(diagnosis: dict, thresholds: dict[str, float] | None = None) -> dict:
-    """diagnosis (a stored diagnosis.json) re-decided with thresholds (None: the code's);
-    returns a new dict with the ranking re-sorted and the verdict rewritten."""
-    from recon.diagnose.which import redecide
-
-    thresholds = {**code_thresholds(), **(thresholds or {})}
-    diagnosis = copy.deepcopy(diagnosis)
-    for item in diagnosis["ranking"]:
-        if item.get("fingerprint"):
-            item["fingerprint"]["names"] = _fingerprint_names(item["fingerprint"], thresholds)
-    with _thresholds_of_which(thresholds):
-        return redecide(diagnosis)
-
-
 def diagnose_section(thresholds: dict[str, float]) -> dict:
-    """thresholds in the shape of a run config's ``diagnose:`` section (its ``decision``
-    allowances, as the diagnosis engine reads them): every probe and absorption threshold per
-    effect, the relight, flat-field, fingerprint and shadow-share values."""
+    """thresholds as a run config's ``diagnose:`` section (its ``decision`` allowances, as the
+    diagnosis reads them): every probe and absorption threshold per effect, the relight,
+    flat-field, fingerprint and shadow-share values."""
 
     def per_effect(prefix: str) -> dict[str, float]:
         return {
@@ -118,6 +61,27 @@ def diagnose_section(thresholds: dict[str, float]) -> dict:
     }
 
 
+def diagnose_config(thresholds: dict[str, float]) -> DiagnoseConfig:
+    """A DiagnoseConfig deciding with thresholds (every other setting at its default)."""
+    # Per-effect allowances are resolved values: their floors must not raise them again.
+    decision = DecisionConfig(
+        **diagnose_section(thresholds)["decision"],
+        minimum_share=0.0,
+        absorption_minimum_share=0.0,
+        regression_minimum_share=0.0,
+    )
+    return DiagnoseConfig(decision=decision)
+
+
+def redecide_with(diagnosis: dict, thresholds: dict[str, float] | None = None) -> dict:
+    """diagnosis (a stored diagnosis.json, either schema) re-decided with thresholds (None: the
+    defaults); returns the re-decided diagnosis as JSON."""
+    from recon.diagnose.decision import redecide
+
+    thresholds = {**code_thresholds(), **(thresholds or {})}
+    return redecide(diagnosis, diagnose_config(thresholds)).to_json()
+
+
 def significant_effects(diagnosis: dict) -> list[str]:
-    """The significant effects of a (re-decided) diagnosis, strongest first."""
-    return [item["effect"] for item in diagnosis["ranking"] if item["significant"]]
+    """The significant candidates of a (re-decided) diagnosis, strongest first."""
+    return [item["name"] for item in diagnosis["candidates"] if item["significant"]]

@@ -8,7 +8,7 @@ from benchmarks.blind.decide import (
     redecide_with,
     significant_effects,
 )
-from recon.diagnose import which
+from recon.config.run_config import DecisionConfig
 
 
 def _diagnosis() -> dict:
@@ -32,9 +32,9 @@ def test_thresholds_change_the_decision_and_are_restored():
     lowered = redecide_with(stored, {"probe.pose_error": 0.03, "probe.exposure": 0.06})
     assert significant_effects(lowered) == ["pose_error"]
     assert lowered["verdict"] == "significant unmodelled effects: pose_error"
-    # The stored evidence is untouched and the diagnosis' own thresholds are back.
+    # The stored evidence is untouched; the defaults are the diagnosis' own.
     assert stored == _diagnosis()
-    assert which.probe_threshold("pose_error") == code["probe.pose_error"]
+    assert code["probe.pose_error"] == DecisionConfig().probe_allowance["pose_error"]
 
 
 def test_the_fingerprint_is_re_decided_with_its_threshold():
