@@ -50,6 +50,16 @@ EvidenceProducer = Callable[[EvidenceInputs, list[Candidate], DiagnoseConfig], l
 PRODUCERS: list[EvidenceProducer] = []
 
 
+def _register_checks() -> None:
+    """Issue 20's checks (recon.diagnose.checks), imported late: they read EvidenceInputs."""
+    from recon.diagnose.checks import CHECK_PRODUCERS
+
+    PRODUCERS.extend(CHECK_PRODUCERS)
+
+
+_register_checks()
+
+
 def gather(
     producers: list[EvidenceProducer],
     inputs: EvidenceInputs,
