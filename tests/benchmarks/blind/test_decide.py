@@ -62,3 +62,26 @@ def test_thresholds_as_a_diagnose_section():
     assert section["absorption_allowance"]["lens_distortion"] == 0.043
     assert section["relight_allowance"] == 0.03 and section["shadow_share"] == 0.6
     assert set(section["probe_allowance"]) == set(section["absorption_allowance"])
+
+
+def test_an_ambiguous_candidate_is_scored_as_naming_the_first():
+    """A significant candidate the data cannot tell from a named effect stays one name in the
+    significant set (exact-set scoring), and the verdict says "A or B"."""
+    import math
+
+    from recon.diagnose.records import Candidate, Diagnosis, Evidence
+
+    curve = Candidate("response_curve")
+    interval = {"reduction": 0.35, "interval": [0.3, 0.4]}
+    curve.add(Evidence("probe", "response_curve", 0.3, math.nan, False, "probe", interval))
+    condition = {"confused_with": ["albedo", "exposure"]}
+    curve.add(
+        Evidence("identifiability", "response_curve", math.nan, math.nan, False, "one", condition)
+    )
+    stored = Diagnosis(candidates=[curve]).to_json()
+    decided = redecide_with(stored)
+    assert significant_effects(decided) == ["response_curve"]
+    assert decided["candidates"][0]["status"] == "ambiguous"
+    assert decided["verdict"].startswith(
+        "significant unmodelled effects: response_curve or exposure"
+    )
