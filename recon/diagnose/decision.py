@@ -247,7 +247,8 @@ def decide(candidate: Candidate, config: DecisionConfig) -> Candidate:
             )
         else:
             # Cleared; the condition qualifies what was recovered (e.g. an extrapolation).
-            why = f"{explain(deciding)}; but {condition.reason}{settle}"
+            measure = f"; {capture} would settle it" if capture else ""
+            why = f"{explain(deciding)}; but {condition.reason}{measure}"
     candidate.status = status
     candidate.significant = status in ("significant", "ambiguous")
     candidate.decided_by = deciding.kind if candidate.significant else ""
