@@ -234,7 +234,9 @@ def decide(candidate: Candidate, config: DecisionConfig) -> Candidate:
         capture = condition.details.get("capture")
         settle = f"; {capture} would make it identifiable" if capture else ""
         confusable = _confusable(condition)
-        if status != "significant":
+        if status == "vetoed":
+            pass  # the signature is another cause's (named in its place): that is the answer
+        elif status != "significant":
             # A miss the data could not have avoided: say so instead of a silent miss.
             status = "not_identifiable"
             why = f"not identifiable from this data, because {condition.reason}{settle}"

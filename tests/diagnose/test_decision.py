@@ -211,6 +211,11 @@ def test_a_miss_the_data_cannot_avoid_says_not_identifiable_and_the_capture():
     assert verdict_of(ranking) == (
         "no significant unmodelled effect; not identifiable from this data: response_curve"
     )
+    # A vetoed candidate stays vetoed: its signature is another cause's, named in its place.
+    falloff = candidate("vignetting", probe=(0.3, 0.4))
+    falloff.add(Evidence("specificity", "vignetting", 0.5, 0.01, False, "follows n.v"))
+    falloff.add(condition("vignetting", "the corner falloff is an extrapolation"))
+    assert decide(falloff, CONFIG).status == "vetoed" and falloff.why == "follows n.v"
 
 
 def test_a_cleared_candidate_confusable_with_a_named_effect_is_significant_but_ambiguous():
