@@ -634,15 +634,6 @@ class FitConfig:
     def __post_init__(self) -> None:
         check_range(self.hull_resolution, "hull_resolution", low=8, high=512)
         check_range(self.checkpoint_every, "checkpoint_every", low=1)
-        if self.material == "pbr" and self.light.frame == "camera":
-            # The pbr stage's environment is fixed in the world; silently shading a turntable
-            # capture that way fits a light that does not turn with the camera.
-            raise ConfigFieldError(
-                "material",
-                "'pbr' does not support light.frame 'camera' yet (its environment light is fixed "
-                "in the world); use material 'lambert' for turntable captures, or light.frame "
-                "'world'",
-            )
 
 
 @dataclass

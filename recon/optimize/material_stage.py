@@ -68,6 +68,8 @@ class PbrTextureResult:
     environment: [he, we, 3] lat-long radiance of the fitted light.
     light: an SH light equivalent to the environment (for Lambertian consumers).
     specular_level, prefilter_levels, diffuse_weighting: the shading settings the fit used.
+    light_frame: 'world', or 'camera' when the environment is fixed to the camera (turntable
+    captures, fit.light.frame): its directions are then OpenCV camera axes of each view.
     """
 
     mesh: Mesh
@@ -78,6 +80,7 @@ class PbrTextureResult:
     prefilter_levels: int
     effects: FitEffects | None = None
     diffuse_weighting: str = "none"
+    light_frame: str = "world"
 
     def material_texture(self) -> torch.Tensor:
         """[h, w, 5] base colour, roughness, metalness: what Renderer.shade_pbr samples."""
@@ -96,6 +99,7 @@ class PbrTextureResult:
             background=background,
             mip_pyramid=build_mip_pyramid(texture),
             diffuse_weighting=self.diffuse_weighting,
+            light_frame=self.light_frame,
         )
 
 
@@ -117,9 +121,9 @@ def environment_from_light(light: LightModel, size: tuple[int, int]) -> torch.Te
     return radiance.reshape(*size, 3)
 
 
-def light_from_environment(environment: torch.Tensor) -> LightModel:
-    """An SH-only LightModel with the environment's order-2 projection."""
-    light = LightModel(with_sun=False).to(environment.device)
+def light_from_environment(environment: torch.Tensor, frame: str = "world") -> LightModel:
+    """An SH-only LightModel with the environment's order-2 projection, in the same frame."""
+    light = LightModel(with_sun=False, frame=frame).to(environment.device)
     with torch.no_grad():
         light.sh.copy_(project_to_sh(environment.detach()))
     return light
@@ -181,10 +185,11 @@ def load_pbr_result(paths: RunPaths, device: torch.device | str = "cpu"):
         mesh,
         maps.to(device),
         environment,
-        light_from_environment(environment),
+        light_from_environment(environment, record.get("frame", "world")),
         float(record["specular_level"]),
         int(record["prefilter_levels"]),
         diffuse_weighting=record.get("diffuse_weighting", "none"),
+        light_frame=record.get("frame", "world"),
     )
 
 
@@ -244,6 +249,8 @@ def run_pbr_texture_stage(
     material = torch.nn.Parameter(
         torch.tensor(initial, device=device).expand(height, width, 2).clone()
     )
+    # A camera-frame light (turntable captures) seeds, and stays, a camera-frame environment.
+    light_frame = config.light.frame
     environment = torch.nn.Parameter(environment_from_light(geometry.light, size).to(device))
     position_optimizer = UniformAdam([latent], lr=settings.learning_rate)
     texture_optimizer = torch.optim.Adam(
@@ -310,6 +317,7 @@ def run_pbr_texture_stage(
             specular_level=pbr.specular_level,
             mip_pyramid=build_mip_pyramid(texture),
             diffuse_weighting=pbr.diffuse_weighting,
+            light_frame=light_frame,
         )
         color, alpha = apply_image_effects(
             effects.modules, output.color, output.alpha, batch_cameras, views
@@ -370,9 +378,10 @@ def run_pbr_texture_stage(
         final,
         final_material,
         final_environment,
-        light_from_environment(final_environment),
+        light_from_environment(final_environment, light_frame),
         pbr.specular_level,
         pbr.prefilter_levels,
         effects,
         pbr.diffuse_weighting,
+        light_frame,
     )

@@ -196,6 +196,7 @@ class Renderer:
         mip_pyramid: list[torch.Tensor] | None = None,
         antialias_edges: bool = True,
         diffuse_weighting: str = "none",
+        light_frame: str = "world",
     ) -> RenderOutput:
         """Texture, shade with the metallic-roughness model (recon.render.pbr), composite and
         antialias: the `pbr` material's counterpart of shade().
@@ -205,6 +206,10 @@ class Renderer:
         environment: the pre-filtered environment light (None: directional lights only).
         mip_pyramid: build_mip_pyramid(material_texture), to reuse across calls.
         diffuse_weighting: 'specular_albedo' or 'none' (PbrMaterial).
+        light_frame: 'world', or 'camera' for an environment (and directional lights) fixed to
+            the camera, as under studio lights on a turntable: normals and view directions are
+            rotated into each view's OpenCV camera axes before the look-ups (the same axes as
+            the Lambertian camera-frame light, Lighting.frame).
         RenderOutput.albedo holds the base colour.
         """
         mesh, fragments = buffers.mesh, buffers.fragments
@@ -230,7 +235,16 @@ class Renderer:
         positions = interpolate_packed(mesh.verts, fragments, mesh.faces)
         centers = camera_centers.to(positions.dtype)[fragments.covered_batch]
         to_viewer = torch.nn.functional.normalize(centers - positions, dim=-1, eps=1e-12)
-        radiance = pbr_shade(material, buffers.normals, to_viewer, environment, directional)
+        normals = buffers.normals
+        if light_frame == "camera":
+            # Shading is invariant under a common rotation: rotating n and v into the camera
+            # axes looks the environment up at camera-frame reflection and normal directions.
+            normals, to_viewer = _to_camera_axes(buffers, normals, to_viewer, translate=False)
+        elif light_frame != "world":
+            raise ReconError(
+                f"shade_pbr: light_frame: expected 'world' or 'camera', got {light_frame!r}"
+            )
+        radiance = pbr_shade(material, normals, to_viewer, environment, directional)
         return self._composite(buffers, radiance, material.base_color, background, antialias_edges)
 
     def _composite(
@@ -298,9 +312,13 @@ class SurfaceBuffers:
 
 
 def _to_camera_axes(
-    buffers: SurfaceBuffers, normals: torch.Tensor, positions: torch.Tensor | None
+    buffers: SurfaceBuffers,
+    normals: torch.Tensor,
+    positions: torch.Tensor | None,
+    translate: bool = True,
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """Packed world normals [N, 3] (and positions) in their own view's OpenCV camera axes."""
+    """Packed world normals [N, 3] (and positions, or with translate=False another set of
+    directions [N, 3]) in their own view's OpenCV camera axes."""
     if buffers.world_to_cam is None:
         raise ReconError("a camera-frame light needs the buffers' world_to_cam (surface_buffers)")
     view = buffers.fragments.covered_batch
@@ -308,7 +326,9 @@ def _to_camera_axes(
     rotation = matrices[:, :3, :3]
     camera_normals = (rotation @ normals[..., None])[..., 0]
     if positions is not None:
-        positions = (rotation @ positions[..., None])[..., 0] + matrices[:, :3, 3]
+        positions = (rotation @ positions[..., None])[..., 0]
+        if translate:
+            positions = positions + matrices[:, :3, 3]
     return camera_normals, positions
 
 
