@@ -486,11 +486,27 @@ class PbrFitConfig:
     material_learning_rate: float = setting(
         0.02, "Adam learning rate of the roughness/metalness texture."
     )
+    material_texture_size: int = setting(
+        0,
+        "Height of the grid the roughness/metalness texture is optimised on (bilinearly upsampled to the base colour's texels): 0 = the base colour's own size, 1 = one uniform material.",
+    )
     environment_learning_rate: float = setting(
-        0.03, "Adam learning rate of the environment texels."
+        0.03,
+        "Adam learning rate of the environment texels (of their log with parameterization log).",
+    )
+    environment_parameterization: Literal["linear", "log"] = setting(
+        "linear",
+        "log: the fit optimises the log radiance of each environment texel (relative steps: bright lights are reached as fast as dim ones); linear: the radiance itself.",
     )
     material_smoothness_weight: float = setting(
         0.01, "Total variation of the roughness/metalness texture (keeps unseen texels quiet)."
+    )
+    normal_map: bool = setting(
+        False,
+        "Also fit a tangent-space normal map on the base colour's UVs (tangents from the UVs); exported as the MTL's norm / map_Bump and the GLB's normalTexture.",
+    )
+    normal_map_smoothness_weight: float = setting(
+        0.01, "Total variation of the normal map's tilts (used with normal_map)."
     )
     environment_smoothness_weight: float = setting(
         0.01, "Total variation of the environment map (neighbouring texels alike)."
@@ -505,6 +521,7 @@ class PbrFitConfig:
         for value, key in zip(self.environment_size, ("height", "width"), strict=True):
             check_range(value, f"environment_size {key}", low=2, high=512)
         check_range(self.prefilter_levels, "prefilter_levels", low=1, high=16)
+        check_range(self.material_texture_size, "material_texture_size", low=0, high=8192)
         check_range(self.initial_roughness, "initial_roughness", low=0.0, high=1.0)
         check_range(self.initial_metalness, "initial_metalness", low=0.0, high=1.0)
         check_range(self.specular_level, "specular_level", low=0.0, high=1.0)
@@ -512,6 +529,7 @@ class PbrFitConfig:
             "material_learning_rate",
             "environment_learning_rate",
             "material_smoothness_weight",
+            "normal_map_smoothness_weight",
             "environment_smoothness_weight",
             "environment_whiteness_weight",
         ):

@@ -233,3 +233,29 @@ def test_pbr_result_round_trips_a_camera_frame_environment(glossy_scene, tmp_pat
     loaded = load_pbr_result(paths)
     assert loaded.light_frame == "camera" and loaded.light.frame == "camera"
     torch.testing.assert_close(loaded.environment, environment, atol=1e-3, rtol=1e-3)
+
+
+def test_normal_map_fit_writes_and_reloads_five_material_channels(glossy_scene, tmp_path):
+    mesh, train, _ = glossy_scene
+    config = _config()
+    config.texture.steps = 3
+    config.pbr.normal_map = True
+    config.pbr.material_texture_size = 4
+    result = run_pbr_texture_stage(
+        train,
+        _geometry(mesh),
+        config,
+        torch.device("cpu"),
+        0,
+        tmp_path / "n.pt",
+        History(tmp_path / "n"),
+    )
+    assert result.material.shape[-1] == 5
+    normal = result.material[..., 2:5]
+    torch.testing.assert_close(normal.norm(dim=-1), torch.ones(normal.shape[:2]), atol=1e-3, rtol=0)
+    assert float(normal[..., 2].min()) > 0.5  # tilts stay below the slope bound
+    paths = RunPaths(tmp_path / "run")
+    write_pbr_result(paths, result)
+    loaded = load_pbr_result(paths)
+    assert loaded.material.shape[-1] == 5
+    assert loaded.material_texture().shape[-1] == 8
