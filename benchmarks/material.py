@@ -6,12 +6,12 @@ spot at roughness 0.35 under a sky with a sun) it runs `recon run` once per fit.
 fresh processes with the same seed (so the same captures), and prints one JSON object: held-out
 PSNR (all pixels and masked), Chamfer-L1 (in reference diagonals), the fitted roughness against
 the true one (pbr) and wall time, beside the issue's targets. --size/--views/--steps shrink the
-run for a small machine; --json and --markdown also write the result as generated files
-(docs/bench/material.{json,md}). Run from the repository root:
+run for a small machine; `--record` writes docs/bench/material.json (benchmarks.record, whose
+summary is markdown() here). Run from the repository root:
 
-    recon-bench material [--configs A.yaml B.yaml] [--size 64] [--views 16] [--test-views 4]
-        [--geometry-steps 150] [--texture-steps 100] [--spp 32] [--out runs/bench_material]
-        [--json docs/bench/material.json --markdown docs/bench/material.md]
+    recon-bench material [--record] [--configs A.yaml B.yaml] [--size 64] [--views 16]
+        [--test-views 4] [--geometry-steps 150] [--texture-steps 100] [--spp 32]
+        [--out runs/bench_material]
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from benchmarks import common
-from recon.io.atomic import atomic_write_text
+from recon.io.run_folder import RunPaths
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
@@ -64,7 +64,8 @@ def run_material(material: str, config: Path, out: Path, overrides: list[str]) -
     seconds = time.perf_counter() - started
     if completed.returncode != 0:
         return {"material": material, "failed": completed.returncode, "seconds": seconds}
-    metrics = json.loads((run_folder / "metrics.json").read_text())
+    paths = RunPaths(run_folder)
+    metrics = json.loads(paths.metrics.read_text())
     figures = {
         "material": material,
         "run_folder": str(run_folder),
@@ -82,8 +83,8 @@ def run_material(material: str, config: Path, out: Path, overrides: list[str]) -
 
         from recon.io.meshes import load_material_maps
 
-        resolved = yaml.safe_load((run_folder / "config.resolved.yaml").read_text())
-        maps = load_material_maps(run_folder / "mesh" / "model.obj")
+        resolved = yaml.safe_load(paths.resolved_config.read_text())
+        maps = load_material_maps(paths.fitted_mesh)
         truth = _true_roughness(resolved)
         roughness = float(maps[..., 0].median())
         figures.update(
@@ -155,8 +156,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--spp", type=int, default=None, help="Mitsuba samples per pixel")
     parser.add_argument("--materials", nargs="+", default=["lambert", "pbr"])
     parser.add_argument("--set", dest="overrides", action="append", default=[])
-    parser.add_argument("--json", default=None, help="also write the JSON result here")
-    parser.add_argument("--markdown", default=None, help="also write a Markdown table here")
     arguments = parser.parse_args(argv)
     overrides = []
     if arguments.size is not None:
@@ -177,6 +176,7 @@ def main(argv: list[str] | None = None) -> int:
             overrides.append(f"{key}={value}")
     overrides += arguments.overrides
     started = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    commit = _commit()  # HEAD may move while the runs go on
     environment = common.environment("cpu")
     scenes = []
     for name in arguments.configs:
@@ -188,7 +188,7 @@ def main(argv: list[str] | None = None) -> int:
         scenes.append({"config": name, "results": results})
     result = {
         "date": started,
-        "commit": _commit(),
+        "commit": commit,
         "command": "recon-bench material " + " ".join(argv if argv is not None else sys.argv[1:]),
         "overrides": overrides,
         "targets": {key: list(rule) for key, rule in TARGETS.items()},
@@ -196,12 +196,7 @@ def main(argv: list[str] | None = None) -> int:
         "load_average_at_end": common.load_average(),
         "scenes": scenes,
     }
-    text = json.dumps(result, indent=2)
-    print(text)
-    if arguments.json:
-        atomic_write_text(Path(arguments.json), text + "\n")
-    if arguments.markdown:
-        atomic_write_text(Path(arguments.markdown), markdown(result))
+    print(json.dumps(result, indent=2))
     return 0
 
 

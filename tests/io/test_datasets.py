@@ -21,7 +21,7 @@ from recon.io import (
     write_png,
 )
 
-# Linear error of an 8-bit sRGB round trip (see test_io_images.py), plus the 8-bit alpha
+# Linear error of an 8-bit sRGB round trip (see test_images.py), plus the 8-bit alpha
 # rounding that multiplies it when premultiplying: |c a - c' a'| <= |c - c'| + |a - a'|.
 BOUND_8 = 2.4 / 1.055 * 0.5 / 255 + 1e-6
 BOUND_PREMULTIPLIED = BOUND_8 + 0.5 / 255
