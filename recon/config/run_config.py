@@ -486,6 +486,10 @@ class PbrFitConfig:
     material_learning_rate: float = setting(
         0.02, "Adam learning rate of the roughness/metalness texture."
     )
+    material_warmup_steps: int = setting(
+        0,
+        "Texture steps during which roughness and metalness stay at their initial values while the environment and base colour settle (with a low initial_roughness the light is fitted sharp first).",
+    )
     material_texture_size: int = setting(
         0,
         "Height of the grid the roughness/metalness texture is optimised on (bilinearly upsampled to the base colour's texels): 0 = the base colour's own size, 1 = one uniform material.",
@@ -522,6 +526,7 @@ class PbrFitConfig:
             check_range(value, f"environment_size {key}", low=2, high=512)
         check_range(self.prefilter_levels, "prefilter_levels", low=1, high=16)
         check_range(self.material_texture_size, "material_texture_size", low=0, high=8192)
+        check_range(self.material_warmup_steps, "material_warmup_steps", low=0)
         check_range(self.initial_roughness, "initial_roughness", low=0.0, high=1.0)
         check_range(self.initial_metalness, "initial_metalness", low=0.0, high=1.0)
         check_range(self.specular_level, "specular_level", low=0.0, high=1.0)

@@ -378,6 +378,9 @@ def run_pbr_texture_stage(
         effects.zero_grad()
         loss.backward()
         position_optimizer.step()
+        if step < pbr.material_warmup_steps:
+            # The environment settles first around the starting roughness (docs/decisions/0180).
+            material.grad = None
         texture_optimizer.step()
         light_optimizer.step()
         effects.step(1.0)

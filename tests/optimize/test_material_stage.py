@@ -231,3 +231,20 @@ def test_normal_map_fit_gives_five_material_channels(glossy_scene, tmp_path):
     torch.testing.assert_close(normal.norm(dim=-1), torch.ones(normal.shape[:2]), atol=1e-3, rtol=0)
     assert float(normal[..., 2].min()) > 0.5  # tilts stay below the slope bound
     assert result.material_texture().shape[-1] == 8
+
+
+def test_material_warmup_keeps_roughness_while_the_light_moves(glossy_scene, tmp_path):
+    mesh, train, _ = glossy_scene
+    config = _config()
+    config.texture.steps = 3
+    config.pbr.initial_roughness = 0.1
+    config.pbr.material_warmup_steps = 3
+    config.pbr.material_texture_size = 1
+    geometry = _geometry(mesh)
+    seed = environment_from_light(geometry.light, tuple(config.pbr.environment_size))
+    result = run_pbr_texture_stage(
+        train, geometry, config, torch.device("cpu"), 0, tmp_path / "w.pt", History(tmp_path / "w")
+    )
+    expected = torch.tensor([0.1, 0.0]).expand_as(result.material)
+    torch.testing.assert_close(result.material, expected, atol=1e-6, rtol=0)
+    assert float((result.environment - seed).abs().max()) > 0.05
