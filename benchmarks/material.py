@@ -102,12 +102,9 @@ def run_material(material: str, config: Path, out: Path, overrides: list[str]) -
 
 
 def markdown(result: dict) -> str:
-    """The result as a generated Markdown table (docs/bench/material.md)."""
+    """The result as a Markdown table: the summary of docs/bench/material.json (--record)."""
     environment = result["environment"]
     lines = [
-        "# recon-bench material (generated; do not edit)",
-        "",
-        f"Command: `{result['command']}`  ",
         f"Commit {result['commit']}, {result['date']}; {environment['cpu_count']} CPUs "
         f"({environment['cpu_model']}), load average at start {environment['load_average_at_start']}"
         f", torch {environment['torch']}, mitsuba {environment['mitsuba']}.  ",

@@ -56,7 +56,7 @@ def test_markdown_has_one_row_per_scene_and_material():
         ],
     }
     text = markdown(result)
-    assert "generated" in text and "recon-bench material --size 64" in text
+    assert "abc1234" in text and "fit.texture.steps=10" in text
     rows = [line for line in text.splitlines() if line.startswith("| glossy_spot_sky")]
     assert len(rows) == 3 and "0.330 (0.35)" in rows[1] and "1.20e-03" in rows[0]
     assert "failed (1)" in rows[2]
