@@ -2,7 +2,8 @@
 
 Diagnoses run folders fitted on clean data (no effect injected) and prints, per candidate
 effect, the largest held-out reduction its probe and its absorption refit reached, and the
-allowance recon.diagnose.calibration uses (twice that, floored at MINIMUM_SHARE), plus the
+allowance the config section diagnose.decision takes (twice that, floored at its
+minimum_share), plus the
 visibility fingerprint's largest share. The runs must not be cases the blind benchmark scores.
 
     recon-bench calibrate RUN [RUN ...]
@@ -12,24 +13,169 @@ For example the clean calibration seeds of the benchmark (fitted with
 100-102 are scored):
 
     recon-bench calibrate runs/bench_diagnose/*/none_seed10[345]
+
+``calibrate_thresholds`` is the same rule as a function over stored diagnoses, returning the
+flat threshold set of benchmarks.blind.decide (``diagnose_section`` turns it into a
+``diagnose:`` config section); the broadened blind check (recon-bench diagnose-blind --worlds)
+calls it once per held-out scene, on the other scenes' clean cases only.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
+import subprocess
 import sys
 from pathlib import Path
+
+import yaml
+
+# An allowance is this many times the largest statistic seen on the clean calibration fits.
+CALIBRATION_MARGIN = 2.0
+
+
+def clean_statistics(diagnosis: dict, present: tuple[str, ...] = ()) -> dict[str, float]:
+    """The statistics of one clean diagnosis (diagnosis.json, either schema) that its thresholds
+    are compared with, by threshold name (benchmarks.blind.decide): each probe's, absorption
+    refit's and relight probe's reduction, the flat field's deviation and the visibility
+    fingerprint's lower bound. present: effects the data holds although nothing was injected (a
+    path tracer's cast shadows): their statistics measure the effect, not the null, and are left
+    out (the visibility fingerprint with shadows or interreflection)."""
+    from recon.diagnose.records import Diagnosis
+
+    found: dict[str, float] = {}
+
+    def keep(name: str, value: float | None) -> None:
+        if value is not None:
+            found[name] = max(found.get(name, float("-inf")), float(value))
+
+    stored = Diagnosis.from_json(diagnosis)
+    for candidate in stored.candidates:
+        if candidate.name in present:
+            continue
+        for kind, name in (
+            ("probe", f"probe.{candidate.name}"),
+            ("absorption", f"absorption.{candidate.name}"),
+            ("relight", "relight"),
+        ):
+            evidence = candidate.evidence_of(kind)
+            if evidence is not None:
+                keep(name, evidence.details.get("reduction"))
+        flat_field = candidate.evidence_of("flat_field")
+        if flat_field is not None:
+            keep("flat_field", flat_field.statistic)
+    fingerprint = (stored.gap or {}).get("visibility_fingerprint") or {}
+    if fingerprint.get("interval") and not {"shadows", "interreflection"} & set(present):
+        keep("visibility_share", fingerprint["interval"][0])
+    return found
+
+
+def threshold_floors() -> dict[str, float]:
+    """The least value of each threshold, whatever the clean fits show: the decision config's
+    floors (minimum_share, the absorption evidence's own), its flat-field allowance and
+    fingerprint minimum."""
+    from benchmarks.blind.decide import code_thresholds
+    from recon.config.run_config import DecisionConfig
+
+    defaults = DecisionConfig()
+    return code_thresholds(
+        DecisionConfig(
+            probe_allowance={},
+            absorption_allowance={},
+            relight_allowance=defaults.minimum_share,
+        )
+    )
+
+
+def calibrate_thresholds(
+    diagnoses: list[dict],
+    present: list[tuple[str, ...]] | None = None,
+    margin: float = CALIBRATION_MARGIN,
+) -> dict[str, float]:
+    """Thresholds from clean diagnoses: margin x the largest statistic of each (clean_statistics),
+    floored at threshold_floors(), leaving out each diagnosis' present effects; thresholds no
+    clean diagnosis measured keep the default's value (benchmarks.blind.decide.code_thresholds),
+    and so does shadow_share (a physical split, not a null)."""
+    from benchmarks.blind.decide import code_thresholds
+
+    if not diagnoses:
+        from recon.errors import ReconError
+
+        raise ReconError("calibrate_thresholds: no clean diagnoses to calibrate on")
+    largest: dict[str, float] = {}
+    present = present or [()] * len(diagnoses)
+    for diagnosis, held in zip(diagnoses, present, strict=True):
+        for name, value in clean_statistics(diagnosis, held).items():
+            largest[name] = max(largest.get(name, float("-inf")), value)
+    floors = threshold_floors()
+    thresholds = code_thresholds()
+    for name, value in largest.items():
+        if name in thresholds and name != "shadow_share":
+            thresholds[name] = round(max(floors[name], margin * value), 4)
+    return thresholds
+
+
+def git_commit(folder: Path) -> str:
+    """HEAD of the repository at folder ('+dirty' when tracked files changed), or 'unknown'."""
+    try:
+        head = subprocess.run(
+            ["git", "-C", str(folder), "rev-parse", "--short=12", "HEAD"],
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "-C", str(folder), "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+    return head + ("+dirty" if dirty else "")
+
+
+def calibration_record(
+    thresholds: dict[str, float], calibrated_on: list[dict], base_config: dict
+) -> dict:
+    """thresholds with their provenance: the commit, the hash of the base config the cases were
+    made from, and the clean cases (world, scene, seed) they were calibrated on."""
+    from benchmarks.blind.decide import diagnose_section
+
+    canonical = json.dumps(base_config, sort_keys=True, separators=(",", ":"), default=str)
+    return {
+        "thresholds": thresholds,
+        # The same values as a run config's `diagnose:` section.
+        "diagnose": diagnose_section(thresholds) if thresholds else {},
+        "provenance": {
+            "commit": git_commit(Path(__file__).resolve().parents[1]),
+            "base_config_sha256": hashlib.sha256(canonical.encode()).hexdigest()[:12],
+            "rule": f"max(floor, {CALIBRATION_MARGIN:g} x largest clean statistic)",
+            "calibrated_on": calibrated_on,
+            "scenes": sorted({case["scene"] for case in calibrated_on}),
+            "seeds": sorted({case["seed"] for case in calibrated_on}),
+        },
+    }
+
+
+def _largest(candidates, kind: str, into: dict) -> None:
+    """The largest reduction of one evidence kind per candidate, accumulated into `into`."""
+    for candidate in candidates:
+        evidence = candidate.evidence_of(kind)
+        if evidence is not None and evidence.details.get("reduction") is not None:
+            into[candidate.name] = max(into.get(candidate.name, 0.0), evidence.details["reduction"])
 
 
 def main(argv: list[str] | None = None) -> int:
     import torch
 
-    from recon.config import load_config
-    from recon.config.run_config import RunConfig
-    from recon.diagnose.calibration import MINIMUM_SHARE, absorption_minimum_share
-    from recon.diagnose.diagnose import diagnose_run
+    from recon.config import config_hash, load_config, to_dict
+    from recon.config.run_config import DecisionConfig, RunConfig
+    from recon.diagnose.decision import absorption_threshold
+    from recon.diagnose.records import Diagnosis
     from recon.io.run_folder import open_run_folder
+    from recon.stages.diagnose import run_diagnosis
 
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("runs", nargs="+", help="run folders fitted on clean data")
@@ -39,43 +185,73 @@ def main(argv: list[str] | None = None) -> int:
         help="read each run's diagnosis.json instead of diagnosing again (the evidence is the "
         "same; only the decision depends on the thresholds)",
     )
+    parser.add_argument(
+        "--write",
+        help="also write the allowances as a config fragment (diagnose.decision) with their "
+        "provenance (commit, the runs' config hashes and seeds)",
+    )
     arguments = parser.parse_args(argv)
-    probe, absorption, relight, shares = {}, {}, {}, []
+    probe, absorption, relight, shares, provenance = {}, {}, {}, [], []
     for run in arguments.runs:
         paths = open_run_folder(Path(run))
-        stored = paths.diagnosis
-        if arguments.stored and stored.exists():
-            result = json.loads(stored.read_text())
+        config = load_config(paths.resolved_config, RunConfig)
+        if arguments.stored and paths.diagnosis.exists():
+            diagnosis = Diagnosis.from_json(json.loads(paths.diagnosis.read_text()))
         else:
-            config = load_config(paths.resolved_config, RunConfig)
-            result = diagnose_run(paths, config, torch.device("cpu"), refit="none")
-        for item in result["ranking"]:
-            name = item["effect"]
-            probe[name] = max(probe.get(name, 0.0), item["heldout_reduction"])
-            if item["absorption"] is not None:
-                absorption[name] = max(absorption.get(name, 0.0), item["absorption"])
-            if item.get("relight_reduction") is not None:
-                relight[name] = max(relight.get(name, 0.0), item["relight_reduction"])
-        shares.append(result["gap"]["visibility_fingerprint"]["share"])
+            diagnosis = run_diagnosis(paths, config, torch.device("cpu"), refit="none")
+        _largest(diagnosis.candidates, "probe", probe)
+        _largest(diagnosis.candidates, "absorption", absorption)
+        _largest(diagnosis.candidates, "relight", relight)
+        shares.append(diagnosis.gap["visibility_fingerprint"]["share"])
+        provenance.append(
+            {"run": str(paths.root), "config_hash": config_hash(config), "seed": config.seed}
+        )
 
-    def allowance(values: dict, floor=lambda name: MINIMUM_SHARE) -> dict:
+    defaults = DecisionConfig()
+
+    def allowance(values: dict, floor) -> dict:
         return {name: round(max(floor(name), 2 * value), 3) for name, value in values.items()}
 
-    print(
-        json.dumps(
-            {
-                "runs": len(arguments.runs),
-                "probe_largest": probe,
-                "probe_allowance": allowance(probe),
-                "absorption_largest": absorption,
-                "absorption_allowance": allowance(absorption, absorption_minimum_share),
-                "relight_largest": relight,
-                "relight_allowance": allowance(relight),
-                "visibility_share_largest": max(shares),
-            },
-            indent=2,
-        )
-    )
+    def absorption_floor(name: str) -> float:
+        # The floor of the evidence's own kind (closed form or refit), without the allowance.
+        return absorption_threshold(name, DecisionConfig(absorption_allowance={}, minimum_share=0))
+
+    probe_allowance = allowance(probe, lambda name: defaults.minimum_share)
+    absorption_allowance = allowance(absorption, absorption_floor)
+    relight_allowance = allowance(relight, lambda name: defaults.minimum_share)
+    decision = to_dict(defaults)
+    decision["probe_allowance"] = {
+        name: value for name, value in probe_allowance.items() if value > defaults.minimum_share
+    }
+    decision["absorption_allowance"] = absorption_allowance
+    if relight_allowance:
+        decision["relight_allowance"] = max(relight_allowance.values())
+    record = {
+        "runs": len(arguments.runs),
+        "probe_largest": probe,
+        "probe_allowance": probe_allowance,
+        "absorption_largest": absorption,
+        "absorption_allowance": absorption_allowance,
+        "relight_largest": relight,
+        "relight_allowance": relight_allowance,
+        "visibility_share_largest": max(shares),
+        "decision": decision,
+    }
+    print(json.dumps(record, indent=2))
+    if arguments.write:
+        from benchmarks.sweep import commit as git_commit
+        from recon.io.atomic import atomic_write_text
+
+        header = [
+            "# diagnose.decision allowances written by `recon-bench calibrate` (twice the largest",
+            "# clean reduction, floored). Provenance:",
+            f"# commit: {git_commit()}",
+        ] + [
+            f"# run: {item['run']} config_hash {item['config_hash']} seed {item['seed']}"
+            for item in provenance
+        ]
+        body = yaml.safe_dump({"diagnose": {"decision": decision}}, sort_keys=False)
+        atomic_write_text(Path(arguments.write), "\n".join(header) + "\n" + body)
     return 0
 
 
