@@ -149,10 +149,13 @@ class TrainingPyramid:
 
 def texture_total_variation(texture: torch.Tensor) -> torch.Tensor:
     """Mean absolute difference of neighbouring texels [h, w, C] (keeps texels that few views
-    see from speckling)."""
-    return (texture[1:] - texture[:-1]).abs().mean() + (
-        texture[:, 1:] - texture[:, :-1]
-    ).abs().mean()
+    see from speckling). A side of one texel adds 0 (not the NaN of an empty mean)."""
+    total = texture.new_zeros(())
+    if texture.shape[0] > 1:
+        total = total + (texture[1:] - texture[:-1]).abs().mean()
+    if texture.shape[1] > 1:
+        total = total + (texture[:, 1:] - texture[:, :-1]).abs().mean()
+    return total
 
 
 def image_loss(prediction: torch.Tensor, target: torch.Tensor, kind: str = "l1") -> torch.Tensor:

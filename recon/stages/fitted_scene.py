@@ -52,14 +52,23 @@ def write_fitted_scene(
     return {"faces": int(mesh.faces.shape[0]), "vertices": int(mesh.verts.shape[0])}
 
 
-def write_pbr_fit(paths: RunPaths, result: PbrTextureResult) -> dict:
+def write_pbr_fit(
+    paths: RunPaths, result: PbrTextureResult, transform: SceneTransform | None = None
+) -> dict:
     """Write a `pbr` fit: mesh/model.obj (+ base colour, roughness and metallic PNGs, map_Kd /
-    map_Pr / map_Pm), mesh/model.glb (metallic-roughness material), light/environment.exr (the
-    fitted environment itself) and light/light.json (its order-2 SH, for Lambertian consumers,
-    plus the pbr settings and the environment's file name)."""
+    map_Pr / map_Pm, and the normal map when fitted), mesh/model.glb (metallic-roughness
+    material), light/environment.exr (the fitted environment itself) and light/light.json (its
+    order-2 SH, for Lambertian consumers, plus the pbr settings, the environment's file name and
+    its frame). With a normalising transform the mesh goes to the dataset's own frame, as
+    write_fitted_scene does; the environment needs no conversion (the transform has no
+    rotation)."""
     paths.mesh_folder.mkdir(parents=True, exist_ok=True)
     mesh = result.mesh.to("cpu")
     maps = result.material.detach().cpu()
+    if transform is not None:
+        paths.normalized_mesh.parent.mkdir(parents=True, exist_ok=True)
+        save_mesh(paths.normalized_mesh, mesh, material_maps=maps)
+        mesh = replace(mesh, verts=transform.to_dataset(mesh.verts))
     save_mesh(paths.fitted_mesh, mesh, material_maps=maps)
     save_mesh(paths.fitted_glb, mesh, material_maps=maps)
     paths.light_folder.mkdir(parents=True, exist_ok=True)

@@ -56,3 +56,43 @@ def test_a_pbr_run_with_its_environment_missing_is_named(tmp_path):
     (paths.fitted_environment).unlink()
     with pytest.raises(ReconError, match=r"light.json: names the pbr material, but .*environment"):
         load_pbr_fit(paths)
+
+
+def test_a_camera_frame_environment_keeps_its_frame(tmp_path):
+    mesh, maps = _textured_quad()
+    environment = torch.rand(4, 8, 3, generator=torch.Generator().manual_seed(2))
+    light = light_from_environment(environment, "camera")
+    result = PbrTextureResult(mesh, maps, environment, light, 0.5, 4, light_frame="camera")
+    paths = RunPaths(tmp_path)
+    write_pbr_fit(paths, result)
+    assert json.loads(paths.fitted_light.read_text())["frame"] == "camera"
+    loaded = load_pbr_fit(paths)
+    assert loaded.light_frame == "camera" and loaded.light.frame == "camera"
+
+
+def test_a_normal_map_is_written_and_read_back(tmp_path):
+    mesh, maps = _textured_quad()
+    normal = torch.nn.functional.normalize(torch.tensor([0.2, -0.1, 1.0]), dim=0)
+    maps = torch.cat([maps, normal.expand(8, 8, 3)], dim=-1)
+    environment = torch.ones(4, 8, 3)
+    result = PbrTextureResult(mesh, maps, environment, light_from_environment(environment), 0.5, 4)
+    paths = RunPaths(tmp_path)
+    write_pbr_fit(paths, result)
+    loaded = load_pbr_fit(paths)
+    assert loaded.material.shape == (8, 8, 5)
+    torch.testing.assert_close(loaded.material[..., 2:], maps[..., 2:], atol=1 / 255, rtol=0)
+    assert loaded.material_texture().shape[-1] == 8
+
+
+def test_a_normalised_fit_is_written_in_the_dataset_frame(tmp_path):
+    from recon.optimize.normalize import SceneTransform
+
+    mesh, maps = _textured_quad()
+    environment = torch.ones(4, 8, 3)
+    result = PbrTextureResult(mesh, maps, environment, light_from_environment(environment), 0.5, 4)
+    transform = SceneTransform(scale=2.0, centre=[1.0, -2.0, 0.5], up=[0.0, 1.0, 0.0])
+    paths = RunPaths(tmp_path)
+    write_pbr_fit(paths, result, transform)
+    loaded = load_pbr_fit(paths)
+    torch.testing.assert_close(loaded.mesh.verts, transform.to_dataset(mesh.verts))
+    assert load_material_maps(paths.normalized_mesh) is not None
