@@ -94,6 +94,11 @@ class RunPaths:
         return self.light_folder / "light.json"
 
     @property
+    def fitted_effects(self) -> Path:
+        """The fit's effect modules (fit.effects), when it had any: evaluate renders with them."""
+        return self.root / "effects.json"
+
+    @property
     def renders(self) -> Path:
         """Held-out views: target, render, error."""
         return self.root / "renders"

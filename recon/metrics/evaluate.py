@@ -10,6 +10,7 @@ import numpy as np
 import torch
 
 from recon.config.run_config import RunConfig
+from recon.effects.forward import render_with_effects
 from recon.errors import ReconError, warn_user
 from recon.io.atomic import atomic_write_json
 from recon.io.datasets import held_out_split, read_captures
@@ -20,6 +21,7 @@ from recon.metrics.geometry import geometry_metrics, mesh_stats
 from recon.metrics.image import image_metrics
 from recon.optimize.fit import load_fitted_light
 from recon.optimize.material_stage import load_pbr_result
+from recon.optimize.scene_model import FitEffects
 from recon.render.renderer import Renderer
 
 matplotlib.use("Agg")
@@ -33,6 +35,7 @@ def render_fitted(paths: RunPaths, cameras, device: torch.device):
     lighting = load_fitted_light(paths, device)
     # A run fitted with fit.material: pbr renders with its material maps and environment.
     pbr = load_pbr_result(paths, device)
+    effects = load_fitted_effects(paths, device)
     renderer = Renderer(texture_filter="linear-mipmap-linear", texture_boundary="clamp")
     colors, alphas = [], []
     with torch.no_grad():
@@ -41,10 +44,24 @@ def render_fitted(paths: RunPaths, cameras, device: torch.device):
             if pbr is not None:
                 output = pbr.render(renderer, batch)
             else:
-                output = renderer.render(mesh, batch, lighting)
+                # Held-out views have no per-view effect parameters (view_indices None: the
+                # training views' typical value).
+                output = render_with_effects(renderer, mesh, batch, lighting, effects)
             colors.append(output.color.cpu())
             alphas.append(output.alpha.cpu())
     return mesh, torch.cat(colors), torch.cat(alphas)
+
+
+def load_fitted_effects(paths: RunPaths, device: torch.device) -> list:
+    """The run's fitted effect modules (RUN/effects.json, written when fit.effects was set), or
+    [] when it has none."""
+    if not paths.fitted_effects.exists():
+        return []
+    try:
+        data = json.loads(paths.fitted_effects.read_text())
+    except (OSError, json.JSONDecodeError) as error:
+        raise ReconError(f"{paths.fitted_effects}: unreadable effects record: {error}") from error
+    return FitEffects.modules_from_json(data, device)
 
 
 def error_image(prediction_srgb: torch.Tensor, target_srgb: torch.Tensor) -> torch.Tensor:

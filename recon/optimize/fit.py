@@ -128,6 +128,11 @@ def fit_stage(
     paths.light_folder.mkdir(parents=True, exist_ok=True)
     atomic_write_json(paths.fitted_light, result.light.to_json())
     write_exr(paths.light_folder / "environment.exr", environment_map_from_light(result.light))
+    if result.effects is not None and result.effects.modules:
+        # Shading effects (a specular lobe, shadows) are part of the fitted appearance: the
+        # evaluate stage renders held-out views with them. Their parameters are scale- and
+        # translation-free, so they hold in the dataset's frame too.
+        atomic_write_json(paths.fitted_effects, result.effects.to_json())
     return {"faces": int(mesh.faces.shape[0]), "vertices": int(mesh.verts.shape[0])}
 
 
