@@ -2,9 +2,10 @@
 bake -> texture stage -> mesh/ (OBJ + MTL + PNG, GLB) and light/ (JSON + EXR environment map).
 
 With dataset.normalize.enabled the fit works in a recentred, rescaled frame
-(normalization.json); mesh/model.obj and model.glb are written in the dataset's own frame (the
-one its cameras are in, which evaluate, report and diagnose read), mesh/normalized/ in the fit's.
-The light needs no conversion: the transform has no rotation."""
+(normalization.json); mesh/model.obj, model.glb and light/light.json are written in the
+dataset's own frame (the one its cameras are in, which evaluate, report and diagnose read),
+mesh/normalized/ and light/normalized/ in the fit's. Directional and SH light need no
+conversion (the transform has no rotation); point lights would move with it."""
 
 from __future__ import annotations
 
@@ -106,6 +107,14 @@ def fit_stage(
             history,
             resume=resume and texture_checkpoint.exists(),
         )
+        if transform is not None:
+            # As for the Lambertian material: the dataset's frame for every later stage (the
+            # environment is directional, unchanged by a translation and a scale).
+            fitted = pbr_result.mesh.to("cpu")
+            save_mesh(paths.mesh_folder / "normalized" / "model.obj", fitted)
+            pbr_result = replace(
+                pbr_result, mesh=replace(fitted, verts=transform.to_dataset(fitted.verts))
+            )
         return write_pbr_result(paths, pbr_result)
     result = run_texture_stage(
         captures,
@@ -126,7 +135,12 @@ def fit_stage(
     save_mesh(paths.fitted_mesh, mesh)
     save_mesh(paths.mesh_folder / "model.glb", mesh)
     paths.light_folder.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(paths.fitted_light, result.light.to_json())
+    light_record = result.light.to_json()
+    if transform is not None:
+        (paths.light_folder / "normalized").mkdir(parents=True, exist_ok=True)
+        atomic_write_json(paths.light_folder / "normalized" / "light.json", light_record)
+        light_record = transform.light_to_dataset(light_record)
+    atomic_write_json(paths.fitted_light, light_record)
     write_exr(paths.light_folder / "environment.exr", environment_map_from_light(result.light))
     if result.effects is not None and result.effects.modules:
         # Shading effects (a specular lobe, shadows) are part of the fitted appearance: the
