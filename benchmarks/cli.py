@@ -43,6 +43,10 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
         "benchmarks.real_capture",
         "the shared real capture fitted from its raw layout",
     ),
+    "sfm-poses": (
+        "benchmarks.sfm_poses",
+        "plain-folder SfM poses against the real capture's published ones",
+    ),
     "material": ("benchmarks.material", "pbr against lambert on a Mitsuba-rendered glossy scene"),
 }
 
