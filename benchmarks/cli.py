@@ -47,6 +47,10 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
         "benchmarks.sfm_poses",
         "plain-folder SfM poses against the real capture's published ones",
     ),
+    "nerf-synthetic": (
+        "benchmarks.nerf_synthetic",
+        "NeRF-synthetic style Mitsuba scenes at 200 px beside nvdiffrec",
+    ),
     "material": ("benchmarks.material", "pbr against lambert on a Mitsuba-rendered glossy scene"),
 }
 
