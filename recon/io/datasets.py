@@ -968,7 +968,7 @@ def read_captures(folder: str | os.PathLike, split: str, options: Any = None) ->
     if layout == "photos":
         from recon.io.sfm import estimate_poses
 
-        estimate_poses(folder)
+        estimate_poses(folder, options=getattr(options, "sfm", None))
         layout = "colmap"
     if layout in ("llff", "colmap"):
         if split not in ("train", "test"):
