@@ -64,9 +64,14 @@ def load_fitted_effects(paths: RunPaths, device: torch.device) -> list:
     return FitEffects.modules_from_json(data, device)
 
 
+# The error panels map |sRGB error| from 0 (black) to this (white) through magma.
+ERROR_PANEL_MAXIMUM = 0.25
+
+
 def error_image(prediction_srgb: torch.Tensor, target_srgb: torch.Tensor) -> torch.Tensor:
-    """Absolute sRGB error as a colour-mapped image [H, W, 3] (magma, 0 .. 0.25)."""
-    error = (prediction_srgb - target_srgb).abs().mean(-1).clamp(0, 0.25) / 0.25
+    """Absolute sRGB error as a colour-mapped image [H, W, 3] (magma, 0 .. ERROR_PANEL_MAXIMUM)."""
+    difference = (prediction_srgb - target_srgb).abs().mean(-1)
+    error = difference.clamp(0, ERROR_PANEL_MAXIMUM) / ERROR_PANEL_MAXIMUM
     colored = matplotlib.colormaps["magma"](error.numpy())[..., :3]
     return torch.from_numpy(colored.astype(np.float32))
 
