@@ -43,7 +43,7 @@ def main(argv: list[str] | None = None) -> int:
     probe, absorption, relight, shares = {}, {}, {}, []
     for run in arguments.runs:
         paths = open_run_folder(Path(run))
-        stored = paths.root / "diagnosis.json"
+        stored = paths.diagnosis
         if arguments.stored and stored.exists():
             result = json.loads(stored.read_text())
         else:

@@ -2,6 +2,10 @@
 
     recon-bench                       list the benchmarks
     recon-bench NAME [ARGS ...]       run one; `recon-bench NAME --help` shows its options
+    recon-bench NAME --record [ARGS]  run one and write docs/bench/NAME.json (with commit, date,
+                                      machine, config hash), then regenerate docs/benchmarks.md
+                                      and the README's benchmark summary (benchmarks.record)
+    recon-bench docs                  regenerate those two pages from docs/bench/*.json
 
 Each benchmark is a module of this package with ``main(argv) -> int | None``; adding one is one
 line in BENCHMARKS. Modules are imported only when their benchmark runs, so the listing stays
@@ -10,7 +14,10 @@ fast and a benchmark's optional dependency (Ray, Mitsuba) is needed only by that
 
 from __future__ import annotations
 
+import contextlib
 import importlib
+import io
+import json
 import sys
 
 from recon.errors import ReconError, describe_os_error
@@ -62,7 +69,43 @@ def usage() -> str:
     width = max(len(name) for name in BENCHMARKS)
     lines = [f"usage: {PROGRAM} NAME [ARGS ...]  ({PROGRAM} NAME --help for its options)", ""]
     lines += [f"  {name:<{width}}  {summary}" for name, (_, summary) in BENCHMARKS.items()]
+    lines += [
+        "",
+        f"  {PROGRAM} NAME --record ...  also write docs/bench/NAME.json and the pages from it",
+        f"  {PROGRAM} docs               regenerate docs/benchmarks.md and the README summary",
+    ]
     return "\n".join(lines)
+
+
+class _Tee(io.TextIOBase):
+    """Stdout that is also kept: a recorded benchmark's printed JSON becomes its record."""
+
+    def __init__(self, stream) -> None:
+        self.stream, self.kept = stream, io.StringIO()
+
+    def write(self, text: str) -> int:
+        self.kept.write(text)
+        return self.stream.write(text)
+
+    def flush(self) -> None:
+        self.stream.flush()
+
+
+def _record(name: str, module, argv: list[str], output: str, prov: dict) -> None:
+    """Write docs/bench/NAME.json from the benchmark's printed JSON, then the pages."""
+    from benchmarks import record
+
+    result = record.parse_output(output)
+    if result is None:
+        raise ReconError(f"--record: {PROGRAM} {name} printed no JSON result to record")
+    path = record.RECORDS / f"{name}.json"
+    old = json.loads(path.read_text()) if path.exists() else None
+    title = (old or {}).get("title") or getattr(module, "TITLE", name)
+    command = " ".join([PROGRAM, name, *argv])
+    summary = record.summary_markdown(module, result)
+    record.write_record(record.make_record(name, title, command, prov, result, summary, old))
+    record.regenerate()
+    print(f"{PROGRAM}: recorded {path}", file=sys.stderr)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -76,6 +119,13 @@ def main(argv: list[str] | None = None) -> int:
         print(usage())
         return 0
     name, rest = argv[0], argv[1:]
+    if name == "docs":
+        from benchmarks import record
+
+        record.regenerate()
+        return 0
+    recording = "--record" in rest
+    rest = [item for item in rest if item != "--record"]
     if name not in BENCHMARKS:
         print(f"{PROGRAM}: error: unknown benchmark {name!r}\n{usage()}", file=sys.stderr)
         return 2
@@ -84,7 +134,17 @@ def main(argv: list[str] | None = None) -> int:
     program = sys.argv[0]
     sys.argv[0] = f"{PROGRAM} {name}"
     try:
-        code = module.main(rest)
+        if recording:
+            from benchmarks import record
+
+            prov = record.provenance(name, rest)
+            tee = _Tee(sys.stdout)
+            with contextlib.redirect_stdout(tee):
+                code = module.main(rest)
+            if code in (None, 0):
+                _record(name, module, rest, tee.kept.getvalue(), prov)
+        else:
+            code = module.main(rest)
     except ReconError as error:
         print(f"{PROGRAM}: error: {error}", file=sys.stderr)
         return 2

@@ -104,7 +104,7 @@ def run_case(
         atomic_write_json(fit_record_path, {"config_hash": digest, "fit_seconds": fit_seconds})
     if fits_only:
         return None
-    stored = paths.root / "diagnosis.json"
+    stored = paths.diagnosis
     if rescore and reuse_fits and stored.exists():
         diagnosis = redecide(json.loads(stored.read_text()))
         diagnose_seconds = diagnosis["timings"]["diagnose_seconds"] + diagnosis["timings"].get(
@@ -116,7 +116,7 @@ def run_case(
         diagnose_seconds = time.perf_counter() - started
     # Only now is the truth read: the diagnosis above never saw it.
     truth = json.loads(truth_path.read_text()) if case.effects else {"withheld": []}
-    return score_case(case, diagnosis, truth, fit_seconds, diagnose_seconds, paths)
+    return score_case(case, diagnosis, truth, fit_seconds, diagnose_seconds, paths.root)
 
 
 def _fraction_text(value: float | None) -> str:

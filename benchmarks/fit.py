@@ -17,6 +17,8 @@ import sys
 import time
 from pathlib import Path
 
+from recon.io.run_folder import RunPaths
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_MESHES = REPO_ROOT.parent / "shared" / "meshes"
 TARGETS = {
@@ -59,7 +61,7 @@ def run_scene(scene: str, out: Path, overrides: list[str]) -> dict:
     seconds = time.perf_counter() - started
     if completed.returncode != 0:
         return {"scene": scene, "failed": completed.returncode, "seconds": seconds}
-    metrics = json.loads((run_folder / "metrics.json").read_text())
+    metrics = json.loads(RunPaths(run_folder).metrics.read_text())
     figures = {
         "seconds": round(seconds, 1),
         "psnr": metrics["image"]["psnr"],
@@ -78,6 +80,64 @@ def run_scene(scene: str, out: Path, overrides: list[str]) -> dict:
         key: _meets(figures.get(key), rule) for key, rule in TARGETS.items()
     }
     return {"scene": scene, "run_folder": str(run_folder), **figures}
+
+
+TITLE = "Reconstruction"
+# How the scenes are named in the summary table.
+SCENE_LABELS = {"default": "default (torus, genus 1)", "bob": "bob (genus 1, hole kept)"}
+RECIPE = (
+    "256², 48 training views, 8 held-out views, captures from data_synth without effects, "
+    "whole pipeline per scene (synth, fit, evaluate, report), geometry metrics exact "
+    "(point-to-surface) at 100k samples, in units of the reference diagonal:"
+)
+
+
+def _exponent(value: float) -> str:
+    """3.9e-4 rather than 3.9e-04."""
+    mantissa, exponent = f"{value:.1e}".split("e")
+    return f"{mantissa}e{int(exponent)}"
+
+
+def markdown(result: dict) -> str:
+    """The summary table of a result (docs/benchmarks.md and the README): one row per scene and
+    the targets."""
+    columns = [
+        ("time", "seconds", lambda v: f"{v:.0f} s"),
+        ("PSNR (sRGB)", "psnr", lambda v: f"{v:.2f} dB"),
+        ("SSIM", "ssim", lambda v: f"{v:.3f}"),
+        ("Chamfer-L1", "chamfer_l1", _exponent),
+        ("F1@1%", "f1@1%", lambda v: f"{v:.3f}"),
+        ("normal consistency", "normal_consistency", lambda v: f"{v:.3f}"),
+        ("faces", "faces", lambda v: f"{v:,}"),
+    ]
+    lines = [RECIPE, "", "| scene | " + " | ".join(name for name, _, _ in columns) + " |"]
+    lines.append("|---" * (len(columns) + 1) + "|")
+    for scene in result["scenes"]:
+        label = SCENE_LABELS.get(scene["scene"], scene["scene"])
+        if "skipped" in scene or "failed" in scene:
+            reason = scene.get("skipped") or f"failed (exit {scene['failed']})"
+            lines.append(f"| {label} | {reason} |" + " |" * (len(columns) - 1))
+            continue
+        cells = ["" if scene.get(key) is None else form(scene[key]) for _, key, form in columns]
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    targets = result.get("targets", {})
+    units = {"seconds": " s", "psnr": " dB"}
+    cells = []
+    for _, key, _ in columns:
+        if key not in targets:
+            cells.append("")
+            continue
+        comparison, bound = targets[key]
+        if key == "faces":
+            text = f"{bound / 1000:g}k"
+        elif 0 < abs(bound) < 0.01:
+            mantissa, exponent = f"{bound:e}".split("e")
+            text = f"{float(mantissa):g}e{int(exponent)}"
+        else:
+            text = f"{bound:g}{units.get(key, '')}"
+        cells.append(f"{comparison} {text}")
+    lines.append("| target | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:

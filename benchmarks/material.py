@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 from benchmarks import common
+from recon.io.run_folder import RunPaths
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
@@ -46,7 +47,8 @@ def run_material(material: str, config: Path, out: Path, overrides: list[str]) -
     seconds = time.perf_counter() - started
     if completed.returncode != 0:
         return {"material": material, "failed": completed.returncode, "seconds": seconds}
-    metrics = json.loads((run_folder / "metrics.json").read_text())
+    paths = RunPaths(run_folder)
+    metrics = json.loads(paths.metrics.read_text())
     figures = {
         "material": material,
         "run_folder": str(run_folder),
@@ -62,8 +64,8 @@ def run_material(material: str, config: Path, out: Path, overrides: list[str]) -
 
         from recon.io.meshes import load_material_maps
 
-        resolved = yaml.safe_load((run_folder / "config.resolved.yaml").read_text())
-        maps = load_material_maps(run_folder / "mesh" / "model.obj")
+        resolved = yaml.safe_load(paths.resolved_config.read_text())
+        maps = load_material_maps(paths.fitted_mesh)
         truth = _true_roughness(resolved)
         roughness = float(maps[..., 0].median())
         figures.update(

@@ -24,6 +24,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from benchmarks import common
+from recon.io.run_folder import RunPaths
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 PUBLISHED = {
@@ -61,7 +62,7 @@ def run_scene(scene: str, out: Path, overrides: list[str], threads: int) -> dict
     seconds = time.perf_counter() - started
     if completed.returncode != 0:
         return {"error": completed.stderr[-1500:], "returncode": completed.returncode}
-    metrics = json.loads((run / "metrics.json").read_text())
+    metrics = json.loads(RunPaths(run).metrics.read_text())
     image = metrics["image"]
     return {
         "psnr": round(image["psnr"], 3),

@@ -22,6 +22,8 @@ import time
 from datetime import datetime, timezone
 from pathlib import Path
 
+from recon.io.run_folder import RunPaths
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = REPO_ROOT.parent / "shared" / "captures" / "ethiopian_head"
 TARGETS = {
@@ -90,10 +92,10 @@ def main(argv: list[str] | None = None) -> int:
     if completed.returncode != 0:
         print(json.dumps({"error": completed.stderr[-2000:], "returncode": completed.returncode}))
         return 1
-    run = Path(arguments.out)
-    metrics = json.loads((run / "metrics.json").read_text())
-    env = json.loads((run / "env.json").read_text())
-    normalization = json.loads((run / "normalization.json").read_text())
+    run = RunPaths(Path(arguments.out))
+    metrics = json.loads(run.metrics.read_text())
+    env = json.loads(run.environment.read_text())
+    normalization = json.loads(run.normalization.read_text())
     notes = [line for line in completed.stderr.splitlines() if line.startswith("recon: ")]
     result = {
         "date": started_at,

@@ -42,14 +42,14 @@ def main(argv: list[str] | None = None) -> int:
     device = torch.device("cpu")
     paths = open_run_folder(arguments.run)
     config = load_config(paths.resolved_config, RunConfig)
-    split = "test" if (paths.dataset / "transforms_test.json").exists() else "val"
+    split = paths.dataset_layout.held_out_split
     data = load_diagnosis_data(paths, split, device)
     floor = (noise_floor(data).get("floor_rmse") or 0.0) ** 2
     _, relight_views = load_relight(paths, device)
     baseline = RefitBaseline.measure(data, floor, relight_views)
     exponent = None
     if arguments.effect == "response_curve" and arguments.response_exponent == "relight":
-        ranking = json.loads((paths.root / "diagnosis.json").read_text())["ranking"]
+        ranking = json.loads(paths.diagnosis.read_text())["ranking"]
         entry = next(item for item in ranking if item["effect"] == "response_curve")
         exponent = entry["relight_parameters"]["gamma"]
     for rate in (float(value) for value in arguments.position_rates.split(",")):

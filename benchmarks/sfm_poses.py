@@ -30,6 +30,7 @@ import numpy as np
 import torch
 
 from benchmarks import common
+from recon.io.run_folder import RunPaths
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = REPO_ROOT.parent / "shared" / "captures" / "ethiopian_head"
@@ -127,7 +128,7 @@ def fit(data: Path, run: Path, overrides: list[str], threads: int) -> dict:
     seconds = time.perf_counter() - started
     if completed.returncode != 0:
         return {"error": completed.stderr[-1500:], "returncode": completed.returncode}
-    metrics = json.loads((run / "metrics.json").read_text())
+    metrics = json.loads(RunPaths(run).metrics.read_text())
     return {
         "psnr_masked": round(metrics["image"]["psnr_masked"], 3),
         "psnr": round(metrics["image"]["psnr"], 3),

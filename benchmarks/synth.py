@@ -43,6 +43,7 @@ import time
 from pathlib import Path
 
 from benchmarks import common
+from recon.io.run_folder import RunPaths
 
 REPO_ROOT = common.REPO_ROOT
 OWN_CONFIG = REPO_ROOT / "configs" / "bench" / "synth_own.yaml"
@@ -226,7 +227,7 @@ def synth_once(config, device: str, label: str) -> dict:
         cores = meter.cores_used()
         written = sum(
             len(json.loads(path.read_text())["frames"])
-            for path in (out / "dataset").glob("transforms_*.json")
+            for path in RunPaths(out).dataset_layout.split_files()
         )
         size_mb = _folder_size_mb(out)
     if written != views:

@@ -33,7 +33,7 @@ def main(argv: list[str] | None = None) -> int:
     from recon.config import load_config
     from recon.config.run_config import RunConfig
     from recon.diagnose.diagnose import diagnose_run
-    from recon.io.run_folder import open_run_folder
+    from recon.io.run_folder import RunPaths, open_run_folder
     from recon.pipeline import run_stages
 
     parser = argparse.ArgumentParser(description=__doc__)
@@ -49,12 +49,13 @@ def main(argv: list[str] | None = None) -> int:
         if target.exists():
             shutil.rmtree(target)
         target.mkdir(parents=True)
-        shutil.copytree(source / "dataset", target / "dataset")
-        for name in ("config.resolved.yaml", "env.json", "ground_truth"):
-            if (source / name).is_dir():
-                shutil.copytree(source / name, target / name)
-            elif (source / name).exists():
-                shutil.copy2(source / name, target / name)
+        source_paths, target_paths = RunPaths(source), RunPaths(target)
+        shutil.copytree(source_paths.dataset, target_paths.dataset)
+        shutil.copy2(source_paths.resolved_config, target_paths.resolved_config)
+        if source_paths.environment.exists():
+            shutil.copy2(source_paths.environment, target_paths.environment)
+        if source_paths.ground_truth.is_dir():
+            shutil.copytree(source_paths.ground_truth, target_paths.ground_truth)
         paths = open_run_folder(target)
         config = load_config(paths.resolved_config, RunConfig)
         started = time.perf_counter()

@@ -18,6 +18,8 @@ import json
 import sys
 from pathlib import Path
 
+from recon.io.run_folder import RunPaths
+
 
 def corner_of_fit(radius, falloff, pixels) -> float:
     """1 + a + b of the least-squares 1 + a r^2 + b r^4 to falloff on the chosen pixels
@@ -47,7 +49,7 @@ def main(argv: list[str] | None = None) -> int:
             parameters = next(
                 item["parameters"] for item in truth["withheld"] if item["name"] == "vignetting"
             )
-            captures = read_captures(folder / truth_path.stem / "dataset", "test")
+            captures = read_captures(RunPaths(folder / truth_path.stem).dataset, "test")
             height, width = captures.cameras.image_size
             like = torch.empty(0, dtype=torch.float64)
             effect = Vignetting(parameters)

@@ -26,9 +26,10 @@ from recon.config.run_config import EffectConfig, LightingConfig, RunConfig
 from recon.errors import ReconError
 from recon.io.atomic import atomic_write_json
 from recon.io.checkpoints import load_checkpoint, save_checkpoint
-from recon.io.datasets import FLAT_FIELD_SPLIT, RELIGHT_LIGHTING, write_nerf_synthetic
+from recon.io.datasets import FLAT_FIELD_SPLIT, write_nerf_synthetic
 from recon.io.images import save_contact_sheet, write_exr
 from recon.io.meshes import save_mesh
+from recon.io.run_folder import RunPaths
 from recon.mesh.mesh import Mesh
 from recon.render.antialias import build_topology
 from recon.render.renderer import Renderer
@@ -154,7 +155,7 @@ def render_split(
 
 def synth_stage(
     config: RunConfig,
-    paths,
+    paths: RunPaths,
     device: torch.device,
     withhold: int = 0,
     truth_out: str | Path | None = None,
@@ -304,7 +305,7 @@ def synth_stage(
             # The relight split's light is a known capture condition (a light stage, a second
             # lamp), not a hidden effect: it goes beside the views so that the diagnosis can
             # relight the fitted albedo with it.
-            atomic_write_json(paths.dataset / RELIGHT_LIGHTING, lighting_to_json(split_world))
+            atomic_write_json(paths.dataset_layout.relight_lighting, lighting_to_json(split_world))
         if capture_config.write_depth_normals:
             for index in range(len(cameras)):
                 write_exr(
@@ -329,7 +330,7 @@ def synth_stage(
         summary["splits"][FLAT_FIELD_SPLIT] = capture_config.flat_field.views
     if capture_config.contact_sheet and sheet_images:
         save_contact_sheet(sheet_images, paths.contact_sheet, columns=4)
-    _write_ground_truth(paths.ground_truth, mesh, world, effects, realised, withheld, options)
+    _write_ground_truth(paths, mesh, world, effects, realised, withheld, options)
     summary["effects"] = [effect.name for effect in effects if effect not in withheld]
     # Finished: env.json's stage record says so from here on; the progress file has done its job.
     paths.synth_progress.unlink(missing_ok=True)
@@ -348,7 +349,7 @@ def _image_effects(effects: list[EffectConfig]) -> list:
 
 
 def _write_ground_truth(
-    folder: Path,
+    paths: RunPaths,
     mesh: Mesh,
     world: WorldLighting,
     effects: list[EffectConfig],
@@ -358,11 +359,11 @@ def _write_ground_truth(
 ) -> None:
     """Reference mesh, lighting and effects beside the dataset; withheld effects only in
     options.truth_out, so a diagnoser that reads the run folder learns nothing about them."""
-    folder.mkdir(parents=True, exist_ok=True)
-    save_mesh(folder / "reference.obj", mesh.to("cpu"))
-    atomic_write_json(folder / "lighting.json", lighting_to_json(world))
+    paths.ground_truth.mkdir(parents=True, exist_ok=True)
+    save_mesh(paths.reference_mesh, mesh.to("cpu"))
+    atomic_write_json(paths.truth_lighting, lighting_to_json(world))
     if world.environment_map is not None:
-        write_exr(folder / "environment.exr", world.environment_map)
+        write_exr(paths.truth_environment, world.environment_map)
     withheld_names = {effect.name for effect in withheld}
 
     def records(keep) -> dict:
@@ -376,7 +377,7 @@ def _write_ground_truth(
     }
     if withheld:
         atomic_write_json(
-            folder / "effects.json",
+            paths.truth_effects,
             {
                 "effects": [e.name for e in effects if e.name not in withheld_names],
                 "withheld": True,
@@ -399,7 +400,7 @@ def _write_ground_truth(
         )
     else:
         atomic_write_json(
-            folder / "effects.json",
+            paths.truth_effects,
             {
                 "effects": [effect.name for effect in effects],
                 "withheld": False,

@@ -160,10 +160,11 @@ def _check_resume_alone(arguments) -> None:
 
 
 def _compare(arguments) -> int:
+    from recon.io.run_folder import RunPaths
     from recon.report.compare import compare, format_table, load_baseline, write_baseline
 
     source = Path(arguments.run)
-    metrics_path = source / "metrics.json" if source.is_dir() else source
+    metrics_path = RunPaths(source).metrics if source.is_dir() else source
     if not metrics_path.exists():
         raise ReconError(f"compare: {metrics_path} not found (run 'recon evaluate' first)")
     try:

@@ -1,8 +1,8 @@
 """The stage sequence of a run: resolve the config, prepare the run folder, run the stages.
 
-Stages are looked up by name in the ``recon.stages`` entry-point group (pyproject.toml). recon's
-own stages live in recon; the synth stage belongs to data_synth (the "world"), which recon must
-not import, so every stage is found the same way, by name.
+Stages are looked up by name (recon.stages.find_stage): recon's own in recon/stages/, the synth
+stage, which belongs to data_synth (the "world") that recon must not import, in the
+``recon.stages`` entry-point group (pyproject.toml).
 """
 
 from __future__ import annotations
@@ -15,7 +15,6 @@ import sys
 import time
 from collections.abc import Callable
 from datetime import datetime, timezone
-from importlib.metadata import entry_points
 from pathlib import Path
 
 import numpy as np
@@ -63,14 +62,10 @@ def seed_everything(seed: int, deterministic: bool = True) -> None:
 
 
 def find_stage(name: str) -> Stage:
-    """The stage function registered under name in the 'recon.stages' entry-point group."""
-    found = {entry.name: entry for entry in entry_points(group="recon.stages")}
-    if name not in found:
-        raise ReconError(
-            f"stage {name!r}: not installed (known: {', '.join(sorted(found)) or 'none'}); "
-            "install the project with 'pip install -e .'"
-        )
-    return found[name].load()
+    """The stage function of that name (recon.stages.find_stage)."""
+    from recon.stages import find_stage as find
+
+    return find(name)
 
 
 def peak_memory_mb() -> float:
@@ -200,7 +195,7 @@ def resume(
     """Continue a run from its checkpoints: stages that finished are skipped when their outputs
     exist (synth), the synth and fit stages continue from what they wrote, evaluate and report
     run again."""
-    config = load_config(Path(run_folder) / "config.resolved.yaml", RunConfig)
+    config = load_config(open_run_folder(run_folder).resolved_config, RunConfig)
     paths = open_run_folder(run_folder, config.data)
     resolved_device = resolve_device(device or config.device)
     # A process killed mid-write leaves atomic_path's temporary file behind: it was never a

@@ -35,18 +35,20 @@ def add_flat_field(run: Path, views: int, truth_dir: Path | None, force: bool) -
     from recon.errors import ReconError
     from recon.io.atomic import atomic_write_json
     from recon.io.datasets import FLAT_FIELD_SPLIT
+    from recon.io.run_folder import RunPaths
 
-    config_path = run / "config.resolved.yaml"
-    dataset = run / "dataset"
+    paths = RunPaths(run)
+    config_path = paths.resolved_config
+    dataset = paths.dataset
     if not config_path.exists() or not dataset.is_dir():
         raise ReconError(f"{run}: not a synthetic run folder (no config.resolved.yaml or dataset/)")
-    if (dataset / f"transforms_{FLAT_FIELD_SPLIT}.json").exists() and not force:
+    if paths.dataset_layout.has_flat_field and not force:
         raise ReconError(f"{dataset}: already has a {FLAT_FIELD_SPLIT} split (pass --force)")
     config = load_config(config_path, RunConfig)
     capture = replace(config.capture, flat_field=replace(config.capture.flat_field, views=views))
     config = replace(config, capture=capture)
     truth_path = (truth_dir or run.parent / "truth") / f"{run.name}.json"
-    effects_path = run / "ground_truth" / "effects.json"
+    effects_path = paths.truth_effects
     recorded = json.loads(effects_path.read_text())
     truth = json.loads(truth_path.read_text()) if recorded.get("withheld") else None
     if recorded.get("withheld") and truth is None:

@@ -43,6 +43,9 @@ from recon.camera import (
 )
 from recon.errors import DatasetError, ReconError, warn_user
 from recon.io.atomic import atomic_write_json
+
+# The names of a dataset's extra captures are the layout's (re-exported for their readers).
+from recon.io.dataset_layout import FLAT_FIELD_SPLIT, RELIGHT_LIGHTING  # noqa: F401
 from recon.io.exif import exposure_value, read_exif
 from recon.io.images import read_exr_channels, read_image, write_png
 from recon.io.images import write_exr as write_exr_file  # the writer has a write_exr flag
@@ -95,14 +98,6 @@ class CaptureSet:
 # --------------------------------------------------------------------------------------------
 # Shared helpers
 # --------------------------------------------------------------------------------------------
-
-
-# A dataset's relight split may carry its light (a known capture condition) in this file, in the
-# lighting JSON format of recon.render.shading.Lighting.from_json.
-RELIGHT_LIGHTING = "lighting_relight.json"
-# A dataset's flat-field frames (a uniformly lit card filling the frame, through the capture's
-# camera chain; see recon.config.run_config.FlatFieldConfig) are this split. No fit reads it.
-FLAT_FIELD_SPLIT = "flat_field"
 
 
 def _resize(images: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:

@@ -1,4 +1,9 @@
-"""The run folder layout, defined once. Stages talk to each other only through these files."""
+"""The run folder layout, defined once. Stages talk to each other only through these files.
+
+Every path inside a run folder is a `RunPaths` property: no other module joins a file name to
+a run folder (tests/test_architecture.py holds the rule; only recon/stages/, the pipeline and
+the CLI use RunPaths). What the dataset holds is asked of its `DatasetLayout`.
+"""
 
 from __future__ import annotations
 
@@ -12,6 +17,7 @@ from pathlib import Path
 
 from recon.errors import ReconError
 from recon.io.atomic import atomic_write_text
+from recon.io.dataset_layout import DatasetLayout
 
 # Written when recon creates a run folder: --force replaces only folders that hold it.
 RUN_MARKER = ".recon-run"
@@ -45,6 +51,16 @@ class RunPaths:
         return self.root / "diagnosis.json"
 
     @property
+    def diagnosis_folder(self) -> Path:
+        """The diagnosis's figures (diagnosis.json links them relative to the root)."""
+        return self.root / "diagnosis"
+
+    @property
+    def diagnosis_refit(self) -> Path:
+        """Scratch space of the diagnosis's refits (their checkpoints and history)."""
+        return self.diagnosis_folder / "refit"
+
+    @property
     def resolved_config(self) -> Path:
         return self.root / "config.resolved.yaml"
 
@@ -58,9 +74,33 @@ class RunPaths:
         return self.external_dataset if self.external_dataset is not None else self.root / "dataset"
 
     @property
+    def dataset_layout(self) -> DatasetLayout:
+        """What the dataset holds (its kind, splits, relight light, flat-field frames)."""
+        return DatasetLayout(self.dataset)
+
+    @property
     def ground_truth(self) -> Path:
         """Beside the dataset, never inside it: reference mesh, light, injected effects."""
         return self.root / "ground_truth"
+
+    @property
+    def reference_mesh(self) -> Path:
+        return self.ground_truth / "reference.obj"
+
+    @property
+    def truth_lighting(self) -> Path:
+        """The synthesised world's light (data_synth's lighting JSON)."""
+        return self.ground_truth / "lighting.json"
+
+    @property
+    def truth_environment(self) -> Path:
+        """The synthesised world's environment map, when it has one."""
+        return self.ground_truth / "environment.exr"
+
+    @property
+    def truth_effects(self) -> Path:
+        """The effects put into the captures (withheld ones only in --truth-out)."""
+        return self.ground_truth / "effects.json"
 
     @property
     def contact_sheet(self) -> Path:
@@ -76,6 +116,16 @@ class RunPaths:
         return self.root / "checkpoints"
 
     @property
+    def geometry_checkpoint(self) -> Path:
+        """The fit's geometry stage (remeshing), for --resume."""
+        return self.checkpoints / "geometry.pt"
+
+    @property
+    def texture_checkpoint(self) -> Path:
+        """The fit's texture (or pbr material) stage, for --resume."""
+        return self.checkpoints / "texture.pt"
+
+    @property
     def mesh_folder(self) -> Path:
         """The fitted mesh: model.obj (+ .mtl, texture PNG) and model.glb."""
         return self.root / "mesh"
@@ -83,6 +133,21 @@ class RunPaths:
     @property
     def fitted_mesh(self) -> Path:
         return self.mesh_folder / "model.obj"
+
+    @property
+    def fitted_glb(self) -> Path:
+        """The fitted mesh and its material as one GLB."""
+        return self.mesh_folder / "model.glb"
+
+    @property
+    def normalized_mesh(self) -> Path:
+        """The fitted mesh in the fit's normalised frame (dataset.normalize), beside model.obj."""
+        return self.mesh_folder / "normalized" / "model.obj"
+
+    @property
+    def normalized_light(self) -> Path:
+        """The fitted light in the fit's normalised frame (dataset.normalize), beside light.json."""
+        return self.light_folder / "normalized" / "light.json"
 
     @property
     def light_folder(self) -> Path:
@@ -99,9 +164,18 @@ class RunPaths:
         return self.root / "effects.json"
 
     @property
+    def fitted_environment(self) -> Path:
+        """The fitted light as an equirectangular map (the pbr fit's own environment)."""
+        return self.light_folder / "environment.exr"
+
+    @property
     def renders(self) -> Path:
         """Held-out views: target, render, error."""
         return self.root / "renders"
+
+    def render_panel(self, split: str, view: str) -> Path:
+        """One held-out view's panel (target | render | error); view names may hold '/'."""
+        return self.renders / f"{split}_{view.replace('/', '_')}.png"
 
     @property
     def metrics(self) -> Path:
@@ -110,6 +184,10 @@ class RunPaths:
     @property
     def figures(self) -> Path:
         return self.root / "figures"
+
+    def figure(self, name: str) -> Path:
+        """A report figure, figures/NAME.png (loss, turntable, material, geometry_error)."""
+        return self.figures / f"{name}.png"
 
     @property
     def report_html(self) -> Path:
@@ -124,15 +202,11 @@ class RunPaths:
         """The similarity transform from the dataset's frame to the fit's normalised frame."""
         return self.root / "normalization.json"
 
-    @property
-    def reference_mesh(self) -> Path:
-        return self.ground_truth / "reference.obj"
-
 
 def open_run_folder(root: str | Path, external_dataset: str | Path | None = None) -> RunPaths:
     """An existing run folder (for --resume and the single-stage commands)."""
     root = Path(root)
-    if not (root / "config.resolved.yaml").exists():
+    if not RunPaths(root).resolved_config.exists():
         raise ReconError(
             f"run folder {root}: no config.resolved.yaml here; is this a recon run folder?"
         )
@@ -141,7 +215,7 @@ def open_run_folder(root: str | Path, external_dataset: str | Path | None = None
 
 def is_recon_run_folder(root: str | Path) -> bool:
     """Whether recon created this folder (it holds the marker written at creation)."""
-    return (Path(root) / RUN_MARKER).is_file()
+    return RunPaths(Path(root)).marker.is_file()
 
 
 def _refuse_replacing(root: Path, inputs: Sequence[Path]) -> None:
@@ -243,7 +317,7 @@ def start_run_folder(
     try:
         root.mkdir(parents=True, exist_ok=True)
         atomic_write_text(
-            root / RUN_MARKER,
+            RunPaths(root).marker,
             json.dumps({"created": datetime.now(timezone.utc).isoformat(timespec="seconds")})
             + "\n",
         )

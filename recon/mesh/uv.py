@@ -8,7 +8,7 @@ Conventions (those of Mesh and recon.render.texture):
 - uv_faces [F, 3] index uvs in the same triangle order as faces, so a mesh keeps its positions
   shared by index and only the UVs are split at chart seams.
 
-xatlas's conventions (xatlas 0.0.11, checked in tests/mesh/test_mesh_uv.py):
+xatlas's conventions (xatlas 0.0.11, checked in tests/mesh/test_uv.py):
 
 - Its output uvs are texel positions divided by the atlas width and height, and its own atlas
   image (PackOptions.create_image) stores texel row y = v * height from the top: v grows

@@ -1,41 +1,47 @@
-"""The evaluate stage: the fitted scene against held-out views (and the reference mesh when the
-run has one) -> metrics.json and renders/ (target | render | error per view)."""
+"""The fitted scene against held-out views: renders, metrics and the comparison panels.
+
+The evaluate stage (recon/stages/evaluate.py) reads the run folder, calls these and writes
+metrics.json and renders/.
+"""
 
 from __future__ import annotations
 
-import json
+from collections.abc import Sequence
 
 import matplotlib
 import numpy as np
 import torch
 
-from recon.config.run_config import RunConfig
+from recon.effects.base import ModelEffect
 from recon.effects.forward import render_with_effects
-from recon.errors import ReconError, warn_user
-from recon.io.atomic import atomic_write_json
-from recon.io.datasets import held_out_split, read_captures
-from recon.io.images import linear_to_srgb, write_png
-from recon.io.meshes import load_mesh
-from recon.io.run_folder import RunPaths
+from recon.io.images import linear_to_srgb, srgb_to_linear
+from recon.mesh.mesh import Mesh
 from recon.metrics.geometry import geometry_metrics, mesh_stats
 from recon.metrics.image import image_metrics
-from recon.optimize.fit import load_fitted_light
-from recon.optimize.material_stage import load_pbr_result
-from recon.optimize.scene_model import FitEffects
+from recon.optimize.material_stage import PbrTextureResult
 from recon.render.renderer import Renderer
+from recon.render.shading import Lighting
 
 matplotlib.use("Agg")
 
 VIEWS_PER_BATCH = 4
 
 
-def render_fitted(paths: RunPaths, cameras, device: torch.device):
-    """Premultiplied colour [B, H, W, 3] and alpha [B, H, W, 1] of the fitted scene."""
-    mesh = load_mesh(paths.fitted_mesh).to(device)
-    lighting = load_fitted_light(paths, device)
-    # A run fitted with fit.material: pbr renders with its material maps and environment.
-    pbr = load_pbr_result(paths, device)
-    effects = load_fitted_effects(paths, device)
+def render_scene(
+    mesh: Mesh,
+    lighting: Lighting,
+    pbr: PbrTextureResult | None,
+    cameras,
+    device: torch.device,
+    effects: Sequence[ModelEffect] | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Premultiplied colour [B, H, W, 3] and alpha [B, H, W, 1] of a fitted scene (on the CPU).
+
+    A fit with fit.material 'pbr' (pbr given) renders with its material maps and environment;
+    otherwise the mesh's texture under lighting, with the fit's effect modules (fit.effects:
+    a specular lobe, shadows) when it had any.
+    """
+    mesh = mesh.to(device)
     renderer = Renderer(texture_filter="linear-mipmap-linear", texture_boundary="clamp")
     colors, alphas = [], []
     with torch.no_grad():
@@ -49,19 +55,23 @@ def render_fitted(paths: RunPaths, cameras, device: torch.device):
                 output = render_with_effects(renderer, mesh, batch, lighting, effects)
             colors.append(output.color.cpu())
             alphas.append(output.alpha.cpu())
-    return mesh, torch.cat(colors), torch.cat(alphas)
+    return torch.cat(colors), torch.cat(alphas)
 
 
-def load_fitted_effects(paths: RunPaths, device: torch.device) -> list:
-    """The run's fitted effect modules (RUN/effects.json, written when fit.effects was set), or
-    [] when it has none."""
-    if not paths.fitted_effects.exists():
-        return []
-    try:
-        data = json.loads(paths.fitted_effects.read_text())
-    except (OSError, json.JSONDecodeError) as error:
-        raise ReconError(f"{paths.fitted_effects}: unreadable effects record: {error}") from error
-    return FitEffects.modules_from_json(data, device)
+def heldout_metrics(
+    prediction: torch.Tensor,
+    target: torch.Tensor,
+    masks: torch.Tensor,
+    mesh: Mesh,
+    reference: Mesh | None = None,
+) -> dict:
+    """Image metrics of prediction vs target [B, H, W, 3] (both over the background; masks
+    [B, H, W, 1]), the mesh's statistics and, with a reference mesh, the geometry metrics."""
+    metrics: dict = {"image": image_metrics(prediction, target, mask=masks)}
+    metrics["mesh"] = mesh_stats(mesh.to("cpu"))
+    if reference is not None:
+        metrics["geometry"] = geometry_metrics(mesh.to("cpu"), reference, exact=True)
+    return metrics
 
 
 # The error panels map |sRGB error| from 0 (black) to this (white) through magma.
@@ -76,61 +86,32 @@ def error_image(prediction_srgb: torch.Tensor, target_srgb: torch.Tensor) -> tor
     return torch.from_numpy(colored.astype(np.float32))
 
 
-def evaluate_stage(config: RunConfig, paths: RunPaths, device: torch.device) -> dict:
-    """Entry point 'evaluate' of the recon.stages group."""
-    if not paths.fitted_mesh.exists():
-        raise ReconError(f"evaluate: no fitted mesh at {paths.fitted_mesh} (run the fit stage)")
-    split = held_out_split(paths.dataset)
-    if split == "val":
-        # Legal (a dataset without a test split), but the user must know what was scored.
-        warn_user(
-            f"{paths.dataset} has no transforms_test.json; evaluating on the 'val' split "
-            "instead (metrics.json says split: val)"
-        )
-    captures = read_captures(paths.dataset, split, config.dataset)
-    mesh, colors, alphas = render_fitted(paths, captures.cameras, device)
-    background = torch.tensor(config.capture.background)
-    prediction = colors + (1 - alphas) * background
-    target = captures.images + (1 - captures.masks) * background
-    metrics: dict = {"split": split, "views": len(captures.cameras)}
-    metrics["image"] = image_metrics(prediction, target, mask=captures.masks)
-    metrics["mesh"] = mesh_stats(mesh.to("cpu"))
-    if paths.reference_mesh.exists():
-        reference = load_mesh(paths.reference_mesh)
-        metrics["geometry"] = geometry_metrics(mesh.to("cpu"), reference, exact=True)
-    environment = json.loads(paths.environment.read_text()) if paths.environment.exists() else {}
-    metrics["stage_seconds"] = environment.get("stage_seconds", {})
-    atomic_write_json(paths.metrics, _plain(metrics))
-
-    paths.renders.mkdir(parents=True, exist_ok=True)
+def comparison_panels(prediction: torch.Tensor, target: torch.Tensor) -> list[torch.Tensor]:
+    """One linear panel [H, 3 W, 3] per view of prediction and target [B, H, W, 3]: target |
+    render | absolute sRGB error (write_png encodes them to sRGB)."""
     prediction_srgb = linear_to_srgb(prediction.clamp(0, 1))
     target_srgb = linear_to_srgb(target.clamp(0, 1))
-    for index, name in enumerate(captures.names):
+    panels = []
+    for index in range(len(prediction)):
         panel = torch.cat(
             [
                 target[index].clamp(0, 1),
                 prediction[index].clamp(0, 1),
                 # The error panel is already display-ready: undo the PNG's sRGB encoding.
-                _srgb_to_linear_for_png(error_image(prediction_srgb[index], target_srgb[index])),
+                srgb_to_linear(error_image(prediction_srgb[index], target_srgb[index])),
             ],
             dim=1,
         )
-        write_png(paths.renders / f"{split}_{name.replace('/', '_')}.png", panel)
-    return {"psnr": metrics["image"]["psnr"]}
+        panels.append(panel)
+    return panels
 
 
-def _srgb_to_linear_for_png(image: torch.Tensor) -> torch.Tensor:
-    from recon.io.images import srgb_to_linear
-
-    return srgb_to_linear(image)
-
-
-def _plain(value):
-    """JSON-ready: tensors and numpy scalars to Python numbers."""
+def plain_json(value):
+    """JSON-ready: tensors and numpy scalars to Python numbers, non-finite floats to None."""
     if isinstance(value, dict):
-        return {str(key): _plain(item) for key, item in value.items()}
+        return {str(key): plain_json(item) for key, item in value.items()}
     if isinstance(value, (list, tuple)):
-        return [_plain(item) for item in value]
+        return [plain_json(item) for item in value]
     if isinstance(value, torch.Tensor):
         return value.item() if value.numel() == 1 else value.tolist()
     if isinstance(value, np.generic):
@@ -138,3 +119,22 @@ def _plain(value):
     if isinstance(value, float) and not np.isfinite(value):
         return None
     return value
+
+
+# TEMPORARY, for recon/diagnose and tests/diagnose only (the diagnosis redesign, issue 20,
+# moves them onto recon/stages/): the old private name, and a renderer of a run folder.
+_plain = plain_json
+
+
+def render_fitted(paths, cameras, device: torch.device):
+    """TEMPORARY (see above): the fitted scene of a run folder rendered from cameras: (mesh,
+    colour [B, H, W, 3], alpha [B, H, W, 1])."""
+    from recon.io.meshes import load_mesh
+    from recon.optimize.fit import read_fitted_light
+    from recon.optimize.material_stage import read_pbr_result
+
+    mesh = load_mesh(paths.fitted_mesh).to(device)
+    lighting = read_fitted_light(paths.fitted_light, device)
+    pbr = read_pbr_result(paths.fitted_light, paths.fitted_mesh, device)
+    colors, alphas = render_scene(mesh, lighting, pbr, cameras, device)
+    return mesh, colors, alphas

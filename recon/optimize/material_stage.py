@@ -21,11 +21,9 @@ from tqdm import tqdm
 from recon.config.run_config import FitConfig
 from recon.effects.forward import apply_camera_effects, apply_image_effects
 from recon.errors import ReconError
-from recon.io.atomic import atomic_write_json
 from recon.io.datasets import CaptureSet
-from recon.io.images import read_exr, write_exr
-from recon.io.meshes import load_material_maps, load_mesh, save_mesh
-from recon.io.run_folder import RunPaths
+from recon.io.images import read_exr
+from recon.io.meshes import load_material_maps, load_mesh
 from recon.mesh.mesh import Mesh
 from recon.mesh.uv import dilate
 from recon.optimize.checkpoint import (
@@ -125,57 +123,48 @@ def light_from_environment(environment: torch.Tensor) -> LightModel:
     return light
 
 
-def write_pbr_result(paths: RunPaths, result: PbrTextureResult) -> dict:
-    """Write the `pbr` fit into the run folder: mesh/model.obj (+ base colour, roughness and
-    metallic PNGs, map_Kd / map_Pr / map_Pm), mesh/model.glb (metallic-roughness material),
-    light/environment.exr (the fitted environment itself) and light/light.json (its order-2 SH,
-    for Lambertian consumers, plus the pbr settings and the environment's file name)."""
-    paths.mesh_folder.mkdir(parents=True, exist_ok=True)
-    mesh = result.mesh.to("cpu")
-    maps = result.material.detach().cpu()
-    save_mesh(paths.fitted_mesh, mesh, material_maps=maps)
-    save_mesh(paths.mesh_folder / "model.glb", mesh, material_maps=maps)
-    paths.light_folder.mkdir(parents=True, exist_ok=True)
+def pbr_light_record(result: PbrTextureResult, environment_file: str) -> dict:
+    """The light record of a `pbr` fit: its environment's order-2 SH (for Lambertian consumers,
+    as a Lambertian fit writes it), the pbr settings, and the environment map's file name
+    (beside the record)."""
     record = result.light.to_json()
     record.update(
         {
             "material": "pbr",
-            "environment_file": "environment.exr",
+            "environment_file": environment_file,
             "specular_level": result.specular_level,
             "prefilter_levels": result.prefilter_levels,
             "diffuse_weighting": result.diffuse_weighting,
         }
     )
-    atomic_write_json(paths.fitted_light, record)
-    write_exr(paths.light_folder / "environment.exr", result.environment.detach().cpu())
-    return {
-        "faces": int(mesh.faces.shape[0]),
-        "vertices": int(mesh.verts.shape[0]),
-        "material": "pbr",
-    }
+    return record
 
 
-def load_pbr_result(paths: RunPaths, device: torch.device | str = "cpu"):
-    """The `pbr` fit of a run folder (write_pbr_result's files) as a PbrTextureResult, or None
-    when the run fitted the Lambertian material (its light.json names no 'pbr')."""
-    if not paths.fitted_light.exists():
+def read_pbr_result(
+    light_file: Path, mesh_file: Path, device: torch.device | str = "cpu"
+) -> PbrTextureResult | None:
+    """A `pbr` fit (pbr_light_record's record in light_file, the mesh with its roughness and
+    metallic maps in mesh_file) as a PbrTextureResult, or None when the fit was Lambertian (its
+    light record names no 'pbr') or there is no light record."""
+    light_file, mesh_file = Path(light_file), Path(mesh_file)
+    if not light_file.exists():
         return None
-    record = json.loads(paths.fitted_light.read_text())
+    record = json.loads(light_file.read_text())
     if record.get("material") != "pbr":
         return None
-    maps = load_material_maps(paths.fitted_mesh)
-    environment_path = paths.light_folder / record["environment_file"]
+    maps = load_material_maps(mesh_file)
+    environment_path = light_file.parent / record["environment_file"]
     missing = []
     if maps is None:
-        missing.append(f"the roughness/metallic maps (map_Pr, map_Pm) of {paths.fitted_mesh}")
+        missing.append(f"the roughness/metallic maps (map_Pr, map_Pm) of {mesh_file}")
     if not environment_path.exists():
         missing.append(str(environment_path))
     if missing:
         raise ReconError(
-            f"{paths.fitted_light}: names the pbr material, but {' and '.join(missing)} "
+            f"{light_file}: names the pbr material, but {' and '.join(missing)} "
             "are missing (rerun the fit stage)"
         )
-    mesh = load_mesh(paths.fitted_mesh).to(device)
+    mesh = load_mesh(mesh_file).to(device)
     environment = read_exr(environment_path)[..., :3].to(device)
     return PbrTextureResult(
         mesh,

@@ -9,10 +9,10 @@ direction to the viewer v, reflection direction R = 2 (n.v) n - v:
     diffuse  = b (1 - m) / pi E(n) (1 - (F0 A + B))    (diffuse_weighting 'specular_albedo')
 
 'none' is Karis' and Mitsuba's principled BSDF's choice (data_synth renders glossy scenes with
-the latter; tests/data_synth/test_pbr_vs_mitsuba.py measures the agreement); it can reflect a
-few percent more than it receives at grazing angles. 'specular_albedo' gives the diffuse lobe
-only what the specular lobe does not reflect, so a white material under a white furnace never
-exceeds 1. With roughness 1, metalness 0 and specular level 0 either is close to lambertian()
+the latter; tests/data_synth/test_mitsuba_backend_pbr.py measures the agreement); it can
+reflect a few percent more than it receives at grazing angles. 'specular_albedo' gives the
+diffuse lobe only what the specular lobe does not reflect, so a white material under a white
+furnace never exceeds 1. With roughness 1, metalness 0 and specular level 0 either is close to lambertian()
 under the same light.
 """
 

@@ -1,9 +1,10 @@
-"""The report stage: figures (matplotlib) and report.html / report.md from the run folder."""
+"""The report's figures (matplotlib) and its Markdown and HTML text, the diagnosis's tables and
+one-line parameter summaries. The report stage (recon/stages/report.py) gathers what the run
+folder holds and writes report.html / report.md."""
 
 from __future__ import annotations
 
 import html
-import json
 import math
 from pathlib import Path
 
@@ -12,19 +13,12 @@ import matplotlib.pyplot as plt
 import torch
 
 from recon.camera import Cameras, intrinsics_from_fov, look_at
-from recon.config.run_config import RunConfig
-from recon.io.atomic import atomic_path, atomic_write_text
+from recon.io.atomic import atomic_path
 from recon.io.images import save_contact_sheet
-from recon.io.meshes import load_mesh
-from recon.io.run_folder import RunPaths
 from recon.mesh.mesh import Mesh
 from recon.metrics.evaluate import ERROR_PANEL_MAXIMUM
-from recon.optimize.checkpoint import History
-from recon.optimize.fit import load_fitted_light
-from recon.optimize.material_stage import load_pbr_result
 from recon.render.renderer import Renderer
 from recon.render.shading import Lighting
-from recon.report.material_figure import material_figure
 
 matplotlib.use("Agg")
 
@@ -94,13 +88,6 @@ def framing_cameras(
     return Cameras(world_to_cam, intrinsics, (size, size), near=0.05 * distance, far=3 * distance)
 
 
-def scene_up(paths: RunPaths) -> list[float] | None:
-    """The up axis recorded by the fit's normalisation (normalization.json), or None."""
-    if not paths.normalization.exists():
-        return None
-    return json.loads(paths.normalization.read_text()).get("up")
-
-
 def turntable(
     mesh: Mesh,
     lighting: Lighting,
@@ -121,8 +108,8 @@ HELD_OUT_PANEL_PIXELS = 320
 
 def held_out_figure(panel_path: Path, path: Path) -> None:
     """A held-out view (evaluate's target | render | error PNG [H, 3W, 3]) as a figure: the
-    three panels titled, at least HELD_OUT_PANEL_PIXELS wide each, and the error panel with
-    its colour bar (|sRGB error|, magma, 0 .. ERROR_PANEL_MAXIMUM)."""
+    three panels titled, about HELD_OUT_PANEL_PIXELS wide each at least, and the error panel
+    with its colour bar (|sRGB error|, magma, 0 .. ERROR_PANEL_MAXIMUM)."""
     from PIL import Image
 
     with Image.open(panel_path) as image:
@@ -138,11 +125,10 @@ def held_out_figure(panel_path: Path, path: Path) -> None:
         1, 3, figsize=(3 * panel_inches + 1.0, panel_inches * height / panel_width + 0.5)
     )
     for axis, panel, title in zip(axes, panels, ("photo", "render", "error"), strict=True):
-        shown = axis.imshow(panel, interpolation="nearest")
+        axis.imshow(panel, interpolation="nearest")
         axis.set_title(title)
         axis.set_axis_off()
     # The error panel is already colour-mapped: a colour bar with the same map and range.
-    shown.set_cmap("magma")
     scale = matplotlib.cm.ScalarMappable(
         norm=matplotlib.colors.Normalize(0.0, ERROR_PANEL_MAXIMUM), cmap="magma"
     )
@@ -188,57 +174,14 @@ def _metric_rows(metrics: dict) -> list[tuple[str, str]]:
     return rows
 
 
-def report_stage(config: RunConfig, paths: RunPaths, device: torch.device) -> dict:
-    """Entry point 'report' of the recon.stages group: whatever the run folder holds."""
-    figures: list[tuple[str, Path]] = []
-    records = History(paths.history).records()
-    if records:
-        loss_figure(records, paths.figures / "loss.png")
-        figures.append(("Loss and training PSNR", paths.figures / "loss.png"))
-    if paths.contact_sheet.exists():
-        figures.append(("Training captures", paths.contact_sheet))
-    if paths.fitted_mesh.exists():
-        mesh = load_mesh(paths.fitted_mesh)
-        lighting = load_fitted_light(paths, device)
-        turntable(mesh, lighting, paths.figures / "turntable.png", device, scene_up(paths))
-        figures.append(("Fitted mesh, turntable", paths.figures / "turntable.png"))
-        pbr = load_pbr_result(paths)
-        if pbr is not None:
-            material_figure(pbr, paths.figures / "material.png")
-            figures.append(
-                ("Fitted material and environment (pbr)", paths.figures / "material.png")
-            )
-        if paths.reference_mesh.exists():
-            geometry_error_figure(
-                mesh,
-                load_mesh(paths.reference_mesh),
-                paths.figures / "geometry_error.png",
-                device,
-                scene_up(paths),
-            )
-            figures.append(
-                (
-                    "Distance to the reference (viridis: 0 to 1 % of the diagonal)",
-                    paths.figures / "geometry_error.png",
-                )
-            )
-    if paths.renders.exists():
-        for render in sorted(paths.renders.glob("*.png"))[:8]:
-            figure_path = paths.figures / f"held_out_{render.stem}.png"
-            held_out_figure(render, figure_path)
-            figures.append(
-                (
-                    f"Held-out view {render.stem}: photo | render | absolute sRGB error "
-                    f"(magma, 0 to {ERROR_PANEL_MAXIMUM})",
-                    figure_path,
-                )
-            )
-    metrics = json.loads(paths.metrics.read_text()) if paths.metrics.exists() else {}
+def render_report(
+    name: str, metrics: dict, diagnosis: dict | None, figures: list[tuple[str, str]]
+) -> tuple[str, str]:
+    """The report as (Markdown, HTML) text: the metrics table (metrics.json's record), the
+    diagnosis's verdict and tables when there is one, then each (title, relative link) figure."""
     rows = _metric_rows(metrics)
-    diagnosis_path = paths.root / "diagnosis.json"
     diagnosis_markdown: list[str] = []
-    if diagnosis_path.exists():
-        diagnosis = json.loads(diagnosis_path.read_text())
+    if diagnosis is not None:
         rows.append(("diagnosis.verdict", diagnosis["verdict"]))
         diagnosis_markdown = ["", "## Gap diagnosis", "", f"Verdict: {diagnosis['verdict']}", ""]
         diagnosis_markdown += _markdown_table(*_ranking_table(diagnosis))
@@ -246,22 +189,17 @@ def report_stage(config: RunConfig, paths: RunPaths, device: torch.device) -> di
             diagnosis_markdown += [""] + _markdown_table(*_parameter_table(diagnosis))
         if diagnosis.get("refits"):
             diagnosis_markdown += [""] + _markdown_table(*_refit_table(diagnosis))
-        for name, link in diagnosis.get("figures", {}).items():
-            figures.append((f"Diagnosis: {name.replace('_', ' ')}", paths.root / link))
-    relative = [(title, figure.relative_to(paths.root).as_posix()) for title, figure in figures]
-    markdown = [f"# recon report: {config.name}", "", "| metric | value |", "|---|---|"]
-    markdown += [f"| {name} | {value} |" for name, value in rows]
+    markdown = [f"# recon report: {name}", "", "| metric | value |", "|---|---|"]
+    markdown += [f"| {key} | {value} |" for key, value in rows]
     markdown += diagnosis_markdown
-    for title, link in relative:
+    for title, link in figures:
         markdown += ["", f"## {title}", "", f"![{title}]({link})"]
-    atomic_write_text(paths.report_markdown, "\n".join(markdown) + "\n")
     table = "".join(
-        f"<tr><td>{html.escape(name)}</td><td>{html.escape(value)}</td></tr>"
-        for name, value in rows
+        f"<tr><td>{html.escape(key)}</td><td>{html.escape(value)}</td></tr>" for key, value in rows
     )
     body = "".join(
         f"<h2>{html.escape(title)}</h2><img src='{html.escape(link)}' style='max-width:100%'>"
-        for title, link in relative
+        for title, link in figures
     )
     if diagnosis_markdown:
         diagnosis_tables = [_ranking_table(diagnosis)]
@@ -277,14 +215,13 @@ def report_stage(config: RunConfig, paths: RunPaths, device: torch.device) -> di
         )
     page = (
         "<!doctype html><html><head><meta charset='utf-8'>"
-        f"<title>recon report: {html.escape(config.name)}</title>"
+        f"<title>recon report: {html.escape(name)}</title>"
         "<style>body{font-family:sans-serif;max-width:1100px;margin:auto}"
         "td{padding:2px 12px;border-bottom:1px solid #ddd}</style></head><body>"
-        f"<h1>recon report: {html.escape(config.name)}</h1><table>{table}</table>{body}"
+        f"<h1>recon report: {html.escape(name)}</h1><table>{table}</table>{body}"
         "</body></html>"
     )
-    atomic_write_text(paths.report_html, page)
-    return {"figures": len(figures)}
+    return "\n".join(markdown) + "\n", page
 
 
 def _ranking_table(diagnosis: dict) -> tuple[list[str], list[list[str]]]:

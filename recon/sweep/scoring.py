@@ -12,10 +12,10 @@ from __future__ import annotations
 
 import statistics
 from dataclasses import dataclass
+from pathlib import Path
 
 import torch
 
-from recon.io.run_folder import RunPaths
 from recon.report.report import recovered_parameters
 
 # The label of a case with nothing withheld, and the prediction of a diagnosis that names
@@ -45,7 +45,7 @@ def score_case(
     truth: dict,
     fit_seconds: float,
     diagnose_seconds: float,
-    paths: RunPaths,
+    run_folder: Path,
 ) -> dict:
     significant = [item["effect"] for item in diagnosis["ranking"] if item["significant"]]
     top = significant[0] if significant else NONE
@@ -71,7 +71,7 @@ def score_case(
         "diagnosis_share_of_fit": diagnosis["timings"]["diagnose_seconds"] / max(fit_seconds, 1e-9),
         "refit_share_of_fit": diagnosis["timings"].get("refit_seconds", 0.0)
         / max(fit_seconds, 1e-9),
-        "run_folder": str(paths.root),
+        "run_folder": str(run_folder),
     }
     record["parameter_error"] = parameter_errors(diagnosis, truth)
     return record

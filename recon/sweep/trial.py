@@ -28,6 +28,7 @@ from recon.config import load_config
 from recon.config.run_config import RunConfig
 from recon.errors import ReconError
 from recon.io.atomic import atomic_write_json, atomic_write_text
+from recon.io.run_folder import RunPaths
 
 RESULT_NAME = "result.json"
 RUNNING_NAME = "running.json"
@@ -37,14 +38,14 @@ def read_metric(name: str, run_folder: Path, score: dict | None) -> object:
     """The value of metric 'SOURCE.KEY.PATH' for the trial whose run folder is run_folder."""
     source, _, key = name.partition(".")
     if source == "metrics":
-        path = run_folder / "metrics.json"
+        path = RunPaths(run_folder).metrics
         if not path.exists():
             raise ReconError(
                 f"metric {name!r}: {path} not found (add 'evaluate' to the base config's stages)"
             )
         data = json.loads(path.read_text())
     elif source == "fit":
-        path = run_folder / "history.jsonl"
+        path = RunPaths(run_folder).history
         lines = path.read_text().splitlines() if path.exists() else []
         if not lines:
             raise ReconError(f"metric {name!r}: {path} has no fit record")
@@ -128,7 +129,7 @@ def _run(trial: dict, folder: Path, run_folder: Path, settings: dict, record: di
     synth_options = (
         {"withhold_effects": list(withhold), "truth_out": truth_path} if withhold else {}
     )
-    if (run_folder / "config.resolved.yaml").exists():
+    if RunPaths(run_folder).resolved_config.exists():
         # An interrupted trial: finished stages are skipped, the fit resumes from its checkpoint.
         record["resumed"] = True
         paths = pipeline.resume(
@@ -169,5 +170,10 @@ def _diagnose(trial: dict, paths, truth_path: Path, settings: dict) -> dict:
     environment = json.loads(paths.environment.read_text())
     fit_seconds = sum(environment.get("stage_seconds", {}).values())
     return score_case(
-        BenchCase(withheld, trial["seed"]), diagnosis, truth, fit_seconds, diagnose_seconds, paths
+        BenchCase(withheld, trial["seed"]),
+        diagnosis,
+        truth,
+        fit_seconds,
+        diagnose_seconds,
+        paths.root,
     )

@@ -13,7 +13,7 @@ from data_synth.effects.world_effect import pixel_grid
 from data_synth.flat_field import flat_field_capture
 from recon.config.run_config import CameraRigConfig, CaptureConfig, EffectConfig, FlatFieldConfig
 from recon.diagnose.flat_field import measure_flat_field
-from tests.data_synth.test_synth_stage import effects_record, read_split, synth
+from tests.data_synth.test_stage import effects_record, read_split, synth
 
 SIZE = 48
 CAPTURE = CaptureConfig(

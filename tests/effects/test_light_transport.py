@@ -1,23 +1,232 @@
-"""Shading effects under a light fixed to the camera (recon.effects.light_transport with
-Lighting.frame 'camera'): an object and its camera turned together give the same highlight and
-the same shadow, as on a turntable; with a world-frame light they do not. Two views in one
-batch each get their own light direction."""
+"""Model effects specular, shadows, interreflection: the dominant light, shadow-map visibility,
+mesh occlusion, identity at zero, gradients against central differences (float64) and
+recovery of their own parameters from a render they changed.
+Under a light fixed to the camera (frame 'camera'), an object and its camera turned together
+keep the same highlight and shadow; two views of one batch get their own light direction."""
 
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
 import trimesh
 
 from recon.camera import Cameras, look_at
+from recon.effects import EffectContext, Interreflection, Shadows, Specular, dominant_light
 from recon.effects.forward import render_with_effects
-from recon.effects.light_transport import view_light_directions
+from recon.effects.light_transport import (
+    OCCLUSION_TOLERANCE,
+    mean_irradiance,
+    vertex_occlusion,
+    view_directions,
+    view_light_directions,
+)
 from recon.effects.registry import make_effect
+from recon.errors import ReconError
 from recon.mesh.mesh import Mesh
 from recon.render.renderer import Renderer
-from recon.render.shading import DirectionalLight, Lighting
+from recon.render.shading import DirectionalLight, Lighting, sh_basis
+
+
+def _context(scene) -> EffectContext:
+    return EffectContext(scene.mesh, scene.lighting, scene.cameras, scene.views)
+
+
+def _double(output):
+    return replace(
+        output,
+        color=output.color.double(),
+        alpha=output.alpha.double(),
+        normals=output.normals.double(),
+        albedo=output.albedo.double(),
+    )
+
+
+def test_dominant_light_prefers_the_brightest_sun_then_the_sh_linear_band():
+    lighting = Lighting.constant(0.5)
+    weak = DirectionalLight(torch.tensor([1.0, 0.0, 0.0]), torch.tensor([0.5, 0.5, 0.5]))
+    strong = DirectionalLight(torch.tensor([0.0, 2.0, 0.0]), torch.tensor([2.0, 1.0, 1.0]))
+    lighting.directional = [weak, strong]
+    direction, irradiance = dominant_light(lighting)
+    torch.testing.assert_close(direction, torch.tensor([0.0, 1.0, 0.0]))
+    torch.testing.assert_close(irradiance, torch.tensor([2.0, 1.0, 1.0]))
+    # A delta light of irradiance E along d projected into SH has band one E Y_1m(d): the
+    # linear band gives back d and E.
+    toward = torch.nn.functional.normalize(torch.tensor([0.3, 0.8, -0.5]), dim=0)
+    sh = Lighting.constant(0.2).sh_coefficients.clone()
+    sh[1:4] += sh_basis(toward)[1:4, None] * torch.tensor([[1.5, 1.2, 0.9]])
+    direction, irradiance = dominant_light(Lighting(sh_coefficients=sh))
+    torch.testing.assert_close(direction, toward)
+    torch.testing.assert_close(irradiance, torch.tensor([1.5, 1.2, 0.9]))
+    # A uniform environment has no dominant direction.
+    assert torch.equal(dominant_light(Lighting.constant(1.0))[1], torch.zeros(3))
+    # Mean irradiance: pi x the uniform radiance, plus a quarter of each sun.
+    torch.testing.assert_close(
+        mean_irradiance(lighting), math.pi * 0.5 + torch.tensor([0.625, 0.375, 0.375])
+    )
+
+
+def test_view_directions_point_back_to_the_camera(sphere_scene):
+    cameras = sphere_scene.cameras
+    directions = view_directions(cameras, 40, 40, torch.zeros(()))
+    # The pixels around the principal point (20, 20) look along the optical axis.
+    centre = directions[:, 19:21, 19:21].mean(dim=(1, 2))
+    toward_camera = torch.nn.functional.normalize(cameras.centers(), dim=-1)  # looks at 0
+    torch.testing.assert_close(
+        torch.nn.functional.normalize(centre, dim=-1), toward_camera, atol=2e-3, rtol=0
+    )
+
+
+@pytest.mark.parametrize("effect_class", [Specular, Shadows, Interreflection])
+def test_identity_at_zero_is_exact(effect_class, shadow_scene):
+    effect = effect_class()
+    output = effect(shadow_scene.output, _context(shadow_scene))
+    assert torch.equal(output.color, shadow_scene.output.color)
+    assert (
+        output.alpha is shadow_scene.output.alpha and output.normals is shadow_scene.output.normals
+    )
+
+
+def test_shading_effects_need_a_context(sphere_scene):
+    with pytest.raises(ReconError, match="EffectContext"):
+        Specular()(sphere_scene.output, None)
+    context = replace(_context(sphere_scene), cameras=sphere_scene.cameras[0])
+    with pytest.raises(ReconError, match="cameras"):
+        Shadows()(sphere_scene.output, context)
+
+
+def test_shadow_map_darkens_the_cast_shadow_only(shadow_scene, sphere_scene):
+    direction = dominant_light(shadow_scene.lighting)[0]
+    effect = Shadows(map_resolution=128)
+    visibility = effect.visibility(shadow_scene.output, shadow_scene.mesh, direction).detach()
+    normals = shadow_scene.output.normals
+    facing = (normals * direction).sum(-1) > 0.3
+    lit_share = float((visibility[..., 0][facing] > 0.95).double().mean())
+    shadowed_share = float((visibility[..., 0][facing] < 0.05).double().mean())
+    # Most light-facing surface is lit (no acne); the sphere's shadow on the ground is dark.
+    assert lit_share > 0.85 and shadowed_share > 0.03
+    assert float(visibility[shadow_scene.output.mask == 0].min()) == 1.0
+    # A convex sphere casts nothing onto itself where it faces the light.
+    direction = dominant_light(sphere_scene.lighting)[0]
+    alone = Shadows(map_resolution=128).visibility(
+        sphere_scene.output, sphere_scene.mesh, direction
+    )
+    facing = (sphere_scene.output.normals * direction).sum(-1) > 0.2
+    assert float(alone.detach()[..., 0][facing].min()) > 0.95
+
+
+def test_shadow_map_is_cached_for_an_unchanged_mesh(shadow_scene):
+    effect = Shadows(map_resolution=64)
+    direction = dominant_light(shadow_scene.lighting)[0]
+    first = effect.shadow_map(shadow_scene.mesh, direction)[1]
+    assert effect.shadow_map(shadow_scene.mesh, direction)[1] is first
+    moved = replace(shadow_scene.mesh, verts=shadow_scene.mesh.verts + 0.01)
+    assert effect.shadow_map(moved, direction)[1] is not first
+
+
+def test_occlusion_is_kept_for_a_nudge_and_redrawn_for_a_move(shadow_scene):
+    effect = Interreflection(directions=16, map_resolution=32)
+    mesh = shadow_scene.mesh
+    first = effect.occlusion(mesh)
+    diagonal = float((mesh.verts.max(0).values - mesh.verts.min(0).values).norm())
+    nudged = replace(mesh, verts=mesh.verts + 0.5 * OCCLUSION_TOLERANCE * diagonal)
+    assert effect.occlusion(nudged) is first
+    moved = replace(mesh, verts=mesh.verts * 1.05)
+    assert effect.occlusion(moved) is not first
+
+
+def test_vertex_occlusion_is_zero_on_a_convex_shape_and_high_under_an_overhang(
+    sphere_scene, shadow_scene
+):
+    convex = vertex_occlusion(sphere_scene.mesh.verts, sphere_scene.mesh.faces, 32, 64)
+    assert float(convex.max()) < 0.05
+    verts = shadow_scene.mesh.verts
+    occlusion = vertex_occlusion(verts, shadow_scene.mesh.faces, 32, 64)
+    top = (verts[:, 1] > -0.26) & (verts[:, 1] < 0) & (verts[:, [0, 2]].abs().amax(-1) < 0.9)
+    radius = verts[:, [0, 2]].norm(dim=-1)
+    under, far = occlusion[top & (radius < 0.2)], occlusion[top & (radius > 0.7)]
+    assert float(under.mean()) > 0.2 and float(far.mean()) < 0.12
+
+
+def _set(effect, values: dict) -> None:
+    with torch.no_grad():
+        for name, value in values.items():
+            getattr(effect, name).fill_(value)
+
+
+@pytest.mark.parametrize(
+    "effect_class, values, checked",
+    [
+        (Specular, {"strength": 0.3, "log_exponent": 0.4}, ["strength", "log_exponent"]),
+        (Shadows, {"strength": 0.6, "log_softness": 0.5}, ["strength", "log_softness"]),
+        (Interreflection, {"strength": 0.8}, ["strength"]),
+    ],
+)
+def test_gradients_match_central_differences(
+    effect_class, values, checked, shadow_scene, central_difference
+):
+    output = _double(shadow_scene.output)
+    context = _context(shadow_scene)
+    effect = effect_class().double()
+    if effect_class is Shadows:
+        effect = Shadows(map_resolution=96).double()
+    _set(effect, values)
+    weights = torch.rand(
+        output.color.shape, generator=torch.Generator().manual_seed(4), dtype=torch.float64
+    )
+
+    def loss():
+        return (effect(output, context).color * weights).sum()
+
+    effect.zero_grad()
+    loss().backward()
+    for name in checked:
+        parameter = getattr(effect, name)
+        expected = central_difference(loss, parameter, ())
+        assert expected != 0.0
+        assert parameter.grad.item() == pytest.approx(expected, rel=1e-5, abs=1e-9)
+
+
+def _recover(effect, scene, values, steps, adam_fit):
+    context = _context(scene)
+    _set(effect, values)
+    with torch.no_grad():
+        target = effect(scene.output, context).color
+    truth = effect.parameters_summary()
+    effect.reset_parameters()
+    adam_fit(effect, lambda: effect(scene.output, context).color, target, steps)
+    return truth, effect.parameters_summary()
+
+
+def test_specular_recovers_strength_and_exponent(shadow_scene, adam_fit):
+    truth, recovered = _recover(
+        Specular(), shadow_scene, {"strength": 0.3, "log_exponent": 0.5}, 100, adam_fit
+    )
+    assert recovered["strength"] == pytest.approx(truth["strength"], rel=0.05)
+    assert recovered["exponent"] == pytest.approx(truth["exponent"], rel=0.1)
+    assert recovered["equivalent_roughness"] == pytest.approx(
+        truth["equivalent_roughness"], rel=0.05
+    )
+
+
+def test_shadows_recover_strength(shadow_scene, adam_fit):
+    truth, recovered = _recover(
+        Shadows(map_resolution=128),
+        shadow_scene,
+        {"strength": 0.7, "log_softness": 0.5},
+        100,
+        adam_fit,
+    )
+    assert recovered["strength"] == pytest.approx(0.7, rel=0.05)
+    assert recovered["softness_texels"] == pytest.approx(truth["softness_texels"], rel=0.3)
+
+
+def test_interreflection_recovers_strength(shadow_scene, adam_fit):
+    truth, recovered = _recover(Interreflection(), shadow_scene, {"strength": 0.8}, 100, adam_fit)
+    assert recovered["strength"] == pytest.approx(0.8, rel=0.05)
+    assert 0.0 < recovered["mean_vertex_occlusion"] < 0.5
 
 
 def rotation_matrix(axis: list[float], angle: float) -> torch.Tensor:

@@ -1,5 +1,5 @@
-"""The fit's effect modules leave the fit in RUN/effects.json (FitEffects.to_json) and come back
-for the evaluate stage (recon.metrics.evaluate.load_fitted_effects) with the same values."""
+"""The fit's effect modules (FitEffects) leave the fit as a JSON record (to_json, RUN/effects.json)
+and come back as modules (modules_from_json) with the same values."""
 
 from __future__ import annotations
 
@@ -9,10 +9,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from recon.errors import ReconError
 from recon.io.run_folder import RunPaths
-from recon.metrics.evaluate import load_fitted_effects
 from recon.optimize.scene_model import FitEffects
+from recon.stages.fitted_scene import load_fitted_effects
 
 
 def test_fitted_effects_round_trip_through_the_run_folder(tmp_path: Path) -> None:
@@ -32,11 +31,3 @@ def test_fitted_effects_round_trip_through_the_run_folder(tmp_path: Path) -> Non
     assert json.loads(paths.fitted_effects.read_text())["effects"][0]["summary"]["strength"] == (
         pytest.approx(0.7)
     )
-
-
-def test_no_effects_file_means_no_effects_and_a_broken_one_is_named(tmp_path: Path) -> None:
-    paths = RunPaths(tmp_path)
-    assert load_fitted_effects(paths, torch.device("cpu")) == []
-    paths.fitted_effects.write_text("{not json")
-    with pytest.raises(ReconError, match="effects.json"):
-        load_fitted_effects(paths, torch.device("cpu"))

@@ -77,7 +77,8 @@ def test_config_errors_name_file_key_and_suggestion(tmp_path, capsys):
 
 # The layering of recon's top-level modules and packages, lowest first; a module may import
 # its own layer and the layers below. io sits above camera and mesh because its readers build
-# Cameras and Meshes; sweep schedules runs (and scores blind diagnoses, recon.sweep.scoring);
+# Cameras and Meshes; stages (the only modules that read or write a run folder) sit on the
+# library packages they call; sweep schedules runs (and scores blind diagnoses, recon.sweep.scoring);
 # the CLI modules sit on top. The benchmarks are a package of their own above recon and
 # data_synth (test_benchmarks_sit_above_everything_and_scripts_use_public_names).
 LAYERS = [
@@ -89,6 +90,7 @@ LAYERS = [
     ["effects"],
     ["optimize", "metrics"],
     ["diagnose", "report"],
+    ["stages"],
     ["preflight"],
     ["pipeline"],
     ["sweep"],

@@ -1,6 +1,5 @@
-"""The report's figures for real captures (recon.report.report): held-out views large enough to
-see with the error panel's colour scale, and views framed by the mesh's bounds and up axis
-wherever the dataset put the object."""
+"""The report's text pieces: one-line parameter summaries.
+Held-out views as large figures with the error colour bar; views framed by bounds and up."""
 
 from __future__ import annotations
 
@@ -15,7 +14,27 @@ from recon.mesh.mesh import Mesh
 from recon.metrics.evaluate import ERROR_PANEL_MAXIMUM, error_image
 from recon.render.renderer import Renderer
 from recon.render.shading import Lighting
-from recon.report.report import HELD_OUT_PANEL_PIXELS, framing_cameras, held_out_figure
+from recon.report.report import (
+    HELD_OUT_PANEL_PIXELS,
+    framing_cameras,
+    held_out_figure,
+    summarise_parameters,
+)
+
+
+def test_parameter_summaries_keep_numbers_and_ranges():
+    line = summarise_parameters(
+        {
+            "ratios": [1.0, 0.5, 2.0],
+            "gamma": 0.81234,
+            "pinned_view": None,
+            "model": "x_distorted = x (1 + k1 r^2 + k2 r^4), normalised coordinates",
+            "rows": [[1.0, 2.0]],
+            "unit": "stops",
+            "held": True,
+        }
+    )
+    assert line == "ratios 0.5..2 (3), gamma 0.812, unit stops"
 
 
 def test_a_small_held_out_view_becomes_a_large_figure_with_a_colour_bar(tmp_path: Path) -> None:

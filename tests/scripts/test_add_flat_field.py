@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from tests.data_synth.test_synth_stage import read_split, synth
+from tests.data_synth.test_stage import read_split, synth
 
 SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "add_flat_field.py"
 

@@ -6,7 +6,6 @@ from pathlib import Path
 
 import pytest
 
-from recon.io.run_folder import RunPaths
 from recon.sweep.scoring import NONE, BenchCase, parameter_errors, score_case
 
 
@@ -76,7 +75,7 @@ def test_a_case_is_labelled_by_what_it_withholds():
 
 
 def test_score_case_reads_top1_pairs_and_false_positives():
-    paths = RunPaths(Path("run"))
+    paths = Path("run")
     single = score_case(
         BenchCase(("vignetting",), 0),
         _diagnosis(["exposure", "vignetting"]),

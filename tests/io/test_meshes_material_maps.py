@@ -1,18 +1,13 @@
-"""Export of the `pbr` material: OBJ/MTL map_Pr/map_Pm, GLB metallic-roughness, EXR light."""
+"""Material maps of the `pbr` material in meshes: OBJ/MTL map_Pr/map_Pm, GLB metallic-roughness."""
 
 from __future__ import annotations
-
-import json
 
 import pytest
 import torch
 
 from recon.errors import ReconError
-from recon.io.images import read_exr
 from recon.io.meshes import load_material_maps, load_mesh, save_mesh
-from recon.io.run_folder import RunPaths
 from recon.mesh.mesh import Mesh
-from recon.optimize.material_stage import PbrTextureResult, light_from_environment, write_pbr_result
 
 
 def _textured_quad() -> tuple[Mesh, torch.Tensor]:
@@ -54,36 +49,3 @@ def test_material_maps_of_the_wrong_shape_are_refused_by_name(tmp_path):
     mesh, maps = _textured_quad()
     with pytest.raises(ReconError, match=r"material_maps: expected \[h, w, 2\].*\(8, 8, 3\)"):
         save_mesh(tmp_path / "bad.obj", mesh, material_maps=torch.cat([maps, maps[..., :1]], -1))
-
-
-def test_write_pbr_result_writes_mesh_maps_environment_and_light(tmp_path):
-    mesh, maps = _textured_quad()
-    environment = torch.rand(4, 8, 3, generator=torch.Generator().manual_seed(1))
-    result = PbrTextureResult(mesh, maps, environment, light_from_environment(environment), 0.5, 4)
-    paths = RunPaths(tmp_path)
-    summary = write_pbr_result(paths, result)
-    assert summary["material"] == "pbr" and summary["faces"] == 2
-    torch.testing.assert_close(read_exr(paths.light_folder / "environment.exr"), environment)
-    record = json.loads(paths.fitted_light.read_text())
-    assert record["material"] == "pbr" and record["environment_file"] == "environment.exr"
-    assert len(record["sh_coefficients"]) == 9
-    assert load_material_maps(paths.fitted_mesh) is not None
-    assert load_material_maps(paths.mesh_folder / "model.glb") is not None
-
-
-def test_a_pbr_run_with_its_environment_missing_is_named(tmp_path):
-    from recon.optimize.material_stage import load_pbr_result
-
-    mesh, maps = _textured_quad()
-    environment = torch.ones(4, 8, 3)
-    paths = RunPaths(tmp_path)
-    write_pbr_result(
-        paths,
-        PbrTextureResult(mesh, maps, environment, light_from_environment(environment), 0.5, 4),
-    )
-    loaded = load_pbr_result(paths)
-    torch.testing.assert_close(loaded.environment, environment)
-    assert loaded.prefilter_levels == 4 and loaded.material.shape == (8, 8, 2)
-    (paths.light_folder / "environment.exr").unlink()
-    with pytest.raises(ReconError, match=r"light.json: names the pbr material, but .*environment"):
-        load_pbr_result(paths)

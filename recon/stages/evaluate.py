@@ -1,0 +1,51 @@
+"""The evaluate stage: the fitted scene against the held-out views (and the reference mesh when
+the run has one) -> metrics.json and renders/ (target | render | error per view)."""
+
+from __future__ import annotations
+
+import json
+
+import torch
+
+from recon.config.run_config import RunConfig
+from recon.errors import ReconError, warn_user
+from recon.io.atomic import atomic_write_json
+from recon.io.datasets import read_captures
+from recon.io.images import write_png
+from recon.io.meshes import load_mesh
+from recon.io.run_folder import RunPaths
+from recon.metrics.evaluate import comparison_panels, heldout_metrics, plain_json, render_scene
+from recon.stages.fitted_scene import load_fitted_scene
+
+
+def evaluate_stage(config: RunConfig, paths: RunPaths, device: torch.device) -> dict:
+    """Stage 'evaluate': metrics.json (split, views, image, mesh, geometry, stage_seconds) and
+    one comparison panel per held-out view."""
+    if not paths.fitted_mesh.exists():
+        raise ReconError(f"evaluate: no fitted mesh at {paths.fitted_mesh} (run the fit stage)")
+    layout = paths.dataset_layout
+    split = layout.held_out_split
+    if split == "val":
+        # Legal (a dataset without a test split), but the user must know what was scored.
+        warn_user(
+            f"{paths.dataset} has no {layout.split_file('test').name}; evaluating on the 'val' "
+            "split instead (metrics.json says split: val)"
+        )
+    captures = read_captures(paths.dataset, split, config.dataset)
+    scene = load_fitted_scene(paths, device)
+    colors, alphas = render_scene(
+        scene.mesh, scene.lighting, scene.pbr, captures.cameras, device, scene.effects
+    )
+    background = torch.tensor(config.capture.background)
+    prediction = colors + (1 - alphas) * background
+    target = captures.images + (1 - captures.masks) * background
+    reference = load_mesh(paths.reference_mesh) if paths.reference_mesh.exists() else None
+    metrics: dict = {"split": split, "views": len(captures.cameras)}
+    metrics.update(heldout_metrics(prediction, target, captures.masks, scene.mesh, reference))
+    environment = json.loads(paths.environment.read_text()) if paths.environment.exists() else {}
+    metrics["stage_seconds"] = environment.get("stage_seconds", {})
+    atomic_write_json(paths.metrics, plain_json(metrics))
+    paths.renders.mkdir(parents=True, exist_ok=True)
+    for name, panel in zip(captures.names, comparison_panels(prediction, target), strict=True):
+        write_png(paths.render_panel(split, name), panel)
+    return {"psnr": metrics["image"]["psnr"]}

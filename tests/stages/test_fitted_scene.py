@@ -1,0 +1,66 @@
+"""The fitted scene's files in a run folder: a `pbr` fit's mesh, maps, environment and light
+written and read back (recon.stages.fitted_scene); the fitted effects record read back."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from recon.errors import ReconError
+from recon.io.images import read_exr
+from recon.io.meshes import load_material_maps
+from recon.io.run_folder import RunPaths
+from recon.mesh.mesh import Mesh
+from recon.optimize.material_stage import PbrTextureResult, light_from_environment
+from recon.stages.fitted_scene import load_fitted_effects, load_pbr_fit, write_pbr_fit
+
+
+def _textured_quad() -> tuple[Mesh, torch.Tensor]:
+    verts = torch.tensor([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], dtype=torch.float32)
+    faces = torch.tensor([[0, 1, 2], [0, 2, 3]])
+    uvs = torch.tensor([[0, 1], [1, 1], [1, 0], [0, 0]], dtype=torch.float32)
+    generator = torch.Generator().manual_seed(0)
+    texture = torch.rand(8, 8, 3, generator=generator)
+    maps = torch.rand(8, 8, 2, generator=generator)
+    return Mesh(verts, faces, uvs=uvs, uv_faces=faces.clone(), texture=texture), maps
+
+
+def test_write_pbr_fit_writes_mesh_maps_environment_and_light(tmp_path):
+    mesh, maps = _textured_quad()
+    environment = torch.rand(4, 8, 3, generator=torch.Generator().manual_seed(1))
+    result = PbrTextureResult(mesh, maps, environment, light_from_environment(environment), 0.5, 4)
+    paths = RunPaths(tmp_path)
+    summary = write_pbr_fit(paths, result)
+    assert summary["material"] == "pbr" and summary["faces"] == 2
+    torch.testing.assert_close(read_exr(paths.fitted_environment), environment)
+    record = json.loads(paths.fitted_light.read_text())
+    assert record["material"] == "pbr" and record["environment_file"] == "environment.exr"
+    assert len(record["sh_coefficients"]) == 9
+    assert load_material_maps(paths.fitted_mesh) is not None
+    assert load_material_maps(paths.fitted_glb) is not None
+
+
+def test_a_pbr_run_with_its_environment_missing_is_named(tmp_path):
+    mesh, maps = _textured_quad()
+    environment = torch.ones(4, 8, 3)
+    paths = RunPaths(tmp_path)
+    write_pbr_fit(
+        paths,
+        PbrTextureResult(mesh, maps, environment, light_from_environment(environment), 0.5, 4),
+    )
+    loaded = load_pbr_fit(paths)
+    torch.testing.assert_close(loaded.environment, environment)
+    assert loaded.prefilter_levels == 4 and loaded.material.shape == (8, 8, 2)
+    (paths.fitted_environment).unlink()
+    with pytest.raises(ReconError, match=r"light.json: names the pbr material, but .*environment"):
+        load_pbr_fit(paths)
+
+
+def test_no_effects_file_means_no_effects_and_a_broken_one_is_named(tmp_path) -> None:
+    paths = RunPaths(tmp_path)
+    assert load_fitted_effects(paths, torch.device("cpu")) == []
+    paths.fitted_effects.write_text("{not json")
+    with pytest.raises(ReconError, match="effects.json"):
+        load_fitted_effects(paths, torch.device("cpu"))
