@@ -23,6 +23,7 @@ import shutil
 import subprocess
 import sys
 import time
+from dataclasses import replace
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -173,9 +174,19 @@ def main(argv: list[str] | None = None) -> int:
         "load_average_start": common.load_average(),
     }
     started = time.perf_counter()
-    # Every view in the training split: the poses of all registered photos are compared.
+    # Every registered photo: the test split (the first one) and the training split.
     options = DatasetConfig(holdout_every=10**6, max_resolution=None)
-    estimated = read_captures(plain, "train", options)
+    held_out = read_captures(plain, "test", options)
+    training = read_captures(plain, "train", options)
+    estimated = replace(
+        training,
+        cameras=replace(
+            training.cameras,
+            world_to_cam=torch.cat([held_out.cameras.world_to_cam, training.cameras.world_to_cam]),
+            intrinsics=torch.cat([held_out.cameras.intrinsics, training.cameras.intrinsics]),
+        ),
+        names=held_out.names + training.names,
+    )
     result["sfm_seconds"] = round(time.perf_counter() - started, 1)
     result["registered"] = len(estimated.names)
     published = read_llff(source)
