@@ -11,7 +11,8 @@ How the README's figures were made (clean seeds 103-105 calibrate, 100-102 are s
 
     recon-bench diagnose --fits-only --clean 6           # synthesise and fit
     recon-bench calibrate OUT/*/none_seed10[345]
-    # -> the allowances in recon/diagnose/calibration.py, before any scored case is diagnosed
+    # -> the allowances of the config section diagnose.decision (--write a fragment),
+    #    before any scored case is diagnosed
     recon-bench diagnose --reuse-fits --clean 6          # diagnose every case
     recon-bench diagnose --reuse-fits --rescore --clean 3  # pooled, 100-102 scored
 

@@ -29,11 +29,11 @@ from tqdm import tqdm
 
 from recon.config import load_config
 from recon.config.run_config import RunConfig
-from recon.diagnose.diagnose import diagnose_run
-from recon.diagnose.which import redecide
+from recon.diagnose.decision import redecide
 from recon.effects.registry import MODEL_EFFECTS
 from recon.io.atomic import atomic_path, atomic_write_json, atomic_write_text
 from recon.io.run_folder import open_run_folder, prepare_run_folder
+from recon.stages.diagnose import run_diagnosis
 from recon.sweep.scoring import NONE, BenchCase, score_case
 
 matplotlib.use("Agg")
@@ -85,7 +85,8 @@ def run_case(
     folder = out / f"{case.label}_seed{case.seed}"
     truth_path = out / "truth" / f"{case.label}_seed{case.seed}.json"
     fit_record_path = folder / "bench_fit.json"
-    digest = config_hash(case_config)
+    # The fit does not depend on the diagnose section: re-deciding with other settings reuses it.
+    digest = config_hash(case_config, exclude=("diagnose",))
     fit_record = json.loads(fit_record_path.read_text()) if fit_record_path.exists() else {}
     if reuse_fits and fit_record.get("config_hash") == digest:
         paths = open_run_folder(folder)
@@ -106,13 +107,13 @@ def run_case(
         return None
     stored = paths.diagnosis
     if rescore and reuse_fits and stored.exists():
-        diagnosis = redecide(json.loads(stored.read_text()))
+        diagnosis = redecide(json.loads(stored.read_text()), case_config.diagnose).to_json()
         diagnose_seconds = diagnosis["timings"]["diagnose_seconds"] + diagnosis["timings"].get(
             "refit_seconds", 0.0
         )
     else:
         started = time.perf_counter()
-        diagnosis = diagnose_run(paths, case_config, device, refit=refit)
+        diagnosis = run_diagnosis(paths, case_config, device, refit=refit).to_json()
         diagnose_seconds = time.perf_counter() - started
     # Only now is the truth read: the diagnosis above never saw it.
     truth = json.loads(truth_path.read_text()) if case.effects else {"withheld": []}

@@ -32,28 +32,34 @@ def lens_control(paths, config, data) -> dict:
     """The lens refit against the control refit and against the fit (bootstrap over views)."""
     import torch
 
-    from recon.diagnose.absorption import (
-        GEOMETRY_RESOLUTION,
-        GEOMETRY_STEPS,
-        heldout_errors,
-        heldout_modules,
-    )
-    from recon.diagnose.refit import refit_with
-    from recon.diagnose.which import bootstrap_reduction
+    from recon.diagnose.absorption import heldout_errors
+    from recon.diagnose.refit import RefitSettings, refit_with
+    from recon.diagnose.which import bootstrap_reduction, heldout_modules
+    from recon.stages.diagnose import diagnosis_inputs
 
-    fit_errors = heldout_errors(data, [])[0]
+    settings = config.diagnose
+    inputs = diagnosis_inputs(paths, config, torch.device("cpu"))
+    fit_errors = heldout_errors(data, [], settings)[0]
     errors = {}
+    refit = RefitSettings(steps=settings.geometry_steps, resolution=settings.geometry_resolution)
     for names in ([], ["lens_distortion"]):
         mesh, lighting, fitted = refit_with(
-            names, paths, config, torch.device("cpu"), GEOMETRY_STEPS, GEOMETRY_RESOLUTION
+            names,
+            inputs.training,
+            inputs.model,
+            config,
+            torch.device("cpu"),
+            paths.diagnosis_refit,
+            refit,
         )
         modules = heldout_modules(names, fitted.modules, data.view_count, "cpu")
         refitted = replace(data, mesh=mesh.to("cpu"), lighting=lighting.to("cpu"))
-        errors[bool(names)] = heldout_errors(refitted, modules)[0]
+        errors[bool(names)] = heldout_errors(refitted, modules, settings)[0]
+    samples = settings.bootstrap_samples
     return {
-        "against_control": _interval(bootstrap_reduction(errors[False], errors[True])),
-        "against_fit": _interval(bootstrap_reduction(fit_errors, errors[True])),
-        "control_against_fit": _interval(bootstrap_reduction(fit_errors, errors[False])),
+        "against_control": _interval(bootstrap_reduction(errors[False], errors[True], samples)),
+        "against_fit": _interval(bootstrap_reduction(fit_errors, errors[True], samples)),
+        "control_against_fit": _interval(bootstrap_reduction(fit_errors, errors[False], samples)),
     }
 
 
@@ -62,12 +68,12 @@ def main(argv: list[str] | None = None) -> int:
 
     from recon.config import load_config
     from recon.config.run_config import RunConfig
-    from recon.diagnose.data import load_diagnosis_data
     from recon.diagnose.gauss_newton import _columns
     from recon.diagnose.which import EffectProbe, probe_candidate, probe_effect
     from recon.effects import light_transport
     from recon.effects.registry import MODEL_EFFECTS
     from recon.io.run_folder import open_run_folder
+    from recon.stages.diagnose import load_diagnosis_data
 
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("runs", nargs="+", help="fitted run folders")
@@ -78,8 +84,9 @@ def main(argv: list[str] | None = None) -> int:
     results = []
     for run in arguments.runs:
         paths = open_run_folder(Path(run))
-        data = load_diagnosis_data(paths, "test", torch.device("cpu"))
-        probe = EffectProbe(data)
+        config = load_config(paths.resolved_config, RunConfig)
+        data = load_diagnosis_data(paths, "test", config, torch.device("cpu"))
+        probe = EffectProbe(data, config.diagnose)
         names = sorted(MODEL_EFFECTS)
         probes = {}
         for _ in range(2):  # the second pass is kept (the first pays the one-time work)
@@ -92,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
                 probes[name] = {
                     "seconds": round(time.perf_counter() - started, 3),
                     "columns": columns,
-                    "heldout_reduction": round(result.heldout_reduction, 4),
+                    "heldout_reduction": round(result.evidence_of("probe").details["reduction"], 4),
                 }
         sky = []
         for _ in range(3):
@@ -107,7 +114,6 @@ def main(argv: list[str] | None = None) -> int:
             "sky_visibility_seconds": round(statistics.median(sky), 3),
         }
         if arguments.lens_control:
-            config = load_config(paths.resolved_config, RunConfig)
             record["lens_control"] = lens_control(paths, config, data)
         results.append(record)
     print(json.dumps(results, indent=2))

@@ -26,10 +26,13 @@ def main(argv: list[str] | None = None) -> int:
 
     from recon.config import load_config
     from recon.config.run_config import RunConfig
-    from recon.diagnose.data import load_diagnosis_data
-    from recon.diagnose.diagnose import RefitBaseline, load_relight, measure_refit
+    from recon.diagnose.decision import redecide
+    from recon.diagnose.diagnose import heldout_views, relight_views
     from recon.diagnose.gap import noise_floor
+    from recon.diagnose.how_far import RefitBaseline, RefitInputs, measure_refit, relight_exponent
+    from recon.diagnose.refit import RefitSettings
     from recon.io.run_folder import open_run_folder
+    from recon.stages.diagnose import diagnosis_inputs
 
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("run", help="a fitted run folder with diagnosis.json (for the exponent)")
@@ -42,26 +45,23 @@ def main(argv: list[str] | None = None) -> int:
     device = torch.device("cpu")
     paths = open_run_folder(arguments.run)
     config = load_config(paths.resolved_config, RunConfig)
-    split = paths.dataset_layout.held_out_split
-    data = load_diagnosis_data(paths, split, device)
+    inputs = diagnosis_inputs(paths, config, device)
+    data, _ = heldout_views(inputs)
     floor = (noise_floor(data).get("floor_rmse") or 0.0) ** 2
-    _, relight_views = load_relight(paths, device)
-    baseline = RefitBaseline.measure(data, floor, relight_views)
+    _, relight = relight_views(inputs)
+    baseline = RefitBaseline.measure(data, floor, relight and relight[0], config.diagnose)
+    refit_inputs = RefitInputs(inputs.training, inputs.model, config, device, paths.diagnosis_refit)
     exponent = None
     if arguments.effect == "response_curve" and arguments.response_exponent == "relight":
-        ranking = json.loads(paths.diagnosis.read_text())["ranking"]
-        entry = next(item for item in ranking if item["effect"] == "response_curve")
-        exponent = entry["relight_parameters"]["gamma"]
+        stored = redecide(json.loads(paths.diagnosis.read_text()))
+        exponent = relight_exponent(stored.candidates)
     for rate in (float(value) for value in arguments.position_rates.split(",")):
-        record, _ = measure_refit(
-            [arguments.effect],
-            baseline,
-            paths,
-            config,
-            device,
-            response_exponent=exponent,
+        settings = RefitSettings(
+            steps=config.diagnose.refit_steps,
             position_learning_rate=rate,
+            response_exponent=exponent,
         )
+        record, _ = measure_refit([arguments.effect], baseline, refit_inputs, settings)
         keys = ("before", "after", "closed_fraction", "relight_after", "relight_closed_fraction")
         summary = {key: record.get(key) for key in keys}
         fitted = record["parameters"][arguments.effect]

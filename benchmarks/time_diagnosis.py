@@ -2,7 +2,7 @@
 
 For each benchmark case folder (a run with synthesised data, e.g. from
 ``recon-bench diagnose --fits-only``): copy its config and dataset to OUT, run the fit
-stage, then ``diagnose_run`` with the top-effect refit, and print JSON with the three times and
+stage, then the diagnose stage with the top-effect refit, and print JSON with the three times and
 their ratios. Measuring both in the same process, one after the other, keeps the ratio free of
 the machine's drift between a benchmark's fit and its diagnosis.
 
@@ -32,9 +32,9 @@ def main(argv: list[str] | None = None) -> int:
 
     from recon.config import load_config
     from recon.config.run_config import RunConfig
-    from recon.diagnose.diagnose import diagnose_run
     from recon.io.run_folder import RunPaths, open_run_folder
     from recon.pipeline import run_stages
+    from recon.stages.diagnose import run_diagnosis
 
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("runs", nargs="+", help="run folders with a synthesised dataset")
@@ -62,9 +62,9 @@ def main(argv: list[str] | None = None) -> int:
         run_stages(config, paths, torch.device("cpu"), ["fit"], None)
         fit_seconds = time.perf_counter() - started
         started = time.perf_counter()
-        diagnosis = diagnose_run(paths, config, torch.device("cpu"), refit="top")
+        diagnosis = run_diagnosis(paths, config, torch.device("cpu"), refit="top")
         wall_seconds = time.perf_counter() - started
-        timings = diagnosis["timings"]
+        timings = diagnosis.timings
         results.append(
             {
                 "run": str(source),
@@ -73,13 +73,13 @@ def main(argv: list[str] | None = None) -> int:
                 "refit_seconds": timings.get("refit_seconds"),
                 "diagnosis_share_of_fit": round(timings["diagnose_seconds"] / fit_seconds, 3),
                 "refit_share_of_fit": round(timings.get("refit_seconds", 0.0) / fit_seconds, 3),
-                # The rest of diagnose_run: the geometry errors against the reference mesh
+                # The rest of the stage: the geometry errors against the reference mesh
                 # (synthetic data only), the figures and diagnosis.json.
                 "outside_seconds": round(
                     wall_seconds - timings["diagnose_seconds"] - timings.get("refit_seconds", 0.0),
                     2,
                 ),
-                "verdict": diagnosis["verdict"],
+                "verdict": diagnosis.verdict,
             }
         )
     print(json.dumps(results, indent=2))

@@ -92,11 +92,25 @@ def build_parser() -> argparse.ArgumentParser:
     )
     diagnose_parser.add_argument("run", help="a fitted run folder")
     diagnose_parser.add_argument("--data", help="diagnose against this dataset instead")
-    diagnose_parser.add_argument("--refit", choices=["none", "top", "greedy"], default="top")
+    diagnose_parser.add_argument(
+        "--refit",
+        choices=["none", "top", "greedy"],
+        default=None,
+        help="how far: overrides the config's diagnose.refit (default top)",
+    )
     diagnose_parser.add_argument(
         "--effects", default="all", help="candidates: 'all' or a comma-separated list"
     )
     diagnose_parser.add_argument("--device", choices=["auto", "cpu", "cuda"])
+    diagnose_parser.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="diagnose.KEY=VALUE",
+        help="override a diagnose setting of the run's config, e.g. --set "
+        "diagnose.decision.minimum_share=0.03 (repeatable; recorded in diagnosis.json)",
+    )
     compare_parser = commands.add_parser(
         "compare", help="compare a run's metrics with a baseline; exit 1 on a regression"
     )
@@ -182,70 +196,27 @@ def _compare(arguments) -> int:
 
 def _diagnose(arguments) -> int:
     from recon import pipeline
-    from recon.diagnose.diagnose import diagnose_run
     from recon.io.run_folder import open_run_folder
     from recon.preflight import check_writable
-    from recon.report.report import recovered_parameters, summarise_parameters
+    from recon.report.diagnosis_text import diagnosis_lines
+    from recon.stages.diagnose import run_diagnosis
 
     paths = open_run_folder(arguments.run)
-    config = load_config(paths.resolved_config, RunConfig)
+    outside = [item for item in arguments.overrides if not item.startswith("diagnose.")]
+    if outside:
+        raise ReconError(
+            f"--set {outside[0]}: only diagnose.* settings can change after the fit (the fit "
+            "was made with the others)"
+        )
+    config = load_config(paths.resolved_config, RunConfig, overrides=arguments.overrides)
     paths = open_run_folder(arguments.run, arguments.data or config.data)
     # Checked before the diagnosis runs, not when its result cannot be written.
     check_writable(paths.root, "run folder")
     candidates = None if arguments.effects == "all" else arguments.effects.split(",")
     device = pipeline.resolve_device(arguments.device or config.device)
-    result = diagnose_run(paths, config, device, refit=arguments.refit, candidates=candidates)
-    for candidate in result["ranking"]:
-        flag = f"significant ({candidate['evidence']})" if candidate["significant"] else ""
-        absorption = candidate.get("absorption")
-        absorbed = "" if absorption is None else f" absorption {absorption:6.3f}"
-        if candidate.get("absorption_discounted_by"):
-            # Measured alone, not counted on top of the conditioning effect.
-            absorbed += f" (void beside {candidate['absorption_discounted_by']})"
-        relight = candidate.get("relight_reduction")
-        relit = "" if relight is None else f" relight {relight:6.3f}"
-        print(
-            f"{candidate['effect']:16} held-out reduction {candidate['heldout_reduction']:7.3f} "
-            f"[{candidate['interval'][0]:.3f}, {candidate['interval'][1]:.3f}]{absorbed}{relit} "
-            f"{flag}"
-        )
-    for effect, source, parameters in recovered_parameters(result):
-        print(f"  {effect} ({source}): {summarise_parameters(parameters)}")
-    fingerprint = result["gap"].get("visibility_fingerprint")
-    if fingerprint:
-        low, high = fingerprint["interval"]
-        print(
-            f"visibility fingerprint: {fingerprint['share']:.2f} [{low:.2f}, {high:.2f}] of the "
-            f"predicted self-shadowing baked into the albedo ({fingerprint['names'] or 'nothing'})"
-        )
-    fitted_effects = result["gap"].get("fit_effects_not_in_model")
-    if fitted_effects:
-        print(f"note: {', '.join(fitted_effects['names'])} {fitted_effects['note']}")
-    flat = result["gap"].get("flat_field")
-    if result["gap"].get("flat_field_error"):
-        print(f"flat field not used: {result['gap']['flat_field_error']}")
-    if flat:
-        reading = "vignetting" if flat["deviation"] > flat["allowance"] else "flat"
-        print(
-            f"flat field ({flat['frames']} frames): corner falloff {flat['corner_falloff']:.3f}, "
-            f"half-way {flat['half_radius_falloff']:.3f} ({reading}; allowance "
-            f"{flat['allowance']:.2f})"
-        )
-    for refit in result["refits"]:
-        print(
-            f"refit with {' + '.join(refit['effects'])}: RMSE {refit['before_rmse']:.4f} -> "
-            f"{refit['after_rmse']:.4f}, closed {100 * refit['closed_fraction']:.0f} % of the gap "
-            "above the floor"
-            + (
-                f" (relight split: {100 * refit['relight_closed_fraction']:.0f} %)"
-                if "relight_closed_fraction" in refit
-                else ""
-            )
-        )
-    print(f"verdict: {result['verdict']}")
-    if result["refits"]:
-        confirmed = result["confirmed_by_refit"]
-        print(f"confirmed by a refit: {', '.join(confirmed) if confirmed else 'none'}")
+    diagnosis = run_diagnosis(paths, config, device, arguments.refit, candidates)
+    for line in diagnosis_lines(diagnosis):
+        print(line)
     print(f"diagnosis: {paths.diagnosis}")
     # The report shows the diagnosis: bring it up to date with the new diagnosis.json.
     pipeline.run_stages(config, paths, device, ["report"], None)

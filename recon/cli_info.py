@@ -112,7 +112,8 @@ def _effects(arguments: argparse.Namespace) -> int:
         print(f"{name:{name_width}}  {where:{where_width}}  {summary}")
     print(
         "\ncaptures inject them with capture.effects (data_synth's own implementations);\n"
-        "fits add the model modules with fit.effects; `recon diagnose` ranks them."
+        "fits add the model modules with fit.effects (then part of the model the diagnosis\n"
+        "starts from); `recon diagnose` ranks the others as candidates."
     )
     return 0
 

@@ -24,3 +24,113 @@ def patterned_torus(
     pattern = base + amplitude * torch.sin(6.28 * waves[0] * u) * torch.sin(6.28 * waves[1] * v)
     mesh.texture = torch.stack(colours(pattern), -1)
     return mesh
+
+
+def glossy_torus_views(
+    views: int = 12,
+    size: int = 40,
+    exposure_sigma: float = 0.0,
+    white_balance_sigma: float = 0.0,
+    specular: float = 0.5,
+    shininess: float = 3.0,
+    light_direction: tuple[float, float, float] = (0.0, 0.2, 1.0),
+    seed: int = 0,
+    transform: Callable[[torch.Tensor, object], torch.Tensor] | None = None,
+    distance: float = 2.4,
+    fov_x_deg: float = 45.0,
+):
+    """Held-out views of a glossy torus beside its diffuse fit: (DiagnosisData, true gains [V]).
+
+    The world adds a Blinn-Phong highlight specular * max(0, n.h)^shininess (white, under a
+    directional light toward light_direction plus a dim ambient) to a coloured diffuse torus,
+    then a per-view exposure exp(exposure_sigma N(0, 1)) and per-view red/blue gains
+    exp(white_balance_sigma N(0, 1)). The "fit" is the diffuse model whose light absorbed the
+    mean highlight per channel (the best per-channel scale): what a diffuse fit of a glossy
+    object leaves. The light's direction is near the cameras' ring, so views that face it show
+    more highlight: per-view gains follow n.h. transform(observed, output) applies a further
+    camera effect to the observed views (premultiplied linear colour). distance and fov_x_deg
+    frame the orbit (how much of the image the torus covers).
+    """
+    from recon.camera import orbit_cameras
+    from recon.diagnose.data import build_diagnosis_data
+    from recon.render.renderer import Renderer
+    from recon.render.shading import DirectionalLight, Lighting
+
+    mesh = patterned_torus((3, 2), 0.3, lambda p: [p, 0.8 * p + 0.1, 0.6 * (1 - p) + 0.2])
+    cameras = orbit_cameras(
+        views, (size, size), distance=distance, fov_x_deg=fov_x_deg, elevation_deg=30
+    )
+    direction = torch.tensor(light_direction, dtype=torch.float32)
+    direction = direction / direction.norm()
+    irradiance = torch.full((3,), 2.0)
+    world_light = Lighting.constant(0.3)
+    world_light.directional.append(DirectionalLight(direction, irradiance))
+    renderer = Renderer(texture_filter="linear")
+    output = renderer.render(mesh, cameras, world_light)
+    batch, height, width, _ = output.color.shape
+    depth = output.depth[..., 0]
+    rows, columns = torch.meshgrid(
+        torch.arange(height) + 0.5, torch.arange(width) + 0.5, indexing="ij"
+    )
+    intrinsics = cameras.intrinsics
+    fx, fy = intrinsics[:, 0, 0, None, None], intrinsics[:, 1, 1, None, None]
+    cx, cy = intrinsics[:, 0, 2, None, None], intrinsics[:, 1, 2, None, None]
+    points = torch.stack(
+        [(columns - cx) / fx * depth, (rows - cy) / fy * depth, depth, torch.ones_like(depth)],
+        -1,
+    ).view(batch, -1, 4)
+    world = (points @ torch.linalg.inv(cameras.world_to_cam).transpose(1, 2))[..., :3]
+    to_camera = cameras.centers()[:, None, None, :] - world.view(batch, height, width, 3)
+    to_camera = to_camera / to_camera.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+    halfway = to_camera + direction
+    halfway = halfway / halfway.norm(dim=-1, keepdim=True)
+    normals = output.normals
+    lit = (normals * direction).sum(-1) > 0
+    highlight = specular * (normals * halfway).sum(-1).clamp_min(0) ** shininess * lit
+    generator = torch.Generator().manual_seed(seed)
+    gains = torch.exp(exposure_sigma * torch.randn(views, generator=generator))
+    red_blue = torch.exp(white_balance_sigma * torch.randn(views, 2, generator=generator))
+    channel_gains = torch.stack([red_blue[:, 0], torch.ones(views), red_blue[:, 1]], -1)
+    observed = output.color + highlight[..., None] * output.alpha
+    observed = observed * gains[:, None, None, None] * channel_gains[:, None, None, :]
+    if transform is not None:
+        observed = transform(observed, output)
+    # The diffuse fit: the light's per-channel scale absorbs the mean highlight.
+    scale = (observed * output.color).sum((0, 1, 2)) / (output.color**2).sum((0, 1, 2))
+    fitted_light = Lighting(
+        sh_coefficients=world_light.sh_coefficients * scale,
+        directional=[DirectionalLight(direction, irradiance * scale)],
+    )
+    fitted = renderer.render(mesh, cameras, fitted_light)
+    observed = observed + 0.002 * torch.randn(observed.shape, generator=generator)
+    data = build_diagnosis_data(observed, output.alpha, fitted, cameras, fitted_light, mesh)
+    return data, gains
+
+
+def albedo_error_views(seed: int, views: int = 12, size: int = 32, error: float = 0.5):
+    """Held-out views of a torus whose fitted texture is wrong by smooth random patches
+    (texture * (1 + error * a random 4 x 4 field per channel, upsampled)): a ~20 dB fit with
+    no camera or light-transport effect at all, only the base model's mismatch."""
+    from recon.camera import orbit_cameras
+    from recon.diagnose.data import build_diagnosis_data
+    from recon.render.renderer import Renderer
+    from recon.render.shading import Lighting
+
+    def colours(pattern):
+        return [pattern, 0.8 * pattern + 0.1, 0.6 * (1 - pattern) + 0.2]
+
+    true = patterned_torus((3, 2), 0.3, colours)
+    fitted = patterned_torus((3, 2), 0.3, colours)
+    generator = torch.Generator().manual_seed(seed)
+    field = torch.randn(1, 3, 4, 4, generator=generator)
+    field = torch.nn.functional.interpolate(
+        field, size=(32, 32), mode="bilinear", align_corners=True
+    )
+    true.texture = (true.texture * (1 + error * field[0].permute(1, 2, 0))).clamp(0.02, 1)
+    cameras = orbit_cameras(views, (size, size), distance=2.4, fov_x_deg=45, elevation_deg=30)
+    lighting = Lighting.constant(0.8)
+    renderer = Renderer(texture_filter="linear")
+    observed = renderer.render(true, cameras, lighting)
+    render = renderer.render(fitted, cameras, lighting)
+    noisy = observed.color + 0.002 * torch.randn(observed.color.shape, generator=generator)
+    return build_diagnosis_data(noisy, observed.alpha, render, cameras, lighting, fitted)

@@ -669,6 +669,198 @@ class FitConfig:
 
 
 @dataclass
+class DecisionConfig:
+    """The significance decision's allowances (recon.diagnose.decision): what each kind of
+    evidence must clear. Defaults were measured with ``recon-bench calibrate`` on clean fits of
+    the benchmark world (twice the largest clean reduction, floored at minimum_share);
+    ``recon.diagnose.decision.redecide`` re-decides a stored diagnosis with other values."""
+
+    minimum_share: float = setting(
+        0.02,
+        "Least held-out reduction a probe must clear to name any effect (the floor of every probe allowance).",
+    )
+    probe_allowance: dict[str, float] = setting(
+        factory=lambda: {
+            "defocus_blur": 0.157,
+            "motion_blur": 0.14,
+            "pose_error": 0.108,
+            "lens_distortion": 0.056,
+        },
+        doc="Per effect: the held-out reduction its probe's bootstrap lower bound must clear (twice the largest on clean fits); effects left out take minimum_share.",
+    )
+    absorption_minimum_share: float = setting(
+        0.01,
+        "Floor of an absorption refit's allowance (two refits from one start: a smaller null than a probe's).",
+    )
+    regression_minimum_share: float = setting(
+        0.005,
+        "Floor of the closed-form (regression) absorption evidence's allowance (a share of interior-pixel error).",
+    )
+    absorption_allowance: dict[str, float] = setting(
+        factory=lambda: {"lens_distortion": 0.043, "vignetting": 0.005, "specular": 0.01},
+        doc="Per effect: the reduction over the control refit its absorption lower bound must clear.",
+    )
+    relight_allowance: float = setting(
+        0.03, "The relight split's response-curve probe: reduction its lower bound must clear."
+    )
+    flat_field_allowance: float = setting(
+        0.02,
+        "Deviation from flat (corner or half-way falloff) above which flat-field frames name vignetting.",
+    )
+    visibility_share_minimum: float = setting(
+        0.2,
+        "The visibility fingerprint's lower bound above which baked-in self-shadowing names an effect.",
+    )
+    shadow_share: float = setting(
+        0.6,
+        "Fingerprint share at or above which the missing light transport is shadows, below it interreflection.",
+    )
+    fingerprint_minimum_coverage: float = setting(
+        0.02,
+        "Share of interior pixels the fitted mesh must shadow for the fingerprint to be testable at all.",
+    )
+
+    def __post_init__(self) -> None:
+        for name in ("minimum_share", "absorption_minimum_share", "regression_minimum_share"):
+            check_range(getattr(self, name), name, low=0.0, high=1.0)
+        for name in ("relight_allowance", "flat_field_allowance", "visibility_share_minimum"):
+            check_range(getattr(self, name), name, low=0.0, high=1.0)
+        check_range(self.shadow_share, "shadow_share", low=0.0, high=1.0)
+
+
+@dataclass
+class DiagnoseConfig:
+    """The gap diagnosis (recon diagnose): which candidates, how each kind of evidence is
+    measured, how far the refits go, and the decision's allowances."""
+
+    refit: Literal["none", "top", "greedy"] = setting(
+        "top",
+        "How far: no refit, the top effect, or greedily each significant one (--refit overrides).",
+    )
+    candidates: list[str] = setting(
+        factory=list,
+        doc="Effects to consider (names from `recon effects`); empty: every effect the fit did not model (--effects overrides).",
+    )
+    absorption: bool = setting(
+        True,
+        "Run the absorption evidence (refits that let an effect take back what the fit absorbed).",
+    )
+    block_pixels: int = setting(
+        4, "Side of the checkerboard blocks that split each held-out view into fit and test halves."
+    )
+    band_pixels: int = setting(
+        3,
+        "Pixels around the silhouette that count toward the gap (edge residuals of blur, distortion, pose).",
+    )
+    bootstrap_samples: int = setting(
+        400,
+        "Bootstrap resamples (over views, or pixel blocks for the fingerprint) of every interval.",
+    )
+    fingerprint_block_pixels: int = setting(
+        8, "Side of the pixel blocks the visibility fingerprint's bootstrap resamples."
+    )
+    gauss_newton_iterations: int = setting(
+        5, "Damped Gauss-Newton iterations of a probe (effect parameters only, scene frozen)."
+    )
+    absorption_steps: int = setting(
+        24, "Steps of a frozen-geometry absorption refit (texture, light and the effect)."
+    )
+    geometry_steps: int = setting(
+        15, "Steps of a geometry-moving absorption refit (effects that bend the geometry)."
+    )
+    geometry_resolution: int = setting(
+        64, "Image side of the geometry-moving absorption refits (their cost is per triangle)."
+    )
+    absorption_texture_learning_rate: float = setting(
+        0.03, "Texture step size of the frozen-geometry absorption refits."
+    )
+    absorption_light_learning_rate: float = setting(
+        0.01, "Light step size of the frozen-geometry absorption refits."
+    )
+    absorption_smoothness_weight: float = setting(
+        0.01, "Texture total-variation weight of the frozen-geometry absorption refits."
+    )
+    smallest_remaining_share: float = setting(
+        0.05,
+        "Least share of the error a given (conditioning) effect is taken to leave when deciding whether absorption refits are worth repeating on top of it.",
+    )
+    relight_iterations: int = setting(
+        6, "Gauss-Newton iterations of the relight split's response probe."
+    )
+    relight_tile_pixels: int = setting(
+        16,
+        "Side of the image tiles the relight probe's bootstrap resamples (the exponent is one number for every view, and a relight split has few views).",
+    )
+    relight_shadowed_share: float = setting(
+        0.1,
+        "Pixels whose fitted surface loses more than this share of either light to the mesh itself are left out of the relight probe.",
+    )
+    regression_cells_per_side: int = setting(
+        32,
+        "Texture cells per side of the vignetting regression's cell gains (enough pixels per cell and view, a narrow range of radii per cell).",
+    )
+    regression_interior_margin: int = setting(
+        4,
+        "Pixels in from either silhouette that the vignetting regression leaves out (antialiasing, edge offsets, grazing shading).",
+    )
+    regression_minimum_rendered: float = setting(
+        0.02,
+        "Rendered values (linear, per channel) below which the vignetting regression leaves a pixel out (its log ratio is mostly noise).",
+    )
+    flat_field_half_window: int = setting(
+        6, "Pixels each side of a point in the flat-field frames' local quadratic fits."
+    )
+    flat_field_maximum_clipped_share: float = setting(
+        0.01,
+        "Share of a flat-field frame's pixels at full scale above which the frame is refused (clipping flattens the falloff).",
+    )
+    refit_steps: int = setting(80, "Texture-stage steps of a how-far refit (warm start).")
+    refit_position_learning_rate: float = setting(
+        0.002,
+        "Vertex step size of a how-far refit unless a geometry-bending effect is on (then the fit's own).",
+    )
+    max_greedy_effects: int = setting(3, "Most effects a greedy refit chain switches on.")
+    confirming_share: float = setting(
+        0.05,
+        "Share of the gap above the floor a refit must close to confirm its effect (and continue a greedy chain).",
+    )
+    decision: DecisionConfig = setting(
+        factory=DecisionConfig, doc="The significance decision's allowances."
+    )
+
+    def __post_init__(self) -> None:
+        for name in (
+            "block_pixels",
+            "fingerprint_block_pixels",
+            "bootstrap_samples",
+            "gauss_newton_iterations",
+            "relight_iterations",
+            "relight_tile_pixels",
+            "regression_cells_per_side",
+            "flat_field_half_window",
+        ):
+            check_range(getattr(self, name), name, low=1)
+        check_range(self.band_pixels, "band_pixels", low=0)
+        check_range(self.regression_interior_margin, "regression_interior_margin", low=0)
+        for name in (
+            "relight_shadowed_share",
+            "regression_minimum_rendered",
+            "flat_field_maximum_clipped_share",
+        ):
+            check_range(getattr(self, name), name, low=0.0, high=1.0)
+        for name in ("absorption_steps", "geometry_steps", "refit_steps", "max_greedy_effects"):
+            check_range(getattr(self, name), name, low=1)
+        check_range(self.geometry_resolution, "geometry_resolution", low=MINIMUM_VIEW_SIZE)
+        check_range(self.confirming_share, "confirming_share", low=0.0, high=1.0)
+        check_range(self.smallest_remaining_share, "smallest_remaining_share", low=1e-6, high=1.0)
+        unknown = sorted(set(self.candidates) - set(EFFECT_NAMES))
+        if unknown:
+            raise ConfigFieldError(
+                "candidates", f"unknown effects {unknown}; known: {', '.join(EFFECT_NAMES)}"
+            )
+
+
+@dataclass
 class RunConfig:
     """A whole run: a name, one seed threaded through every stage, the device, and sections."""
 
@@ -703,6 +895,10 @@ class RunConfig:
     dataset: DatasetConfig = setting(
         factory=DatasetConfig,
         doc="How a dataset folder is read: size cap, masks, held-out split, EXIF exposure, normalisation.",
+    )
+    diagnose: DiagnoseConfig = setting(
+        factory=DiagnoseConfig,
+        doc="The gap diagnosis (recon diagnose): evidence settings, refits, decision allowances.",
     )
 
     def __post_init__(self) -> None:

@@ -77,14 +77,14 @@ def to_dict(instance: Any) -> dict[str, Any]:
     return _plain(instance, type(instance), ())
 
 
-def config_hash(instance: Any) -> str:
+def config_hash(instance: Any, exclude: tuple[str, ...] = ()) -> str:
     """First 12 hex digits of the sha256 of the config's canonical JSON.
 
-    Keys are sorted so that dict order (which == ignores) does not change the hash.
+    Keys are sorted so that dict order (which == ignores) does not change the hash. exclude:
+    top-level sections left out (a fit's hash need not change with the diagnose section).
     """
-    canonical = json.dumps(
-        to_dict(instance), sort_keys=True, separators=(",", ":"), ensure_ascii=False
-    )
+    record = {key: value for key, value in to_dict(instance).items() if key not in exclude}
+    canonical = json.dumps(record, sort_keys=True, separators=(",", ":"), ensure_ascii=False)
     return hashlib.sha256(canonical.encode("utf-8")).hexdigest()[:12]
 
 

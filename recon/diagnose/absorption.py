@@ -19,50 +19,32 @@ like every other held-out number.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import torch
 
 from recon.camera.cameras import Cameras
-from recon.config.run_config import RunConfig
-from recon.diagnose.calibration import MINIMUM_SHARE, absorption_threshold
-from recon.diagnose.data import DiagnosisData, load_diagnosis_data
+from recon.config.run_config import DiagnoseConfig, RunConfig
+from recon.diagnose.data import DiagnosisData, FittedModel, render_diagnosis_data
+from recon.diagnose.decision import absorption_threshold, decide
 from recon.diagnose.radial_absorption import radial_absorption
-from recon.diagnose.refit import refit_with
-from recon.diagnose.which import (
-    CandidateResult,
-    EffectProbe,
-    bootstrap_reduction,
-    fit_on_halves,
-)
+from recon.diagnose.records import Candidate, Evidence
+from recon.diagnose.refit import RefitSettings, refit_with
+from recon.diagnose.which import EffectProbe, bootstrap_reduction, fit_on_halves, heldout_modules
 from recon.effects.base import ModelEffect
 from recon.effects.forward import EffectContext, apply_image_effects, apply_shading_effects
-from recon.effects.registry import make_effect
-from recon.io.datasets import CaptureSet, read_captures
-from recon.io.run_folder import RunPaths
+from recon.effects.registry import diagnosis_facts, make_effect
+from recon.io.datasets import CaptureSet
 from recon.mesh.mesh import Mesh
 from recon.optimize.scene_model import LightModel, texture_total_variation
 from recon.render.renderer import Renderer, SurfaceBuffers
 from recon.render.shading import Lighting
 from recon.render.texture import build_mip_pyramid
 
-# Effects that look the same in every view and that a short refit can pull back out of the
-# texture and light. (Shadows and interreflection are baked in for good under one light; their
-# evidence is the albedo fingerprint, recon.diagnose.fingerprint.)
-ABSORBABLE = ("vignetting", "lens_distortion", "specular")
-ABSORPTION_STEPS = 24
-# Absorbed effects that bent the geometry too: their refits move the vertices, in fewer pixels.
-GEOMETRY_ABSORBABLE = ("lens_distortion",)
-# A refit step at 64 px costs nearly what a fit step at 128 px does (the rasteriser's work is
-# per triangle), so these two refits are the diagnosis' dearest part. At 15 steps the lens
-# datasets' lower bounds stayed at 0.15-0.32 (0.15-0.35 at 30 steps); the clean calibration
-# fits' largest reduction was 0.022 (the allowance 0.043, recon.diagnose.calibration).
-GEOMETRY_STEPS = 15
-GEOMETRY_RESOLUTION = 64
+# Training views rasterised per group of a frozen refit (memory, not a tuned number).
 VIEWS_PER_GROUP = 8
-TEXTURE_LEARNING_RATE = 0.03
-LIGHT_LEARNING_RATE = 0.01
-SMOOTHNESS_WEIGHT = 0.01
 
 
 @dataclass
@@ -99,17 +81,20 @@ def frozen_refit(
     frozen: FrozenTrainingViews,
     names: list[str],
     renderer: Renderer,
-    steps: int = ABSORPTION_STEPS,
+    settings: DiagnoseConfig,
 ) -> tuple[Mesh, Lighting, list[ModelEffect]]:
     """Refit texture, light and the named effects (from the identity) on the training views with
-    the geometry frozen; one group of views per step. Returns the re-textured mesh, the light
-    (detached) and the fitted effect modules."""
+    the geometry frozen, for diagnose.absorption_steps (one group of views per step). Returns
+    the re-textured mesh, the light (detached) and the fitted effect modules."""
+    steps = settings.absorption_steps
     device = frozen.mesh.verts.device
     modules = [make_effect(name, view_count=frozen.view_count).to(device) for name in names]
     texture = torch.nn.Parameter(frozen.mesh.texture.clone())
     light = LightModel.from_lighting(frozen.lighting)
-    groups = [{"params": [texture], "lr": TEXTURE_LEARNING_RATE}]
-    groups.append({"params": list(light.parameters()), "lr": LIGHT_LEARNING_RATE})
+    groups = [{"params": [texture], "lr": settings.absorption_texture_learning_rate}]
+    groups.append(
+        {"params": list(light.parameters()), "lr": settings.absorption_light_learning_rate}
+    )
     groups += [group for module in modules for group in module.parameter_groups()]
     optimizer = torch.optim.Adam(groups)
     for step in range(steps):
@@ -131,7 +116,7 @@ def frozen_refit(
         smoothness = texture_total_variation(texture)  # as in the fit
         # Squared error, like the held-out evaluation: an L1 loss keeps Adam's texel steps at
         # full size to the end, and that jitter would swamp a small absorbed effect.
-        loss = ((color - observed) ** 2).mean() + SMOOTHNESS_WEIGHT * smoothness
+        loss = ((color - observed) ** 2).mean() + settings.absorption_smoothness_weight * smoothness
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
@@ -139,28 +124,14 @@ def frozen_refit(
     return mesh, light.lighting().detached(), modules
 
 
-def heldout_modules(names: list[str], fitted: list[ModelEffect], view_count: int, device):
-    """Modules for held-out views: per-view effects start at the identity (their views are new;
-    fit_on_halves fits them on each view's first half), global effects copy the refit's
-    parameters."""
-    modules = []
-    for name in names:
-        module = make_effect(name, view_count=view_count, pinned_view=None).to(device)
-        source = next((m for m in fitted if m.name == name), None)
-        if source is not None and not module.per_view:
-            module.load_state_dict(source.state_dict())
-        modules.append(module)
-    return modules
-
-
 def heldout_errors(
-    data: DiagnosisData, modules: list[ModelEffect]
+    data: DiagnosisData, modules: list[ModelEffect], settings: DiagnoseConfig
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-view held-out squared error sums and counts [B] on the second half of the pixel
     blocks; the per-view modules are fitted on the first half, the global ones keep their
     parameters."""
     per_view = [module for module in modules if module.per_view]
-    return fit_on_halves(modules, EffectProbe(data), trainable=per_view)
+    return fit_on_halves(modules, EffectProbe(data, settings), trainable=per_view)
 
 
 @dataclass
@@ -171,144 +142,186 @@ class AbsorptionCache:
     frozen: FrozenTrainingViews | None = None
 
 
-# The least share of the control's error a given effect is taken to leave (a given effect whose
-# probe interval reached 1 would otherwise make every candidate worth refitting on top of it
-# through a division by zero; every candidate is then, which is the safe side).
-SMALLEST_REMAINING_SHARE = 0.05
+@dataclass
+class AbsorptionInputs:
+    """What the absorption refits start from (objects, no run-folder paths).
+
+    training: the training split's captures; model: the fitted model; config: the run config
+    (fit recipe, seed, diagnose section); device: where the refits run; scratch: a folder the
+    geometry-moving refits may write their checkpoints to (the stage's RunPaths names it).
+    """
+
+    training: CaptureSet
+    model: FittedModel
+    config: RunConfig
+    device: torch.device
+    scratch: Path
 
 
-def _could_clear_on_top(candidate: CandidateResult, given: CandidateResult | None) -> bool:
+def _could_clear_on_top(
+    candidate: Candidate, given: Candidate | None, settings: DiagnoseConfig
+) -> bool:
     """Whether the candidate's unconditional absorption evidence leaves room for it to become
     significant on top of the given effect, so its refits are worth running again.
 
     The evidence is a share of the control refit's held-out error. On top of the given effect
     the control's error is smaller, by at most about the given effect's probe reduction (the
     upper end of its interval), so the same absolute gain becomes a larger share: the first
-    pass's upper bound, divided by the error the given effect leaves, must reach the allowance.
+    pass's upper bound, divided by the error the given effect leaves (at least
+    diagnose.smallest_remaining_share, against a division by zero), must reach the allowance.
     The first pass must also have seen some sign of the effect (a positive lower bound).
     Candidates below either keep their unconditional evidence; neither their significance nor
     their place among the significant ones could change (an absorption excess below zero
     cannot outrank a significant probe's)."""
-    interval = candidate.absorption_interval
+    evidence = candidate.evidence_of("absorption")
+    interval = None if evidence is None else evidence.interval
     if interval is None or interval[0] <= 0:
         return False
-    given_high = given.interval[1] if given is not None else 0.0
-    remaining = max(1.0 - max(given_high, 0.0), SMALLEST_REMAINING_SHARE)
-    return interval[1] / remaining > absorption_threshold(candidate.effect)
+    probe = None if given is None else given.evidence_of("probe")
+    given_high = probe.interval[1] if probe is not None else 0.0
+    remaining = max(1.0 - max(given_high, 0.0), settings.smallest_remaining_share)
+    return interval[1] / remaining > absorption_threshold(candidate.name, settings.decision)
 
 
 def absorption_probes(
-    ranking: list[CandidateResult],
+    candidates: list[Candidate],
     data: DiagnosisData,
-    paths: RunPaths,
-    config: RunConfig,
-    device: torch.device,
+    inputs: AbsorptionInputs,
     given: str | None = None,
     cache: AbsorptionCache | None = None,
 ) -> None:
-    """For each candidate in ABSORBABLE: a short refit of texture, light and the effect (and the
-    vertex positions for GEOMETRY_ABSORBABLE), against a control refit of the same kind without
-    it; the held-out reduction relative to the control (bootstrapped over views) is the
-    absorption evidence, recorded in place (and it can make the candidate significant).
+    """For each candidate whose diagnosis facts give an absorption mode: a short refit of
+    texture, light and the effect (and the vertex positions for mode 'geometry'), against a
+    control refit of the same kind without it; the held-out reduction relative to the control
+    (bootstrapped over views) is the absorption evidence, recorded in place (and it can make
+    the candidate significant). Mode 'closed_form' (vignetting) is a regression instead
+    (recon.diagnose.radial_absorption).
 
     given: an effect switched on in the control and in every candidate refit alike (see
     which.conditioning_effect), so the evidence is what each candidate adds on top of it. With
     a given effect, the refits run only for candidates whose earlier (unconditional)
     absorption evidence could make them significant on top of it (_could_clear_on_top); and
-    the geometry-moving refits do not run
-    again at all: their evidence measured alone is voided (absorption_discounted_by), and the
-    candidate's conditional probe decides. A blur or pose error that the fit absorbed is
-    partly taken back by a distortion in a refit that moves the vertices (lower bounds
-    0.2-0.33 on the benchmark's blur datasets), so that evidence does not count beside one;
-    measuring it again on top of the given effect cost two more refits, as much as the rest
-    of the diagnosis together.
+    the geometry-moving refits do not run again at all: their evidence measured alone is
+    voided, and the candidate's conditional probe decides. A blur or pose error that the fit
+    absorbed is partly taken back by a distortion in a refit that moves the vertices (lower
+    bounds 0.2-0.33 on the benchmark's blur datasets), so that evidence does not count beside
+    one; measuring it again on top of the given effect cost two more refits, as much as the
+    rest of the diagnosis together.
 
     cache: shared between the two passes of one diagnosis (the rasterised training views).
     """
+    settings = inputs.config.diagnose
     # Bilinear without mipmaps: the training views sample the texture near 1:1, and the
     # refits only compare with each other (the held-out evaluation renders in full).
     renderer = Renderer(texture_filter="linear", texture_boundary="clamp")
     cache = cache if cache is not None else AbsorptionCache()
     base = [given] if given else []
-    given_candidate = next((c for c in ranking if c.effect == given), None) if given else None
+    given_candidate = next((c for c in candidates if c.name == given), None) if given else None
+    device = inputs.device
 
     def evaluate(names: list[str], moving: bool) -> tuple[torch.Tensor, list[ModelEffect]]:
         if moving:
+            refit = RefitSettings(
+                steps=settings.geometry_steps, resolution=settings.geometry_resolution
+            )
             mesh, lighting, fitted_effects = refit_with(
-                names, paths, config, device, GEOMETRY_STEPS, resolution=GEOMETRY_RESOLUTION
+                names, inputs.training, inputs.model, inputs.config, device, inputs.scratch, refit
             )
             fitted = fitted_effects.modules
         else:
             if cache.frozen is None:
                 cache.frozen = FrozenTrainingViews.build(
-                    read_captures(paths.dataset, "train", getattr(config, "dataset", None)),
+                    inputs.training,
                     data.mesh.to(device),
                     data.lighting.to(device),
                     renderer,
                 )
-            mesh, lighting, fitted = frozen_refit(cache.frozen, names, renderer, ABSORPTION_STEPS)
+            mesh, lighting, fitted = frozen_refit(cache.frozen, names, renderer, settings)
         modules = heldout_modules(names, fitted, data.view_count, data.observed.device)
         refitted = replace(data, mesh=mesh.to("cpu"), lighting=lighting.to("cpu"))
-        return heldout_errors(refitted, modules)[0], fitted
+        return heldout_errors(refitted, modules, settings)[0], fitted
 
     controls: dict[bool, torch.Tensor] = {}
-    for candidate in ranking:
-        if candidate.effect not in ABSORBABLE or candidate.effect == given:
+    for candidate in candidates:
+        facts = diagnosis_facts(candidate.name)
+        if facts is None or facts.absorption == "none" or candidate.name == given:
             continue
-        if candidate.effect == "vignetting":
-            if candidate.flat_field is not None and not candidate.significant:
+        if inputs.model.pbr is not None and facts.absorption != "closed_form":
+            continue  # the refits refit the Lambertian texture; a pbr model is not refitted
+        if facts.absorption == "closed_form":
+            flat_field = candidate.evidence_of("flat_field")
+            if flat_field is not None and not candidate.significant:
                 # Flat-field frames measured no falloff, and they overrule the residual
-                # evidence (CandidateResult.decide): the regression could not change the verdict,
-                # and loading the training views for it is most of its cost.
+                # evidence (recon.diagnose.decision): the regression could not change the
+                # verdict, and loading the training views for it is most of its cost.
                 continue
             if not given:
                 # Its regression holds a gain per view already (a per-view photometric effect
                 # on top changes nothing): computed once, unconditionally.
-                training = load_diagnosis_data(
-                    paths, "train", device, dataset_options=getattr(config, "dataset", None)
+                training = render_diagnosis_data(
+                    inputs.training, inputs.model, device, settings.band_pixels
                 )
-                control, squared, module = radial_absorption(training, data)
-                _record(candidate, control, squared, module, given)
+                control, squared, module = radial_absorption(training, data, settings)
+                _record(candidate, control, squared, module, given, settings)
             continue
-        moving = candidate.effect in GEOMETRY_ABSORBABLE
+        moving = facts.absorption == "geometry"
         if moving and given:
-            if candidate.absorption_interval is not None:
-                candidate.absorption_discounted_by = given
-                candidate.decide()
+            evidence = candidate.evidence_of("absorption")
+            if evidence is not None:
+                candidate.add(
+                    replace(
+                        evidence,
+                        void=f"absorption measured alone: void beside {given}",
+                        details={**evidence.details, "discounted_by": given},
+                    )
+                )
+                decide(candidate, settings.decision)
             continue
-        if not given and candidate.heldout_reduction < MINIMUM_SHARE:
+        probe = candidate.evidence_of("probe")
+        reduction = probe.details["reduction"] if probe is not None else 0.0
+        if not given and reduction < settings.decision.minimum_share:
             # The refits are the diagnosis' dearest step (the two that move the geometry
             # most of all): they run only where the frozen-scene probe sees a residual of the
             # effect's shape worth naming. An effect the fit absorbed so wholly that its probe
-            # removes less than this is not looked for. (On the benchmark's datasets the lens
-            # refits' lower bound stayed at or below 0.04 wherever the probe's reduction was
-            # under this, against an allowance of 0.118 then; the specular probe removed
-            # 0.048-0.12 on every dataset with a specular lobe, at most 0.005 on clean fits.)
+            # removes less than this is not looked for.
             continue
-        if given and not _could_clear_on_top(candidate, given_candidate):
+        if given and not _could_clear_on_top(candidate, given_candidate, settings):
             # The refits again on top of the given effect only where the first pass leaves
             # room for a significant effect: otherwise its unconditional evidence stands.
             continue
         if moving not in controls:
             controls[moving] = evaluate(base, moving)[0]
-        squared, fitted = evaluate(base + [candidate.effect], moving)
-        module = next(module for module in fitted if module.name == candidate.effect)
-        _record(candidate, controls[moving], squared, module, given)
+        squared, fitted = evaluate(base + [candidate.name], moving)
+        module = next(module for module in fitted if module.name == candidate.name)
+        _record(candidate, controls[moving], squared, module, given, settings)
 
 
 def _record(
-    candidate: CandidateResult,
+    candidate: Candidate,
     control: torch.Tensor,
     squared: torch.Tensor,
     module: ModelEffect,
     given: str | None,
+    settings: DiagnoseConfig,
 ) -> None:
     """Absorption evidence from per-view held-out error sums [B] without and with the effect:
     the reduction with its bootstrap interval, the effect's parameters, and the decision."""
-    reduction, (low, high) = bootstrap_reduction(control, squared)
-    candidate.absorption = reduction
-    candidate.absorption_interval = (low, high)
-    candidate.absorption_parameters = module.parameters_summary()
-    if given:
-        candidate.conditional_on = given
-    candidate.decide()
+    reduction, (low, high) = bootstrap_reduction(control, squared, settings.bootstrap_samples)
+    on_top = f" on top of {given}" if given else ""
+    candidate.add(
+        Evidence(
+            kind="absorption",
+            candidate=candidate.name,
+            statistic=low,
+            threshold=math.nan,
+            passed=False,
+            reason=f"absorption refit{on_top}: held-out reduction over the control's lower bound",
+            details={
+                "reduction": reduction,
+                "interval": [low, high],
+                "parameters": module.parameters_summary(),
+                "conditional_on": given,
+            },
+        )
+    )
+    decide(candidate, settings.decision)

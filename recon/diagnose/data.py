@@ -8,27 +8,31 @@ residual can be binned in image, surface, light and edge domains without renderi
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from typing import Any
 
 import torch
 
 from recon.camera.cameras import Cameras
+from recon.config.run_config import DiagnoseConfig
 from recon.effects.base import ModelEffect
-from recon.effects.forward import render_with_effects
+from recon.effects.forward import (
+    EffectContext,
+    apply_camera_effects,
+    apply_image_effects,
+    apply_shading_effects,
+)
 from recon.errors import ReconError
-from recon.io.datasets import read_captures
-from recon.io.meshes import load_mesh
-from recon.io.run_folder import RunPaths
+from recon.io.datasets import CaptureSet
 from recon.mesh.mesh import Mesh
-from recon.optimize.fit import load_fitted_light
 from recon.render.interpolate import interpolate
 from recon.render.renderer import Renderer, RenderOutput
 from recon.render.shading import Lighting
 
-# Pixels around the silhouette that still count: blur, distortion and pose error leave their
-# residual on both sides of the edge, and a mask of the object alone would hide the outer half.
-DEFAULT_BAND_PIXELS = 3
+# The diagnose section's defaults (config diagnose), for callers that pass no settings.
+DEFAULTS = DiagnoseConfig()
 # Coverage above this counts as the object (antialiased alpha is fractional at the edge).
 COVERAGE_THRESHOLD = 0.5
 VIEWS_PER_BATCH = 4
@@ -66,6 +70,9 @@ class DiagnosisData:
     mesh: Mesh
     names: list[str] = field(default_factory=list)
     split: str = ""
+    # The fitted model the renders come from (its material and its own effects, which the
+    # probes keep on); None: the Lambertian mesh and lighting above, without effects.
+    model: FittedModel | None = None
 
     def __post_init__(self) -> None:
         if self.observed.ndim != 4 or self.observed.shape[-1] != 3:
@@ -120,7 +127,7 @@ class DiagnosisData:
 def region_mask(
     observed_alpha: torch.Tensor,
     rendered_alpha: torch.Tensor,
-    band_pixels: int = DEFAULT_BAND_PIXELS,
+    band_pixels: int = DEFAULTS.band_pixels,
 ) -> torch.Tensor:
     """The pixels the gap is measured on: [B, H, W, 1] float 0/1.
 
@@ -155,9 +162,10 @@ def build_diagnosis_data(
     cameras: Cameras,
     lighting: Lighting,
     mesh: Mesh,
-    band_pixels: int = DEFAULT_BAND_PIXELS,
+    band_pixels: int = DEFAULTS.band_pixels,
     names: list[str] | None = None,
     split: str = "",
+    model: FittedModel | None = None,
 ) -> DiagnosisData:
     """Bundle observations [B, H, W, 3] / [B, H, W, 1] with a render of the fitted scene.
 
@@ -183,62 +191,124 @@ def build_diagnosis_data(
         mesh=mesh.to(cpu),
         names=list(names) if names is not None else [],
         split=split,
+        model=model,
     )
 
 
-def load_diagnosis_data(
-    paths: RunPaths,
-    split: str,
+@dataclass
+class FittedModel:
+    """The model the diagnosis starts from: what the fit fitted, rendered as the fit renders it.
+
+    mesh, lighting: the fitted mesh (texture, UVs) and light (its frame: lighting.frame).
+    effects: the fit's own effect modules (config fit.effects) with the parameters the fit
+        left them at (per-view ones belong to the training views); they are part of the model,
+        never candidates.
+    pbr: the fitted pbr material (recon.optimize.material_stage.PbrTextureResult) of a
+        fit.material: pbr run, rendered with its environment instead of the Lambertian light;
+        None for the Lambertian material.
+    """
+
+    mesh: Mesh
+    lighting: Lighting
+    effects: list[ModelEffect] = field(default_factory=list)
+    pbr: Any = None
+
+    @property
+    def material(self) -> str:
+        return "lambert" if self.pbr is None else "pbr"
+
+    @property
+    def effect_names(self) -> list[str]:
+        return [module.name for module in self.effects]
+
+    def describe(self) -> dict:
+        """diagnosis.json's model record."""
+        return {
+            "material": self.material,
+            "light_frame": getattr(self.lighting, "frame", "world"),
+            "effects": self.effect_names,
+        }
+
+    def render(
+        self, renderer: Renderer, cameras: Cameras, lighting: Lighting | None = None
+    ) -> RenderOutput:
+        """The fitted scene without effects (pbr: its material under its environment; a
+        given lighting replaces the fitted light of the Lambertian model only)."""
+        if self.pbr is not None and lighting is None:
+            return self.pbr.render(renderer, cameras)
+        return renderer.render(self.mesh, cameras, self.lighting if lighting is None else lighting)
+
+    def render_with(
+        self,
+        renderer: Renderer,
+        cameras: Cameras,
+        effects: Sequence[ModelEffect],
+        lighting: Lighting | None = None,
+    ) -> RenderOutput:
+        """The fitted scene with effect modules around it (held-out views: view_indices None,
+        per-view effects at their typical view)."""
+        if not effects:
+            return self.render(renderer, cameras, lighting)
+        moved = apply_camera_effects(effects, cameras, None)
+        output = self.render(renderer, moved, lighting)
+        light = self.lighting if lighting is None else lighting
+        context = EffectContext(self.mesh, light, moved, None, renderer)
+        output = apply_shading_effects(effects, output, context)
+        color, alpha = apply_image_effects(effects, output.color, output.alpha, moved, None)
+        return replace(output, color=color, alpha=alpha)
+
+    def to(self, device: torch.device | str) -> FittedModel:
+        """The model on a device (the fit's effect modules copied there)."""
+        return replace(
+            self,
+            mesh=self.mesh.to(device),
+            lighting=self.lighting.to(device),
+            effects=[copy.deepcopy(module).to(device) for module in self.effects],
+        )
+
+
+def render_diagnosis_data(
+    captures: CaptureSet,
+    model: FittedModel,
     device: torch.device | str = "cpu",
-    band_pixels: int = DEFAULT_BAND_PIXELS,
+    band_pixels: int = DEFAULTS.band_pixels,
     effects: Sequence[ModelEffect] | None = None,
     lighting: Lighting | None = None,
-    dataset_options=None,
 ) -> DiagnosisData:
-    """The fitted scene of a run folder against one split of its dataset.
+    """The fitted model against one split's captures.
 
-    dataset_options: the run's DatasetConfig (how the dataset is read: size cap, masks).
-
-    lighting: render under this light instead of the fitted one (a relight split's own light).
-
-    Renders like the evaluate stage (recon.metrics.evaluate.render_fitted: trilinear texture,
-    clamped at the border, black background) but keeps the render's buffers. effects: model
-    effects switched on in the forward model (recon.effects.render_with_effects, as for
-    held-out views: no per-view parameters); their colour and alpha are the render's, the other
-    buffers come from the underlying rasterisation. The returned tensors live on the CPU
-    whatever device rendered them.
+    Renders like the evaluate stage (trilinear texture, clamped at the border, black
+    background) but keeps the render's buffers. effects: effect modules switched on around the
+    render (held-out views: no per-view parameters); their colour and alpha are the render's,
+    the other buffers come from the underlying rasterisation. lighting: render under this light
+    instead of the fitted one (a relight split's own light). band_pixels: the silhouette band
+    (config diagnose.band_pixels). The returned tensors live on the CPU whatever device
+    rendered them.
     """
-    if not paths.fitted_mesh.exists():
-        raise ReconError(f"diagnose: no fitted mesh at {paths.fitted_mesh} (run the fit stage)")
-    if not paths.fitted_light.exists():
-        raise ReconError(f"diagnose: no fitted light at {paths.fitted_light} (run the fit stage)")
     device = torch.device(device)
-    captures = read_captures(paths.dataset, split, dataset_options)
     if len(captures.cameras) == 0:
-        raise ReconError(f"diagnose: split '{split}' of {paths.dataset} has no views")
-    mesh = load_mesh(paths.fitted_mesh).to(device)
-    lighting = load_fitted_light(paths, device) if lighting is None else lighting.to(device)
+        raise ReconError(f"diagnose: split '{captures.split}' has no views")
+    model = model.to(device)
+    lighting = None if lighting is None else lighting.to(device)
     renderer = Renderer(texture_filter="linear-mipmap-linear", texture_boundary="clamp")
     parts: list[DiagnosisData] = []
     with torch.no_grad():
         for start in range(0, len(captures.cameras), VIEWS_PER_BATCH):
             stop = start + VIEWS_PER_BATCH
             cameras = captures.cameras[start:stop].to(device)
-            if effects:
-                output = render_with_effects(renderer, mesh, cameras, lighting, effects)
-            else:
-                output = renderer.render(mesh, cameras, lighting)
+            output = model.render_with(renderer, cameras, list(effects or []), lighting)
             parts.append(
                 build_diagnosis_data(
                     captures.images[start:stop],
                     captures.masks[start:stop],
                     output,
                     cameras,
-                    lighting,
-                    mesh,
+                    model.lighting if lighting is None else lighting,
+                    model.mesh,
                     band_pixels,
                     captures.names[start:stop],
-                    split,
+                    captures.split,
+                    model.to("cpu"),
                 )
             )
     return concatenate(parts)
@@ -277,4 +347,5 @@ def concatenate(parts: list[DiagnosisData]) -> DiagnosisData:
         mesh=first.mesh,
         names=[name for part in parts for name in part.names],
         split=first.split,
+        model=first.model,
     )

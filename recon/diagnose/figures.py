@@ -389,3 +389,16 @@ def flat_field_figure(measurement: dict, model: dict | None, path: Path) -> Path
     )
     axis.legend(fontsize=8)
     return _save(figure, path)
+
+
+def waterfall_figure(refits: list[dict], floor_rmse: float, path: Path) -> Path:
+    """Held-out RMSE of the fitted scene and after each refit, against the noise floor."""
+    labels = ["fitted"] + ["+ " + " + ".join(r["effects"]) for r in refits]
+    values = [refits[0]["before_rmse"]] + [r["after_rmse"] for r in refits] if refits else []
+    figure, axis = plt.subplots(figsize=(6, 3.5))
+    axis.bar(range(len(values)), values, color=["#888"] + ["#3a7"] * (len(values) - 1))
+    axis.axhline(floor_rmse, color="#c33", linestyle="--", label="noise floor")
+    axis.set_xticks(range(len(values)), labels, rotation=20, ha="right")
+    axis.set_ylabel("held-out residual RMSE (linear)")
+    axis.legend()
+    return _save(figure, path)

@@ -21,23 +21,19 @@ remains). A block bootstrap (8 x 8 pixel blocks across views) gives its interval
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
 
-from recon.diagnose.calibration import SHADOW_SHARE, VISIBILITY_SHARE_MINIMUM
+from recon.config.run_config import DecisionConfig, DiagnoseConfig
 from recon.diagnose.data import DiagnosisData
+from recon.diagnose.records import Evidence
 from recon.effects.light_transport import dominant_light, vertex_light_visibility
+from recon.effects.registry import effects_with_evidence
 from recon.render.interpolate import interpolate_packed
 from recon.render.rasterize import scatter_to_image
 from recon.render.renderer import RenderOutput
-
-FINGERPRINT_EFFECTS = ("shadows", "interreflection")
-BLOCK_PIXELS = 8
-BOOTSTRAP_SAMPLES = 400
-# The self-shadowing must matter (visible share below 0.9) on this share of the interior
-# pixels for the fingerprint to be testable at all.
-MINIMUM_COVERAGE = 0.02
 
 
 @dataclass
@@ -50,29 +46,52 @@ class VisibilityFingerprint:
     interval: tuple[float, float]
     coverage: float
 
-    @property
-    def testable(self) -> bool:
-        return self.coverage >= MINIMUM_COVERAGE
+    def names(self, config: DecisionConfig) -> str | None:
+        """The effect the fingerprint names (recon.diagnose.decision's fingerprint row), or
+        None: blocked light missing entirely, or partly filled back by bounces."""
+        for name in effects_with_evidence("fingerprint"):
+            if self.evidence(name).passed_under(config):
+                return name
+        return None
 
-    @property
-    def significant(self) -> bool:
-        return self.testable and self.interval[0] > VISIBILITY_SHARE_MINIMUM
+    def evidence(self, candidate: str) -> FingerprintEvidence:
+        return FingerprintEvidence(self, candidate)
 
-    @property
-    def effect(self) -> str | None:
-        """The effect the fingerprint names when significant: blocked light missing entirely
-        (shadows) or partly filled back by bounces (interreflection)."""
-        if not self.significant:
-            return None
-        return "shadows" if self.share >= SHADOW_SHARE else "interreflection"
-
-    def to_json(self) -> dict:
+    def to_json(self, config: DecisionConfig) -> dict:
         return {
             "share": self.share,
             "interval": list(self.interval),
             "coverage": self.coverage,
-            "names": self.effect,
+            "names": self.names(config),
         }
+
+
+@dataclass
+class FingerprintEvidence:
+    """The fingerprint as one candidate's Evidence."""
+
+    fingerprint: VisibilityFingerprint
+    candidate: str
+
+    def record(self) -> Evidence:
+        return Evidence(
+            kind="fingerprint",
+            candidate=self.candidate,
+            statistic=self.fingerprint.share,
+            threshold=math.nan,
+            passed=False,
+            reason="visibility fingerprint: share of the fitted mesh's self-shadowing baked "
+            "into the albedo",
+            details={
+                "interval": list(self.fingerprint.interval),
+                "coverage": self.fingerprint.coverage,
+            },
+        )
+
+    def passed_under(self, config: DecisionConfig) -> bool:
+        from recon.diagnose.decision import rethreshold
+
+        return rethreshold(self.record(), config).passed
 
 
 def _signatures(data: DiagnosisData, output: RenderOutput) -> dict[str, torch.Tensor]:
@@ -113,21 +132,24 @@ def _solve(grams: torch.Tensor, moments: torch.Tensor) -> torch.Tensor:
 
 
 def visibility_fingerprint(
-    data: DiagnosisData, output: RenderOutput, seed: int = 0
+    data: DiagnosisData, output: RenderOutput, settings: DiagnoseConfig, seed: int = 0
 ) -> VisibilityFingerprint:
     """The visibility fingerprint of the fitted albedo (see the module docstring).
 
-    output: the fitted scene rendered at data's cameras (the probe's base render).
+    output: the fitted scene rendered at data's cameras (the probe's base render); settings:
+    its block size (diagnose.fingerprint_block_pixels) and bootstrap samples.
     """
+    block_pixels = settings.fingerprint_block_pixels
+    samples = settings.bootstrap_samples
     signatures = _signatures(data, output)
     interior = _interior(output)
     batch, height, width = interior.shape
     if int(interior.sum()) < 50:
         return VisibilityFingerprint(0.0, (0.0, 0.0), 0.0)
-    rows = torch.arange(height) // BLOCK_PIXELS
-    columns = torch.arange(width) // BLOCK_PIXELS
-    blocks_per_row = (width + BLOCK_PIXELS - 1) // BLOCK_PIXELS
-    blocks_per_view = ((height + BLOCK_PIXELS - 1) // BLOCK_PIXELS) * blocks_per_row
+    rows = torch.arange(height) // block_pixels
+    columns = torch.arange(width) // block_pixels
+    blocks_per_row = (width + block_pixels - 1) // block_pixels
+    blocks_per_view = ((height + block_pixels - 1) // block_pixels) * blocks_per_row
     block = rows[:, None] * blocks_per_row + columns[None, :]
     block = (block[None] + torch.arange(batch)[:, None, None] * blocks_per_view)[interior]
     lambert = signatures["lambert"][interior].double()
@@ -145,10 +167,8 @@ def visibility_fingerprint(
     block_moment = torch.zeros(len(unique_blocks), 4, dtype=torch.float64)
     block_moment.index_add_(0, inverse, design * target[:, None])
     generator = torch.Generator().manual_seed(seed)
-    picks = torch.randint(
-        0, len(unique_blocks), (BOOTSTRAP_SAMPLES, len(unique_blocks)), generator=generator
-    )
-    counts = torch.zeros(BOOTSTRAP_SAMPLES, len(unique_blocks), dtype=torch.float64)
+    picks = torch.randint(0, len(unique_blocks), (samples, len(unique_blocks)), generator=generator)
+    counts = torch.zeros(samples, len(unique_blocks), dtype=torch.float64)
     counts.scatter_add_(1, picks, torch.ones_like(picks, dtype=torch.float64))
     ones = torch.ones(1, len(unique_blocks), dtype=torch.float64)
     share = float(_solve(ones @ block_gram.flatten(1), ones @ block_moment)[0])

@@ -16,37 +16,21 @@ averages and the value at a pixel centre needs no smooth global model).
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import torch
 
+from recon.config.run_config import DiagnoseConfig
 from recon.diagnose.residuals import luminance_of
 from recon.errors import ReconError
-from recon.io.datasets import FLAT_FIELD_SPLIT, read_nerf_synthetic
 
-# Pixels each side of a point in its local quadratic fit (a 13 x 13 window, clipped at the
-# frame's edge): wide enough to average noise, narrow enough that a quadratic follows a falloff
-# that steepens toward the corners.
-HALF_WINDOW = 6
 # Points round the half-way circle (as data_synth realises its half_radius_falloff).
 CIRCLE_POINTS = 64
 # Radial bins of the profile that the figure draws (0 to the corner).
 PROFILE_BINS = 16
-# A card lit to within 2 % over the frame is the usual tolerance of a flat-field target; a
-# corner darker or brighter than that is the camera's. Fixed before any case was scored.
-FLAT_FIELD_ALLOWANCE = 0.02
-# A frame with more than this share of its pixels at or above CLIPPED_VALUE (an 8-bit white, or a
-# sensor's full well normalised to 1) is refused: clipping flattens the falloff it measures.
+# A pixel at or above this (an 8-bit white, or a sensor's full well normalised to 1) is
+# clipped; a frame with too many (diagnose.flat_field_maximum_clipped_share) is refused:
+# clipping flattens the falloff it measures.
 CLIPPED_VALUE = 0.999
-MAXIMUM_CLIPPED_SHARE = 0.01
-
-
-def load_flat_field(dataset: Path) -> torch.Tensor | None:
-    """The dataset's flat-field frames [N, H, W, 3] (linear, float64), or None without them."""
-    if not (Path(dataset) / f"transforms_{FLAT_FIELD_SPLIT}.json").exists():
-        return None
-    captures = read_nerf_synthetic(dataset, FLAT_FIELD_SPLIT, background=None, prefer_exr=True)
-    return captures.images.double()
 
 
 def local_value(image: torch.Tensor, column: float, row: float, half_window: int) -> float:
@@ -67,14 +51,26 @@ def local_value(image: torch.Tensor, column: float, row: float, half_window: int
     return float(solution[0, 0])
 
 
-def measure_flat_field(frames: torch.Tensor, response_exponent: float | None = None) -> dict:
+def measure_flat_field(
+    frames: torch.Tensor,
+    response_exponent: float | None = None,
+    settings: DiagnoseConfig | None = None,
+) -> dict:
     """Corner and half-way falloff of frames [N, H, W, 3] (linear), each over the image centre.
+
+    settings: the local fits' half window and the largest clipped share a frame may have
+    (diagnose.flat_field_*; the config's defaults when None). The window (13 x 13 at 6,
+    clipped at the frame's edge) is wide enough to average noise, narrow enough that a
+    quadratic follows a falloff that steepens toward the corners.
 
     response_exponent: a response curve's effective exponent g when one was found (observed
     ~ true^g); the measured ratios are raised to 1/g to undo it. Returns corner_falloff,
     half_radius_falloff, per-frame corner falloffs, deviation (the larger distance of either
     falloff from 1), a radial profile (normalised radius, mean relative luminance) and the
     frame count."""
+    settings = settings or DiagnoseConfig()
+    half_window = settings.flat_field_half_window
+    maximum_clipped = settings.flat_field_maximum_clipped_share
     if frames.ndim != 4 or frames.shape[-1] != 3 or frames.shape[0] == 0:
         raise ReconError(
             f"flat_field.frames: expected shape [N >= 1, H, W, 3], got {tuple(frames.shape)}"
@@ -90,10 +86,10 @@ def measure_flat_field(frames: torch.Tensor, response_exponent: float | None = N
             raise ReconError(f"flat_field.frames[{index}]: no light (median luminance 0)")
         # Clipped pixels flatten a falloff: an over-exposed card reads as no vignetting.
         clipped = float((peaks[index] >= CLIPPED_VALUE).double().mean())
-        if clipped > MAXIMUM_CLIPPED_SHARE:
+        if clipped > maximum_clipped:
             raise ReconError(
                 f"flat_field.frames[{index}]: {100 * clipped:.1f} % of the pixels clipped at "
-                f"{CLIPPED_VALUE} or above (at most {100 * MAXIMUM_CLIPPED_SHARE:.0f} % expected); "
+                f"{CLIPPED_VALUE} or above (at most {100 * maximum_clipped:.0f} % expected); "
                 "shoot the card darker"
             )
     # Exposure and white balance scale a frame as a whole: each is taken relative to itself.
@@ -108,11 +104,11 @@ def measure_flat_field(frames: torch.Tensor, response_exponent: float | None = N
     ]
 
     def mean_value(image: torch.Tensor, points: list[tuple[float, float]]) -> float:
-        return sum(local_value(image, u, v, HALF_WINDOW) for u, v in points) / len(points)
+        return sum(local_value(image, u, v, half_window) for u, v in points) / len(points)
 
     def corner_falloff_of(image: torch.Tensor) -> tuple[float, float]:
         """(corner over centre, undone by the exponent; the centre value)."""
-        centre = local_value(image, 0.5 * width, 0.5 * height, HALF_WINDOW)
+        centre = local_value(image, 0.5 * width, 0.5 * height, half_window)
         return (mean_value(image, corners) / centre) ** (1 / exponent), centre
 
     mean_image = luminance.mean(0)
@@ -136,7 +132,6 @@ def measure_flat_field(frames: torch.Tensor, response_exponent: float | None = N
         "half_radius_falloff": round(half_radius_falloff, 5),
         "corner_falloff_per_frame": [round(value, 5) for value in per_frame],
         "deviation": round(max(abs(1 - corner_falloff), abs(1 - half_radius_falloff)), 5),
-        "allowance": FLAT_FIELD_ALLOWANCE,
         "response_exponent": exponent,
         "frames": count,
         "profile_radius": [round(float(value), 4) for value in 0.5 * (bins[1:] + bins[:-1])],

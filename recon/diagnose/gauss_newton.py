@@ -29,7 +29,6 @@ DAMPING_UP = 10.0
 DAMPING_DOWN = 0.3
 # A relative ridge that keeps gauge directions (response LUT offsets) solvable.
 RIDGE = 1e-9
-GAUSS_NEWTON_ITERATIONS = 5
 
 
 @dataclass
@@ -194,9 +193,7 @@ class GaussNewtonProblem:
         return self._predicted(matrix, vector, self.loss(start_image))
 
     # -- the solver --------------------------------------------------------------------------
-    def fit(
-        self, iterations: int = GAUSS_NEWTON_ITERATIONS, start_image: torch.Tensor | None = None
-    ) -> dict:
+    def fit(self, iterations: int, start_image: torch.Tensor | None = None) -> dict:
         """Damped Gauss-Newton from the current parameters, the Jacobian recomputed after every
         accepted step; returns {'score': the score test at the start (see score), 'initial_loss',
         'final_loss'}. start_image: render() at the current parameters when the caller has it.

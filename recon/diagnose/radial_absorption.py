@@ -26,16 +26,11 @@ from dataclasses import dataclass
 
 import torch
 
+from recon.config.run_config import DiagnoseConfig
 from recon.diagnose.data import DiagnosisData
 from recon.diagnose.which import block_halves
 from recon.effects.photometric import Vignetting, normalised_radius
 
-# Texture cells per side (cells of 8x8 texels in a 256-texel texture): enough pixels per cell
-# and view for a stable gain, small enough that a cell spans a narrow range of radii per view.
-CELLS_PER_SIDE = 32
-# Rendered values below this (per channel) are left out: their log ratio is mostly noise.
-MINIMUM_RENDERED = 0.02
-INTERIOR_MARGIN = 4
 # Coverage that counts as inside (a blurred observed mask is 1 only up to rounding).
 FULL_COVERAGE = 0.999
 # Radii (over the half diagonal) on which the log falloff is projected onto the module's
@@ -49,7 +44,7 @@ class InteriorPixels:
     channel): N rows.
 
     log_ratio, weight, rendered, observed: [N]; radius: [N] over the half diagonal;
-    cell: [N] texture cell index x channel (CELLS_PER_SIDE^2 * 3 groups); view: [N] view index
+    cell: [N] texture cell index x channel (cells_per_side^2 * 3 groups); view: [N] view index
     x channel (B * 3 groups); first_half: [N] bool, the pixel's block is in the first half of
     block_halves; view_count: B.
     """
@@ -63,27 +58,30 @@ class InteriorPixels:
     view: torch.Tensor
     first_half: torch.Tensor
     view_count: int
+    cells_per_side: int
 
     @classmethod
-    def from_data(cls, data: DiagnosisData) -> InteriorPixels:
+    def from_data(cls, data: DiagnosisData, settings: DiagnoseConfig) -> InteriorPixels:
+        """The interior pixels of data (config diagnose.regression_*: cells per side, interior
+        margin, least rendered value; block_pixels for the halves)."""
+        margin = settings.regression_interior_margin
+        cells_per_side = settings.regression_cells_per_side
         batch, height, width, channels = data.observed.shape
         covered = (data.rendered_alpha >= FULL_COVERAGE) & (data.observed_alpha >= FULL_COVERAGE)
         covered = covered & (data.texel_uv[..., :1] >= 0)
-        # INTERIOR_MARGIN pixels in from either silhouette: antialiasing, a sub-pixel edge
+        # margin pixels in from either silhouette: antialiasing, a sub-pixel edge
         # offset and grazing-angle shading are not a falloff.
         outside = (~covered).float().permute(0, 3, 1, 2)
-        window = 2 * INTERIOR_MARGIN + 1
-        interior = (
-            torch.nn.functional.max_pool2d(outside, window, stride=1, padding=INTERIOR_MARGIN) == 0
-        )
+        window = 2 * margin + 1
+        interior = torch.nn.functional.max_pool2d(outside, window, stride=1, padding=margin) == 0
         interior = interior.permute(0, 2, 3, 1).expand(batch, height, width, channels)
-        bright = (data.rendered > MINIMUM_RENDERED) & (data.observed > 0)
+        bright = (data.rendered > settings.regression_minimum_rendered) & (data.observed > 0)
         keep = interior & bright
         radius = normalised_radius(data.cameras, height, width, data.rendered)
-        uv = (data.texel_uv * CELLS_PER_SIDE).long().clamp(0, CELLS_PER_SIDE - 1)
-        cell = uv[..., 1] * CELLS_PER_SIDE + uv[..., 0]
+        uv = (data.texel_uv * cells_per_side).long().clamp(0, cells_per_side - 1)
+        cell = uv[..., 1] * cells_per_side + uv[..., 0]
         view = torch.arange(batch, device=keep.device)[:, None, None].expand(batch, height, width)
-        first, _ = block_halves(batch, height, width, keep.device)
+        first, _ = block_halves(batch, height, width, keep.device, settings.block_pixels)
         channel = torch.arange(channels, device=keep.device).expand(batch, height, width, -1)[keep]
 
         def per_channel(values: torch.Tensor) -> torch.Tensor:
@@ -101,6 +99,7 @@ class InteriorPixels:
             view=per_channel(view) * channels + channel,
             first_half=per_channel(first[..., 0] > 0),
             view_count=batch,
+            cells_per_side=cells_per_side,
         )
 
     def regressors(self) -> torch.Tensor:
@@ -140,7 +139,7 @@ def fit_gains(pixels: InteriorPixels, with_falloff: bool) -> GainFit:
     and falloff coefficients; alternating demeaning converges far too slowly when each cell is
     seen in a few views only). The cell and view gains share one constant per channel; the
     pseudo-inverse picks one split of it, which no prediction depends on."""
-    cell_count = CELLS_PER_SIDE * CELLS_PER_SIDE * 3
+    cell_count = pixels.cells_per_side * pixels.cells_per_side * 3
     view_count = pixels.view_count * 3
     weight, target = pixels.weight, pixels.log_ratio
     regressors = pixels.regressors() if with_falloff else target.new_zeros(target.shape[0], 0)
@@ -213,15 +212,15 @@ def falloff_module(coefficients: torch.Tensor) -> Vignetting:
 
 
 def radial_absorption(
-    training: DiagnosisData, heldout: DiagnosisData
+    training: DiagnosisData, heldout: DiagnosisData, settings: DiagnoseConfig
 ) -> tuple[torch.Tensor, torch.Tensor, Vignetting]:
     """Held-out per-view error sums [B] without and with the falloff (cell and view gains in
     both), and the fitted falloff as a Vignetting module. A fitted falloff that brightens
     half-way out is no vignetting (a lens only loses light off axis; a specular or
     interreflection misfit can put brighter pixels near the rim): its errors are the control's,
     no evidence."""
-    train_pixels = InteriorPixels.from_data(training)
-    test_pixels = InteriorPixels.from_data(heldout)
+    train_pixels = InteriorPixels.from_data(training, settings)
+    test_pixels = InteriorPixels.from_data(heldout, settings)
     control = heldout_errors(test_pixels, fit_gains(train_pixels, with_falloff=False))
     with_falloff = fit_gains(train_pixels, with_falloff=True)
     module = falloff_module(with_falloff.coefficients)

@@ -26,7 +26,7 @@ Two things besides a tone curve bend the ratio between the two renders, and both
   also makes the ratio depend on the *second* light's shading s2, and that is what the test
   credits. (The reported exponent comes from a third fit without the factor; see below.)
 - Cast shadows. A shadow the model lacks moves with the light, and its edge changes the ratio
-  as well as any curve. Pixels where the fitted mesh blocks more than SHADOWED_SHARE of either
+  as well as any curve. Pixels where the fitted mesh blocks more than diagnose.relight_shadowed_share of either
   light (recon.effects.light_transport.vertex_light_visibility, worst vertex of the pixel's
   triangle) are left out.
 """
@@ -38,6 +38,7 @@ from dataclasses import replace
 
 import torch
 
+from recon.config.run_config import DiagnoseConfig
 from recon.diagnose.data import DiagnosisData
 from recon.diagnose.gauss_newton import GaussNewtonProblem
 from recon.diagnose.which import block_halves, bootstrap_reduction
@@ -48,14 +49,6 @@ from recon.render.shading import Lighting, lambertian
 # Below this rendered value (linear, under either light) the shading ratio is not defined: the
 # prediction keeps R2.
 DARK = 1e-3
-ITERATIONS = 6
-# The bootstrap resamples image tiles of this size (across all views), not views: the exponent
-# is one number for every view, and a relight split has few views (8 in the benchmark), whose
-# own misfit would widen a per-view interval far beyond what the curve changes.
-TILE_PIXELS = 16
-# A pixel whose fitted surface loses more than this share of either light to the mesh itself
-# is left out (see the module docstring).
-SHADOWED_SHARE = 0.1
 
 
 class RelightResponse(torch.nn.Module):
@@ -103,8 +96,12 @@ def _fit(
     relight: DiagnosisData,
     first: torch.Tensor,
     second: torch.Tensor,
+    settings: DiagnoseConfig,
 ) -> torch.Tensor:
-    """Fit on the first half; squared error on the second, per tile [B * tiles]."""
+    """Fit on the first half (diagnose.relight_iterations); squared error on the second, per
+    tile of diagnose.relight_tile_pixels [B * tiles]. The bootstrap resamples tiles (across all
+    views), not views: the exponent is one number for every view, and a relight split has few
+    views, whose own misfit would widen a per-view interval far beyond what the curve changes."""
     trainable = [module]
     problem = GaussNewtonProblem(
         trainable,
@@ -112,12 +109,13 @@ def _fit(
         relight.observed,
         first * relight.region,
     )
-    problem.fit(ITERATIONS)
+    problem.fit(settings.relight_iterations)
     with torch.no_grad():
         prediction = module(under_fitted, relight.rendered)
     squared = ((prediction - relight.observed) ** 2 * second * relight.region).sum(-1)
-    # Sums per TILE_PIXELS tile of every view [B * tiles]: the bootstrap's units.
-    tiles = torch.nn.functional.avg_pool2d(squared[:, None], TILE_PIXELS, ceil_mode=True)
+    # Sums per tile of every view [B * tiles]: the bootstrap's units.
+    tile = settings.relight_tile_pixels
+    tiles = torch.nn.functional.avg_pool2d(squared[:, None], tile, ceil_mode=True)
     return tiles.flatten()
 
 
@@ -147,8 +145,11 @@ def light_error_basis(normals: torch.Tensor, lighting: Lighting) -> torch.Tensor
     return torch.stack([torch.ones_like(cosine), cosine], dim=-1) * scale[..., None]
 
 
-def unshadowed(relight: DiagnosisData, fitted_lighting: Lighting) -> torch.Tensor:
-    """[B, H, W, 1] 1 where the fitted mesh blocks at most SHADOWED_SHARE of the fitted light
+def unshadowed(
+    relight: DiagnosisData, fitted_lighting: Lighting, shadowed_share: float
+) -> torch.Tensor:
+    """[B, H, W, 1] 1 where the fitted mesh blocks at most shadowed_share (config
+    diagnose.relight_shadowed_share) of the fitted light
     and of the relight split's light at every vertex of the pixel's triangle (background: 1)."""
     mesh = relight.mesh
     visible = torch.minimum(
@@ -157,32 +158,40 @@ def unshadowed(relight: DiagnosisData, fitted_lighting: Lighting) -> torch.Tenso
     )
     triangle = relight.triangle_id
     corners = visible[mesh.faces[triangle.clamp(min=0)]].min(dim=-1).values  # [B, H, W]
-    keep = (triangle < 0) | (corners >= 1 - SHADOWED_SHARE)
+    keep = (triangle < 0) | (corners >= 1 - shadowed_share)
     return keep.to(relight.region)[..., None]
 
 
 def relight_response_probe(
-    relight: DiagnosisData, under_fitted: torch.Tensor, fitted_lighting: Lighting, seed: int = 0
+    relight: DiagnosisData,
+    under_fitted: torch.Tensor,
+    fitted_lighting: Lighting,
+    settings: DiagnoseConfig,
+    seed: int = 0,
 ) -> dict:
     """relight: the relight split rendered under its own light (rendered = R2); under_fitted:
     the same views rendered under the fitted light (R1) [B, H, W, 3]; fitted_lighting: the
     fit's light (its error shapes, and the cast shadows of both lights). Returns {"reduction",
     "interval", "parameters": {"gamma", "effective_gamma", "gamma_with_light_error"}}."""
     batch, height, width, _ = relight.observed.shape
-    first, second = block_halves(batch, height, width, relight.observed.device)
-    relight = replace(relight, region=relight.region * unshadowed(relight, fitted_lighting))
-    light_basis = light_error_basis(relight.normals, fitted_lighting)
-    baseline = _fit(
-        RelightResponse(light_basis, fit_gamma=False), under_fitted, relight, first, second
+    first, second = block_halves(
+        batch, height, width, relight.observed.device, settings.block_pixels
     )
+    shadowed_share = settings.relight_shadowed_share
+    relight = replace(
+        relight, region=relight.region * unshadowed(relight, fitted_lighting, shadowed_share)
+    )
+    light_basis = light_error_basis(relight.normals, fitted_lighting)
+    fixed = RelightResponse(light_basis, fit_gamma=False)
+    baseline = _fit(fixed, under_fitted, relight, first, second, settings)
     tested = RelightResponse(light_basis)
-    curved = _fit(tested, under_fitted, relight, first, second)
-    reduction, interval = bootstrap_reduction(baseline, curved, seed)
+    curved = _fit(tested, under_fitted, relight, first, second, settings)
+    reduction, interval = bootstrap_reduction(baseline, curved, settings.bootstrap_samples, seed)
     # The exponent itself comes from the fit without the light-error factor: a power law of the
     # ratio s2 / s1 is in part a function of s1, so with the factor free the exponent is pinned
     # by s2 alone and comes out low even on clean fits (recorded as gamma_with_light_error).
     estimate = RelightResponse(light_basis[..., :0])
-    _fit(estimate, under_fitted, relight, first, second)
+    _fit(estimate, under_fitted, relight, first, second, settings)
     gamma = float(estimate.response.log_gamma.detach().exp())
     return {
         "reduction": reduction,

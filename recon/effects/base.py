@@ -28,6 +28,7 @@ from typing import ClassVar, Literal
 
 import torch
 
+from recon.effects.facts import DiagnosisFacts
 from recon.errors import ReconError
 
 Stage = Literal["camera", "shading", "image"]
@@ -49,6 +50,8 @@ class ModelEffect(torch.nn.Module):
     name: ClassVar[str]
     stage: ClassVar[Stage]
     per_view: ClassVar[bool] = False
+    # What the gap diagnosis needs to know about the effect (recon.effects.facts).
+    diagnosis: ClassVar[DiagnosisFacts]
     default_learning_rate: ClassVar[float] = 0.01
     default_lock_fraction: ClassVar[float] = 0.2
     # Whether a per-view effect pins a view by default (a gauge against albedo x light or the

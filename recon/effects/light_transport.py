@@ -43,6 +43,7 @@ import torch
 
 from recon.camera import Cameras
 from recon.effects.base import ModelEffect, to_float
+from recon.effects.facts import DiagnosisFacts
 from recon.errors import ReconError
 from recon.mesh.mesh import Mesh, vertex_normals
 from recon.render.interpolate import interpolate_packed
@@ -269,6 +270,14 @@ class Specular(ModelEffect):
     """
 
     name = "specular"
+    diagnosis = DiagnosisFacts(
+        family="light_transport",
+        evidence=("absorption",),
+        absorption="frozen",
+        modelled_by=("pbr",),
+        confusable=("exposure", "view_dependent_reflectance"),
+        identifiable_when="views spread around the light, so highlights move over the surface",
+    )
     stage = "shading"
     per_view = False
     default_learning_rate = 0.02
@@ -327,6 +336,13 @@ class Shadows(ModelEffect):
     """
 
     name = "shadows"
+    diagnosis = DiagnosisFacts(
+        family="light_transport",
+        evidence=("fingerprint",),
+        fingerprint_side="blocked",
+        confusable=("interreflection",),
+        identifiable_when="views under a second light, or a mesh that shadows itself",
+    )
     stage = "shading"
     per_view = False
     default_learning_rate = 0.02
@@ -548,6 +564,13 @@ class Interreflection(ModelEffect):
     """
 
     name = "interreflection"
+    diagnosis = DiagnosisFacts(
+        family="light_transport",
+        evidence=("fingerprint",),
+        fingerprint_side="bounced",
+        confusable=("shadows",),
+        identifiable_when="views under a second light, or concave regions that see each other",
+    )
     stage = "shading"
     per_view = False
     default_learning_rate = 0.02

@@ -37,6 +37,7 @@ import torch
 
 from recon.camera import Cameras
 from recon.effects.base import ModelEffect, check_image, to_float, to_list
+from recon.effects.facts import DiagnosisFacts
 from recon.errors import ReconError
 
 # Zero padding of the FFT blur, in standard deviations of the widest direction.
@@ -125,6 +126,11 @@ class DefocusBlur(ModelEffect):
     """
 
     name = "defocus_blur"
+    diagnosis = DiagnosisFacts(
+        family="camera",
+        confusable=("motion_blur", "lens_distortion"),
+        identifiable_when="sharp texture or silhouette edges in every view",
+    )
     stage = "image"
     per_view = False
     default_learning_rate = 0.1
@@ -173,6 +179,12 @@ class MotionBlur(ModelEffect):
     """
 
     name = "motion_blur"
+    diagnosis = DiagnosisFacts(
+        family="camera",
+        probe_start=("line", 0.5),
+        confusable=("defocus_blur", "lens_distortion", "pose_error"),
+        identifiable_when="sharp edges in several directions in every view",
+    )
     stage = "image"
     per_view = True
     default_learning_rate = 0.05
@@ -237,6 +249,13 @@ class LensDistortion(ModelEffect):
     """
 
     name = "lens_distortion"
+    diagnosis = DiagnosisFacts(
+        family="camera",
+        evidence=("absorption",),
+        absorption="geometry",
+        confusable=("motion_blur", "defocus_blur", "pose_error"),
+        identifiable_when="straight edges or texture reaching the outer image",
+    )
     stage = "image"
     per_view = False
     default_learning_rate = 0.01

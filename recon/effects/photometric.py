@@ -25,6 +25,7 @@ import torch
 
 from recon.camera import Cameras
 from recon.effects.base import ModelEffect, check_image, to_float, to_list
+from recon.effects.facts import DiagnosisFacts
 from recon.errors import ReconError
 
 
@@ -32,6 +33,11 @@ class Exposure(ModelEffect):
     """Per-view exposure: colour [B, H, W, C] *= exp(log_gain[view])."""
 
     name = "exposure"
+    diagnosis = DiagnosisFacts(
+        family="camera",
+        confusable=("white_balance", "view_dependent_reflectance"),
+        identifiable_when="views whose exposure differs, of surfaces whose reflectance does not change with the view",
+    )
     stage = "image"
     per_view = True
     pins_a_view = True
@@ -70,6 +76,11 @@ class WhiteBalance(ModelEffect):
     """Per-view red and blue gains, green fixed: colour [B, H, W, 3] *= exp([r, 0, b])."""
 
     name = "white_balance"
+    diagnosis = DiagnosisFacts(
+        family="camera",
+        confusable=("exposure", "view_dependent_reflectance"),
+        identifiable_when="views whose colour balance differs (one view pins the gauge)",
+    )
     stage = "image"
     per_view = True
     pins_a_view = True
@@ -134,6 +145,14 @@ class Vignetting(ModelEffect):
     """
 
     name = "vignetting"
+    diagnosis = DiagnosisFacts(
+        family="camera",
+        evidence=("absorption", "flat_field"),
+        absorption="closed_form",
+        radial_falloff=True,
+        confusable=("response_curve", "view_dependent_reflectance"),
+        identifiable_when="the object reaching the image corners, or flat-field frames",
+    )
     stage = "image"
     per_view = False
     default_learning_rate = 0.02
@@ -199,6 +218,13 @@ class ResponseCurve(ModelEffect):
     """
 
     name = "response_curve"
+    diagnosis = DiagnosisFacts(
+        family="camera",
+        evidence=("relight",),
+        relight_exponent=True,
+        confusable=("lens_distortion", "exposure"),
+        identifiable_when="views under a second light (a relight split) or with varying exposure",
+    )
     stage = "image"
     per_view = False
     default_learning_rate = 0.03

@@ -20,6 +20,7 @@ import torch
 
 from recon.camera import Cameras
 from recon.effects.base import ModelEffect, to_list
+from recon.effects.facts import DiagnosisFacts
 from recon.errors import ReconError
 
 # Below this squared angle (rad^2) the Rodrigues coefficients use their Taylor series.
@@ -66,6 +67,15 @@ class PoseError(ModelEffect):
     """
 
     name = "pose_error"
+    diagnosis = DiagnosisFacts(
+        family="camera",
+        # At the capture distance a small translation moves the image as a rotation does,
+        # except for a change of scale, which a distortion or a blur the texture absorbed also
+        # leaves: with translations free, this probe explains those better than their own.
+        probe_frozen=("translation",),
+        confusable=("lens_distortion", "motion_blur"),
+        identifiable_when="texture or silhouette edges in every view",
+    )
     stage = "camera"
     per_view = True
     pins_a_view = True

@@ -11,6 +11,7 @@ import difflib
 
 from recon.config.run_config import EFFECT_NAMES
 from recon.effects.base import ModelEffect
+from recon.effects.facts import DiagnosisFacts
 from recon.effects.light_transport import Interreflection, Shadows, Specular
 from recon.effects.optics import DefocusBlur, LensDistortion, MotionBlur
 from recon.effects.photometric import Exposure, ResponseCurve, Vignetting, WhiteBalance
@@ -67,3 +68,17 @@ def make_effect(name: str, view_count: int | None = None, **options) -> ModelEff
         return effect_class(view_count, **options)
     except TypeError as error:
         raise ReconError(f"effect {name}: bad options {sorted(options)}: {error}") from error
+
+
+def diagnosis_facts(name: str) -> DiagnosisFacts | None:
+    """The diagnosis facts of a model effect (recon.effects.facts), or None for a name that is
+    no model effect (a base-model mismatch such as view_dependent_reflectance, or noise)."""
+    effect = MODEL_EFFECTS.get(name)
+    return None if effect is None else effect.diagnosis
+
+
+def effects_with_evidence(kind: str) -> tuple[str, ...]:
+    """The model effects a kind of evidence applies to (their facts list it), in name order."""
+    return tuple(
+        name for name in sorted(MODEL_EFFECTS) if kind in MODEL_EFFECTS[name].diagnosis.evidence
+    )

@@ -119,22 +119,3 @@ def plain_json(value):
     if isinstance(value, float) and not np.isfinite(value):
         return None
     return value
-
-
-# TEMPORARY, for recon/diagnose and tests/diagnose only (the diagnosis redesign, issue 20,
-# moves them onto recon/stages/): the old private name, and a renderer of a run folder.
-_plain = plain_json
-
-
-def render_fitted(paths, cameras, device: torch.device):
-    """TEMPORARY (see above): the fitted scene of a run folder rendered from cameras: (mesh,
-    colour [B, H, W, 3], alpha [B, H, W, 1])."""
-    from recon.io.meshes import load_mesh
-    from recon.optimize.fit import read_fitted_light
-    from recon.optimize.material_stage import read_pbr_result
-
-    mesh = load_mesh(paths.fitted_mesh).to(device)
-    lighting = read_fitted_light(paths.fitted_light, device)
-    pbr = read_pbr_result(paths.fitted_light, paths.fitted_mesh, device)
-    colors, alphas = render_scene(mesh, lighting, pbr, cameras, device)
-    return mesh, colors, alphas

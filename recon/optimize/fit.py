@@ -113,10 +113,3 @@ def environment_map_from_light(light: LightModel, size=ENVIRONMENT_SIZE) -> torc
 def read_fitted_light(light_file: Path, device: torch.device) -> Lighting:
     """A fitted light record (light/light.json of a run) as recon Lighting."""
     return Lighting.from_json(json.loads(Path(light_file).read_text()), device)
-
-
-def load_fitted_light(paths, device: torch.device) -> Lighting:
-    """TEMPORARY, for recon/diagnose only: the fitted light of a run folder. The diagnosis
-    redesign (issue 20) moves its run-folder reads into recon/stages/diagnose.py, which reads
-    the light with recon.stages.fitted_scene; then this goes."""
-    return read_fitted_light(paths.fitted_light, device)

@@ -181,6 +181,11 @@ def render_report(
     diagnosis's verdict and tables when there is one, then each (title, relative link) figure."""
     rows = _metric_rows(metrics)
     diagnosis_markdown: list[str] = []
+    if diagnosis is not None and "candidates" not in diagnosis:
+        # Written before the typed records: its evidence re-decided into the current form.
+        from recon.diagnose.decision import redecide
+
+        diagnosis = redecide(diagnosis).to_json()
     if diagnosis is not None:
         rows.append(("diagnosis.verdict", diagnosis["verdict"]))
         diagnosis_markdown = ["", "## Gap diagnosis", "", f"Verdict: {diagnosis['verdict']}", ""]
@@ -225,34 +230,49 @@ def render_report(
 
 
 def _ranking_table(diagnosis: dict) -> tuple[list[str], list[list[str]]]:
-    """The diagnosis ranking as (header, rows) of text cells."""
+    """The diagnosis' candidates, best first, as (header, rows) of text cells: the deciding
+    evidence, the probe's held-out reduction and interval, the absorption and relight
+    reductions, and why it is or is not significant."""
+    from recon.diagnose.records import Candidate
+
     header = [
-        "effect",
+        "candidate",
         "evidence",
         "held-out reduction",
         "interval",
         "absorption",
         "relight",
         "significant",
+        "why",
     ]
     rows = []
-    for item in diagnosis["ranking"]:
-        low, high = item["interval"]
-        absorption = item.get("absorption")
-        absorption_cell = "" if absorption is None else f"{absorption:.3f}"
-        if item.get("absorption_discounted_by"):
+    for record in diagnosis["candidates"]:
+        candidate = Candidate.from_json(record)
+        probe = candidate.evidence_of("probe")
+        reduction, interval = "", ""
+        if probe is not None:
+            low, high = probe.interval
+            reduction, interval = f"{probe.details['reduction']:.3f}", f"[{low:.3f}, {high:.3f}]"
+        absorption = candidate.evidence_of("absorption")
+        absorption_cell = "" if absorption is None else f"{absorption.details['reduction']:.3f}"
+        if absorption is not None and absorption.void:
             # Measured alone, voided on top of the conditioning effect (it does not decide).
-            absorption_cell += f" (void beside {item['absorption_discounted_by']})"
-        relight = item.get("relight_reduction")
+            absorption_cell += f" (void beside {absorption.details.get('discounted_by')})"
+        relight = candidate.evidence_of("relight")
         rows.append(
             [
-                item["effect"],
-                item.get("evidence", ""),
-                f"{item['heldout_reduction']:.3f}",
-                f"[{low:.3f}, {high:.3f}]",
+                candidate.name,
+                candidate.decided_by,
+                reduction,
+                interval,
                 absorption_cell,
-                "" if relight is None else f"{relight:.3f}",
-                "yes" if item["significant"] else "",
+                "" if relight is None else f"{relight.details['reduction']:.3f}",
+                "yes"
+                if candidate.significant
+                else candidate.status.replace("_", " ")
+                if candidate.status in ("vetoed", "not_identifiable")
+                else "",
+                candidate.why,
             ]
         )
     return header, rows
@@ -295,13 +315,13 @@ def recovered_parameters(
     for refit in reversed(diagnosis.get("refits", [])):
         from_refits.update(refit.get("parameters", {}))
     recovered = []
-    for item in diagnosis["ranking"]:
+    for item in diagnosis["candidates"]:
         if significant_only and not item["significant"]:
             continue
-        if item["effect"] in from_refits:
-            recovered.append((item["effect"], "refit", from_refits[item["effect"]]))
+        if item["name"] in from_refits:
+            recovered.append((item["name"], "refit", from_refits[item["name"]]))
         else:
-            recovered.append((item["effect"], item.get("evidence", ""), item.get("parameters", {})))
+            recovered.append((item["name"], item.get("decided_by", ""), item.get("parameters", {})))
     return recovered
 
 

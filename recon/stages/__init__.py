@@ -16,13 +16,12 @@ from recon.errors import ReconError
 
 Stage = Callable[..., dict]
 
-# name -> "module:function". The diagnose stage moves to recon.stages.diagnose with the
-# diagnosis redesign (issue 20).
+# name -> "module:function".
 STAGES = {
     "fit": "recon.stages.fit:fit_stage",
     "evaluate": "recon.stages.evaluate:evaluate_stage",
     "report": "recon.stages.report:report_stage",
-    "diagnose": "recon.diagnose.diagnose:diagnose_stage",
+    "diagnose": "recon.stages.diagnose:diagnose_stage",
 }
 ENTRY_POINT_GROUP = "recon.stages"
 

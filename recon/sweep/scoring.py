@@ -47,7 +47,7 @@ def score_case(
     diagnose_seconds: float,
     run_folder: Path,
 ) -> dict:
-    significant = [item["effect"] for item in diagnosis["ranking"] if item["significant"]]
+    significant = [item["name"] for item in diagnosis["candidates"] if item["significant"]]
     top = significant[0] if significant else NONE
     record = {
         "case": case.label,
@@ -126,7 +126,11 @@ def parameter_errors(diagnosis: dict, truth: dict) -> dict:
     # so the refit cannot pin it. The ranking's estimate comes from the relight split, the one
     # place a curve shows (recon.diagnose.relight_probe).
     model_response = next(
-        (item["parameters"] for item in diagnosis["ranking"] if item["effect"] == "response_curve"),
+        (
+            item["parameters"]
+            for item in diagnosis["candidates"]
+            if item["name"] == "response_curve"
+        ),
         {},
     )
     true_response = realised_by_split.get("test", {}).get("response_curve", {})

@@ -151,19 +151,19 @@ def _run(trial: dict, folder: Path, run_folder: Path, settings: dict, record: di
 
 def _diagnose(trial: dict, paths, truth_path: Path, settings: dict) -> dict:
     """Diagnose the fitted trial blind, then (only then) read the truth and score it."""
-    from recon.diagnose.diagnose import diagnose_run
+    from recon.stages.diagnose import run_diagnosis
     from recon.sweep.scoring import BenchCase, score_case
 
     config = load_config(paths.resolved_config, RunConfig)
     device = pipeline.resolve_device(settings["device"])
     started = time.perf_counter()
-    diagnosis = diagnose_run(
+    diagnosis = run_diagnosis(
         paths,
         config,
         device,
         refit=settings["diagnose"]["refit"],
         candidates=settings["diagnose"]["candidates"] or None,
-    )
+    ).to_json()
     diagnose_seconds = time.perf_counter() - started
     withheld = tuple(trial.get("withhold") or ())
     truth = json.loads(truth_path.read_text()) if withheld else {"withheld": []}

@@ -84,7 +84,7 @@ def test_blind_vignetting_is_measured_out_to_the_corners(tiny_config, tmp_path):
     assert record["predicted_top"] == "vignetting", record
     assert record["parameter_error"]["vignetting_corner_falloff"] < 0.05, record
     diagnosis = json.loads((Path(record["run_folder"]) / "diagnosis.json").read_text())
-    vignetting = next(item for item in diagnosis["ranking"] if item["effect"] == "vignetting")
-    assert vignetting["evidence"] == "flat_field"
+    vignetting = next(item for item in diagnosis["candidates"] if item["name"] == "vignetting")
+    assert vignetting["decided_by"] == "flat_field"
     assert vignetting["parameters"]["falloff_source"] == "flat_field"
     assert diagnosis["gap"]["flat_field"]["frames"] == 2

@@ -3,11 +3,14 @@ darkening that a fit without it baked in, and finds nothing to take back on clea
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import pytest
 import torch
 from diagnose_scenes import patterned_torus
 
 from recon.camera import orbit_cameras
+from recon.config.run_config import DiagnoseConfig
 from recon.diagnose.absorption import (
     FrozenTrainingViews,
     bootstrap_reduction,
@@ -16,12 +19,17 @@ from recon.diagnose.absorption import (
     heldout_modules,
 )
 from recon.diagnose.data import build_diagnosis_data
+from recon.diagnose.decision import absorption_threshold, decide
+from recon.diagnose.records import Candidate, Evidence
+from recon.diagnose.which import probe_evidence
 from recon.effects import make_effect
 from recon.io.datasets import CaptureSet
 from recon.render.renderer import Renderer
 from recon.render.shading import Lighting
 
 SIZE, TRAIN, TEST = 40, 12, 6
+SETTINGS = DiagnoseConfig()
+DECISION = SETTINGS.decision
 
 
 def scene_and_views(corner_darkening: float):
@@ -59,10 +67,17 @@ def absorption_reduction(corner_darkening: float) -> tuple[float, tuple[float, f
     renderer = Renderer(texture_filter="linear")
     errors = []
     for names in ([], ["vignetting"]):
-        mesh, lighting, fitted = frozen_refit(frozen, names, renderer, steps=60)
+        settings = replace_settings(SETTINGS, absorption_steps=60)
+        mesh, lighting, fitted = frozen_refit(frozen, names, renderer, settings)
         modules = heldout_modules(names, fitted, test.view_count, "cpu")
-        errors.append(heldout_errors(replace_scene(test, mesh, lighting), modules)[0])
-    return bootstrap_reduction(errors[0], errors[1])
+        errors.append(heldout_errors(replace_scene(test, mesh, lighting), modules, SETTINGS)[0])
+    return bootstrap_reduction(errors[0], errors[1], SETTINGS.bootstrap_samples)
+
+
+def replace_settings(settings, **changes):
+    from dataclasses import replace
+
+    return replace(settings, **changes)
 
 
 def replace_scene(data, mesh, lighting):
@@ -88,6 +103,27 @@ def test_frozen_buffers_cover_every_training_view_once():
     assert all(group[2].shape[0] == group[1].shape[0] for group in frozen.groups)
 
 
+def make(name: str, probe: tuple[float, float], absorption=None, reduction=None) -> Candidate:
+    """A decided candidate with probe evidence (interval; reduction default its midpoint) and,
+    optionally, absorption evidence (interval)."""
+    candidate = Candidate(name)
+    middle = sum(probe) / 2 if reduction is None else reduction
+    candidate.add(probe_evidence(name, middle, probe, {}))
+    if absorption is not None:
+        candidate.add(
+            Evidence(
+                "absorption",
+                name,
+                absorption[0],
+                float("nan"),
+                False,
+                "absorption",
+                {"interval": list(absorption), "reduction": sum(absorption) / 2},
+            )
+        )
+    return decide(candidate, DECISION)
+
+
 class RefitCalled(Exception):
     """Raised by the stand-ins for the refits' first step: a test that expects it knows the
     refits ran."""
@@ -95,11 +131,9 @@ class RefitCalled(Exception):
 
 @pytest.fixture
 def frozen_refits_raise(monkeypatch):
-    """(RefitCalled, data, paths): the absorption module with FrozenTrainingViews.build (every
+    """(RefitCalled, data, inputs): the absorption module with FrozenTrainingViews.build (every
     frozen-geometry refit's start) and refit_with (the lens refits) raising RefitCalled, and
-    stand-ins for the diagnosis data and run paths it is called with."""
-    from types import SimpleNamespace
-
+    stand-ins for the diagnosis data and the absorption inputs it is called with."""
     import recon.diagnose.absorption as absorption
 
     def frozen_build(*arguments, **options):
@@ -107,48 +141,64 @@ def frozen_refits_raise(monkeypatch):
 
     monkeypatch.setattr(absorption.FrozenTrainingViews, "build", frozen_build)
     monkeypatch.setattr(absorption, "refit_with", frozen_build)
-    monkeypatch.setattr(absorption, "read_captures", lambda *arguments: None)
     movable = SimpleNamespace(to=lambda device: None)
     data = SimpleNamespace(mesh=movable, lighting=movable)
-    paths = SimpleNamespace(dataset=None)
-    return RefitCalled, data, paths
+    return RefitCalled, data, inputs_with()
+
+
+def inputs_with(**settings):
+    from recon.config.run_config import RunConfig
+
+    config = RunConfig()
+    return SimpleNamespace(
+        config=SimpleNamespace(diagnose=config.diagnose, fit=config.fit, seed=0),
+        model=SimpleNamespace(pbr=None, effects=[], effect_names=[]),
+        training=None,
+        device=torch.device("cpu"),
+        scratch=None,
+    )
 
 
 @pytest.mark.parametrize("effect", ["lens_distortion", "specular"])
 def test_refits_run_only_where_the_probe_sees_a_residual(frozen_refits_raise, effect):
     """The refits (the dearest step: the lens refits move the geometry, the specular ones
     rasterise the training views first) are skipped when the frozen-scene probe's held-out
-    reduction is under MINIMUM_SHARE, and run when it is above."""
+    reduction is under diagnose.decision.minimum_share, and run when it is above."""
     import recon.diagnose.absorption as absorption
-    from recon.diagnose.calibration import MINIMUM_SHARE
-    from recon.diagnose.which import CandidateResult
 
-    RefitCalled, data, paths = frozen_refits_raise
-    quiet = CandidateResult(effect, 0.0, 0.5 * MINIMUM_SHARE, (0.0, 0.02), False)
-    absorption.absorption_probes([quiet], data, paths, None, torch.device("cpu"))
-    assert quiet.absorption is None and quiet.absorption_interval is None
-    loud = CandidateResult(effect, 0.0, 2 * MINIMUM_SHARE, (0.0, 0.08), False)
+    RefitCalled, data, inputs = frozen_refits_raise
+    minimum = DECISION.minimum_share
+    quiet = make(effect, (0.0, 0.02), reduction=0.5 * minimum)
+    absorption.absorption_probes([quiet], data, inputs)
+    assert quiet.evidence_of("absorption") is None
+    loud = make(effect, (0.0, 0.08), reduction=2 * minimum)
     with pytest.raises(RefitCalled):
-        absorption.absorption_probes([loud], data, paths, None, torch.device("cpu"))
+        absorption.absorption_probes([loud], data, inputs)
+
+
+def test_a_pbr_model_is_not_refitted(frozen_refits_raise):
+    import recon.diagnose.absorption as absorption
+
+    RefitCalled, data, inputs = frozen_refits_raise
+    inputs.model.pbr = "a pbr material"
+    loud = make("specular", (0.0, 0.08), reduction=0.05)
+    absorption.absorption_probes([loud], data, inputs)
+    assert loud.evidence_of("absorption") is None
 
 
 def test_refits_on_top_of_a_given_effect_only_follow_earlier_evidence(frozen_refits_raise):
     """On top of a per-view effect, a candidate whose unconditional absorption lower bound was
     not positive keeps that evidence (no refit); one whose bound was positive is refitted."""
     import recon.diagnose.absorption as absorption
-    from recon.diagnose.which import CandidateResult
 
-    RefitCalled, data, paths = frozen_refits_raise
-    quiet = CandidateResult("specular", 0.0, 0.001, (0.0, 0.01), False)
-    quiet.absorption_interval = (-0.01, 0.02)
-    absorption.absorption_probes([quiet], None, None, None, torch.device("cpu"), given="exposure")
-    assert quiet.absorption_interval == (-0.01, 0.02) and quiet.conditional_on is None
-    loud = CandidateResult("specular", 0.0, 0.001, (0.0, 0.01), False)
-    loud.absorption_interval = (0.01, 0.05)
+    RefitCalled, data, inputs = frozen_refits_raise
+    quiet = make("specular", (0.0, 0.01), absorption=(-0.01, 0.02), reduction=0.001)
+    absorption.absorption_probes([quiet], None, inputs, given="exposure")
+    assert quiet.evidence_of("absorption").interval == (-0.01, 0.02)
+    assert quiet.evidence_of("absorption").details.get("conditional_on") is None
+    loud = make("specular", (0.0, 0.01), absorption=(0.01, 0.05), reduction=0.001)
     with pytest.raises(RefitCalled):
-        absorption.absorption_probes(
-            [loud], data, paths, None, torch.device("cpu"), given="exposure"
-        )
+        absorption.absorption_probes([loud], data, inputs, given="exposure")
 
 
 def test_refits_on_top_of_a_given_effect_need_room_to_clear_the_allowance(frozen_refits_raise):
@@ -156,35 +206,24 @@ def test_refits_on_top_of_a_given_effect_need_room_to_clear_the_allowance(frozen
     when the first pass's upper bound, as a share of the error the given effect leaves (its
     probe interval's upper end), reaches the allowance."""
     import recon.diagnose.absorption as absorption
-    from recon.diagnose.calibration import absorption_threshold
-    from recon.diagnose.which import CandidateResult
 
-    RefitCalled, data, paths = frozen_refits_raise
-    threshold = absorption_threshold("specular")
+    RefitCalled, data, inputs = frozen_refits_raise
+    threshold = absorption_threshold("specular", DECISION)
     # The lens datasets' specular evidence: a lower bound just above zero, far below the
     # allowance even on the error a lens distortion (probe interval up to 0.26) leaves.
-    given = CandidateResult("lens_distortion", 0.0, 0.2, (0.15, 0.26), True)
-    faint = CandidateResult("specular", 0.0, 0.0, (-0.001, 0.001), False)
-    faint.absorption_interval = (0.001, 0.5 * threshold)
-    absorption.absorption_probes(
-        [given, faint], data, paths, None, torch.device("cpu"), given="lens_distortion"
-    )
-    assert faint.absorption_interval == (0.001, 0.5 * threshold)
-    assert faint.conditional_on is None
+    given = make("lens_distortion", (0.15, 0.26))
+    faint = make("specular", (-0.001, 0.001), absorption=(0.001, 0.5 * threshold))
+    absorption.absorption_probes([given, faint], data, inputs, given="lens_distortion")
+    assert faint.evidence_of("absorption").interval == (0.001, 0.5 * threshold)
     # The same evidence under a given effect that removes 60 % of the error could clear it.
-    strong = CandidateResult("exposure", 0.0, 0.5, (0.4, 0.6), True)
+    strong = make("exposure", (0.4, 0.6))
     with pytest.raises(RefitCalled):
-        absorption.absorption_probes(
-            [strong, faint], data, paths, None, torch.device("cpu"), given="exposure"
-        )
+        absorption.absorption_probes([strong, faint], data, inputs, given="exposure")
 
 
 def test_both_absorption_passes_rasterise_the_training_views_once(monkeypatch):
     """The pass on top of a given effect reuses the first pass's rasterised training views."""
-    from types import SimpleNamespace
-
     import recon.diagnose.absorption as absorption
-    from recon.diagnose.which import CandidateResult
 
     builds = []
 
@@ -192,11 +231,11 @@ def test_both_absorption_passes_rasterise_the_training_views_once(monkeypatch):
         builds.append(1)
         return SimpleNamespace(view_count=2)
 
-    def frozen_refit(frozen, names, renderer, steps):
+    def frozen_refit(frozen, names, renderer, settings):
         modules = [SimpleNamespace(name=name, parameters_summary=dict) for name in names]
         return movable, movable, modules
 
-    def heldout_errors(refitted, modules):
+    def heldout_errors(refitted, modules, settings):
         errors = torch.tensor([1.0, 1.0]) * (0.5 if "specular" in [m.name for m in modules] else 1)
         return errors, None
 
@@ -205,19 +244,17 @@ def test_both_absorption_passes_rasterise_the_training_views_once(monkeypatch):
     monkeypatch.setattr(absorption, "frozen_refit", frozen_refit)
     monkeypatch.setattr(absorption, "heldout_errors", heldout_errors)
     monkeypatch.setattr(absorption, "heldout_modules", lambda names, fitted, *a: fitted)
-    monkeypatch.setattr(absorption, "read_captures", lambda *arguments: None)
     monkeypatch.setattr(absorption, "replace", lambda data, **changes: data)
     data = SimpleNamespace(mesh=movable, lighting=movable, view_count=2, observed=torch.zeros(1))
-    paths = SimpleNamespace(dataset=None)
-    specular = CandidateResult("specular", 0.0, 0.03, (-0.01, 0.05), False)
-    exposure = CandidateResult("exposure", 0.0, 0.5, (0.4, 0.6), True)
+    inputs = inputs_with()
+    specular = make("specular", (-0.01, 0.05), reduction=0.03)
+    exposure = make("exposure", (0.4, 0.6))
     cache = absorption.AbsorptionCache()
-    absorption.absorption_probes([exposure, specular], data, paths, None, "cpu", cache=cache)
-    assert specular.absorption == 0.5 and specular.significant
-    absorption.absorption_probes(
-        [exposure, specular], data, paths, None, "cpu", given="exposure", cache=cache
-    )
-    assert specular.conditional_on == "exposure"
+    absorption.absorption_probes([exposure, specular], data, inputs, cache=cache)
+    assert specular.evidence_of("absorption").details["reduction"] == 0.5
+    assert specular.significant and specular.decided_by == "absorption"
+    absorption.absorption_probes([exposure, specular], data, inputs, given="exposure", cache=cache)
+    assert specular.evidence_of("absorption").details["conditional_on"] == "exposure"
     assert len(builds) == 1
 
 
@@ -226,8 +263,7 @@ def test_a_given_effect_voids_the_geometry_refits_evidence_without_refitting(mon
     is kept in the record but no longer decides, so the conditional probe does; a lens
     candidate that was significant by absorption alone stops being significant."""
     import recon.diagnose.absorption as absorption
-    from recon.diagnose.calibration import absorption_threshold
-    from recon.diagnose.which import CandidateResult
+    from recon.diagnose.decision import excess
 
     class RefitCalled(Exception):
         pass
@@ -236,20 +272,18 @@ def test_a_given_effect_voids_the_geometry_refits_evidence_without_refitting(mon
         raise RefitCalled
 
     monkeypatch.setattr(absorption, "refit_with", refit_with)
-    lens = CandidateResult("lens_distortion", 0.0, 0.1, (-0.01, 0.01), False)
-    lens.absorption_interval = (absorption_threshold("lens_distortion") + 0.1, 0.4)
-    lens.decide()
-    assert lens.significant and lens.evidence == "absorption"
-    absorption.absorption_probes(
-        [lens], None, None, None, torch.device("cpu"), given="defocus_blur"
-    )
-    assert lens.absorption_discounted_by == "defocus_blur"
-    assert lens.absorption_interval is not None  # kept for the record
-    assert not lens.significant and lens.excess() < 0
-    again = CandidateResult.from_json(lens.to_json())
-    again.decide()
-    assert not again.significant and again.absorption_discounted_by == "defocus_blur"
+    threshold = absorption_threshold("lens_distortion", DECISION)
+    lens = make("lens_distortion", (-0.01, 0.01), absorption=(threshold + 0.1, 0.4))
+    assert lens.significant and lens.decided_by == "absorption"
+    inputs = inputs_with()
+    absorption.absorption_probes([lens], None, inputs, given="defocus_blur")
+    voided = lens.evidence_of("absorption")
+    assert voided is not None and voided.details["discounted_by"] == "defocus_blur"
+    assert "void beside defocus_blur" in voided.void
+    assert not lens.significant and excess(lens) < 0
+    again = decide(Candidate.from_json(lens.to_json()), DECISION)
+    assert not again.significant and again.evidence_of("absorption").void
     # Without a given effect the refits still run.
-    fresh = CandidateResult("lens_distortion", 0.0, 0.1, (-0.01, 0.01), False)
+    fresh = make("lens_distortion", (-0.01, 0.01), reduction=0.1)
     with pytest.raises(RefitCalled):
-        absorption.absorption_probes([fresh], None, None, None, torch.device("cpu"))
+        absorption.absorption_probes([fresh], None, inputs)

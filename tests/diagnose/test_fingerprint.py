@@ -12,22 +12,16 @@ import torch
 
 from data_synth.shapes import torus
 from recon.camera import orbit_cameras
-from recon.diagnose.calibration import (
-    MINIMUM_SHARE,
-    PROBE_ALLOWANCE,
-    SHADOW_SHARE,
-    VISIBILITY_SHARE_MINIMUM,
-    probe_threshold,
-)
+from recon.config.run_config import DecisionConfig, DiagnoseConfig
 from recon.diagnose.data import build_diagnosis_data
 from recon.diagnose.fingerprint import visibility_fingerprint
-from recon.diagnose.which import CandidateResult
 from recon.effects.light_transport import vertex_light_visibility
-from recon.effects.registry import MODEL_EFFECTS
 from recon.render.renderer import Renderer
 from recon.render.shading import DirectionalLight, Lighting
 
 SIZE = 64
+DECISION = DecisionConfig()
+SETTINGS = DiagnoseConfig()
 
 
 @pytest.fixture(scope="module")
@@ -54,7 +48,7 @@ def fingerprint_of(scene, baked_exponent: float):
     fitted = replace(mesh, vertex_colors=base * share[:, None] ** baked_exponent, texture=None)
     output = Renderer().render(fitted, cameras, lighting)
     data = build_diagnosis_data(output.color, output.alpha, output, cameras, lighting, fitted)
-    return visibility_fingerprint(data, output)
+    return visibility_fingerprint(data, output, SETTINGS)
 
 
 def test_the_torus_shadows_itself(scene):
@@ -64,23 +58,23 @@ def test_the_torus_shadows_itself(scene):
 
 def test_clean_albedo_has_no_fingerprint(scene):
     fingerprint = fingerprint_of(scene, 0.0)
-    assert fingerprint.testable
+    assert fingerprint.coverage >= DECISION.fingerprint_minimum_coverage
     assert abs(fingerprint.share) < 0.1, fingerprint
-    assert not fingerprint.significant and fingerprint.effect is None
+    assert fingerprint.names(DECISION) is None
 
 
 def test_baked_shadows_are_named_shadows(scene):
     fingerprint = fingerprint_of(scene, 1.0)
     assert fingerprint.share == pytest.approx(1.0, abs=0.15), fingerprint
-    assert fingerprint.interval[0] > VISIBILITY_SHARE_MINIMUM
-    assert fingerprint.effect == "shadows"
+    assert fingerprint.interval[0] > DECISION.visibility_share_minimum
+    assert fingerprint.names(DECISION) == "shadows"
 
 
 def test_partly_filled_shadows_are_named_interreflection(scene):
     fingerprint = fingerprint_of(scene, 0.4)
     assert fingerprint.share == pytest.approx(0.4, abs=0.12), fingerprint
-    assert fingerprint.share < SHADOW_SHARE
-    assert fingerprint.effect == "interreflection"
+    assert fingerprint.share < DECISION.shadow_share
+    assert fingerprint.names(DECISION) == "interreflection"
 
 
 def test_a_convex_mesh_is_not_testable():
@@ -94,32 +88,6 @@ def test_a_convex_mesh_is_not_testable():
     cameras = orbit_cameras(4, (32, 32), distance=2.8, fov_x_deg=40, elevation_deg=20)
     output = Renderer().render(mesh, cameras, lighting)
     data = build_diagnosis_data(output.color, output.alpha, output, cameras, lighting, mesh)
-    fingerprint = visibility_fingerprint(data, output)
-    assert not fingerprint.testable and fingerprint.effect is None
-
-
-def test_every_effect_has_an_allowance_at_least_the_minimum():
-    assert set(PROBE_ALLOWANCE) == set(MODEL_EFFECTS)
-    for effect in MODEL_EFFECTS:
-        assert probe_threshold(effect) >= MINIMUM_SHARE
-
-
-def test_ranking_puts_residual_evidence_before_the_fingerprint():
-    def candidate(name, reduction, significant, evidence, share=0.0):
-        return CandidateResult(
-            effect=name,
-            score=0.0,
-            heldout_reduction=reduction,
-            interval=(0.0, 0.0),
-            significant=significant,
-            evidence=evidence,
-            fingerprint={"share": share} if evidence == "fingerprint" else None,
-        )
-
-    ranking = [
-        candidate("shadows", 0.0, True, "fingerprint", share=0.8),
-        candidate("pose_error", 0.3, False, ""),
-        candidate("specular", 0.2, True, "probe"),
-    ]
-    ranking.sort(key=CandidateResult.rank_key, reverse=True)
-    assert [item.effect for item in ranking] == ["specular", "shadows", "pose_error"]
+    fingerprint = visibility_fingerprint(data, output, SETTINGS)
+    assert fingerprint.coverage < DECISION.fingerprint_minimum_coverage
+    assert fingerprint.names(DECISION) is None

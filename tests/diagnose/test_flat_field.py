@@ -7,10 +7,15 @@ import math
 import pytest
 import torch
 
-from recon.diagnose.diagnose import _mark_vignetting_coverage
-from recon.diagnose.flat_field import FLAT_FIELD_ALLOWANCE, local_value, measure_flat_field
-from recon.diagnose.which import CandidateResult, conditioning_effect, redecide
+from recon.config.run_config import DecisionConfig, DiagnoseConfig
+from recon.diagnose.decision import decide, redecide
+from recon.diagnose.diagnose import flat_field_evidence, mark_radial_coverage
+from recon.diagnose.flat_field import local_value, measure_flat_field
+from recon.diagnose.records import Candidate, Diagnosis, Evidence
+from recon.diagnose.which import conditioning_effect, probe_evidence
 from recon.errors import ReconError
+
+ALLOWANCE = DecisionConfig().flat_field_allowance
 
 SIZE = 64
 
@@ -95,88 +100,94 @@ def test_frames_of_the_wrong_shape_are_refused_by_name():
         measure_flat_field(torch.ones(2, 8, 8))
 
 
-def _vignetting(probe_lower: float) -> CandidateResult:
-    candidate = CandidateResult("vignetting", 0.0, probe_lower + 0.01, (probe_lower, 0.5), False)
-    candidate.decide()
-    return candidate
+def _vignetting(probe_lower: float, deviation: float | None = None) -> Candidate:
+    candidate = Candidate("vignetting")
+    candidate.add(probe_evidence("vignetting", probe_lower + 0.01, (probe_lower, 0.5), {"a": -0.2}))
+    if deviation is not None:
+        candidate.add(
+            Evidence("flat_field", "vignetting", deviation, math.nan, False, "flat-field frames")
+        )
+    return decide(candidate, DecisionConfig())
 
 
 def test_the_flat_field_overrules_the_residual_evidence_either_way():
-    loud = _vignetting(0.3)
-    assert loud.evidence == "probe"
-    loud.flat_field = {"deviation": FLAT_FIELD_ALLOWANCE / 2, "corner_falloff": 0.99}
-    loud.decide()
-    assert not loud.significant and loud.evidence == ""
-    quiet = _vignetting(-0.1)
-    assert not quiet.significant
-    quiet.flat_field = {"deviation": 0.3, "corner_falloff": 0.7}
-    quiet.decide()
-    assert quiet.significant and quiet.evidence == "flat_field"
+    assert _vignetting(0.3).decided_by == "probe"
+    loud = _vignetting(0.3, ALLOWANCE / 2)
+    assert not loud.significant and loud.decided_by == ""
+    assert not _vignetting(-0.1).significant
+    quiet = _vignetting(-0.1, 0.3)
+    assert quiet.significant and quiet.decided_by == "flat_field"
     # It survives the JSON round trip and a re-decision of a stored diagnosis.
-    again = CandidateResult.from_json(quiet.to_json())
-    assert again.flat_field == quiet.flat_field
-    stored = {"ranking": [loud.to_json(), quiet.to_json()], "verdict": ""}
-    decided = redecide(stored)
-    assert [item["significant"] for item in decided["ranking"]] == [True, False]
-    assert decided["ranking"][0]["evidence"] == "flat_field"
+    again = Candidate.from_json(quiet.to_json())
+    assert again.evidence_of("flat_field") == quiet.evidence_of("flat_field")
+    stored = Diagnosis(candidates=[loud, quiet]).to_json()
+    decided = redecide(stored, DiagnoseConfig())
+    assert [item.significant for item in decided.candidates] == [True, False]
+    assert decided.candidates[0].decided_by == "flat_field"
 
 
 def test_a_flat_field_decided_top_effect_conditions_only_when_its_probe_cleared():
-    cleared = _vignetting(0.3)
-    cleared.flat_field = {"deviation": 0.3}
-    cleared.decide()
-    assert conditioning_effect([cleared]) == "vignetting"
-    quiet = _vignetting(-0.1)
-    quiet.flat_field = {"deviation": 0.3}
-    quiet.decide()
-    assert conditioning_effect([quiet]) is None
+    assert conditioning_effect([_vignetting(0.3, 0.3)]) == "vignetting"
+    assert conditioning_effect([_vignetting(-0.1, 0.3)]) is None
 
 
 def test_measured_falloffs_replace_the_polynomial_s_and_keep_it_beside():
     candidate = _vignetting(0.3)
-    candidate.parameters = {"corner_falloff": 0.86, "half_radius_falloff": 0.95, "a": -0.2}
+    probe = candidate.evidence_of("probe")
+    probe.details["parameters"] = {"corner_falloff": 0.86, "half_radius_falloff": 0.95, "a": -0.2}
     refits = [{"parameters": {"vignetting": {"corner_falloff": 0.84, "half_radius_falloff": 0.94}}}]
     measured = {"corner_falloff": 0.67, "half_radius_falloff": 0.948}
-    _mark_vignetting_coverage([candidate], refits, 0.6, measured)
-    for parameters in (candidate.parameters, refits[0]["parameters"]["vignetting"]):
+    mark_radial_coverage([candidate], refits, 0.6, measured)
+    for parameters in (probe.details["parameters"], refits[0]["parameters"]["vignetting"]):
         assert parameters["corner_falloff"] == 0.67 and parameters["half_radius_falloff"] == 0.948
         assert parameters["falloff_source"] == "flat_field" and parameters["covered_radius"] == 1.0
         assert parameters["object_radius"] == 0.6
-    assert candidate.parameters["model_corner_falloff"] == 0.86
+    assert probe.details["parameters"]["model_corner_falloff"] == 0.86
     assert refits[0]["parameters"]["vignetting"]["model_corner_falloff"] == 0.84
     # Without frames the polynomial's values stand, with the object's radius.
     plain = {"parameters": {"vignetting": {"corner_falloff": 0.8}}}
-    _mark_vignetting_coverage([], [plain], 0.6)
+    mark_radial_coverage([], [plain], 0.6, None)
     assert plain["parameters"]["vignetting"] == {"corner_falloff": 0.8, "covered_radius": 0.6}
 
 
 def test_a_flat_card_spares_the_vignetting_regression(monkeypatch):
     """With frames that measured no falloff the regression cannot change the verdict, so it
     does not run; with a falloff it does (its evidence still ranks the effect)."""
+    from types import SimpleNamespace
+
     from recon.diagnose import absorption
 
     calls = []
 
-    def loaded(paths, split, device, dataset_options=None):
-        calls.append(split)
+    def rendered(captures, model, device, band_pixels):
+        calls.append("train")
         return "training views"
 
-    def regression(training, data):
+    def regression(training, data, settings):
         return torch.ones(2), torch.full((2,), 0.5), None
 
-    monkeypatch.setattr(absorption, "load_diagnosis_data", loaded)
+    monkeypatch.setattr(absorption, "render_diagnosis_data", rendered)
     monkeypatch.setattr(absorption, "radial_absorption", regression)
     monkeypatch.setattr(absorption, "_record", lambda candidate, *rest: calls.append("recorded"))
-    flat = _vignetting(0.3)
-    flat.flat_field = {"deviation": 0.0}
-    flat.decide()
-    absorption.absorption_probes([flat], None, None, None, torch.device("cpu"))
+    inputs = SimpleNamespace(
+        config=SimpleNamespace(diagnose=DiagnoseConfig()),
+        model=SimpleNamespace(pbr=None),
+        training=None,
+        device=torch.device("cpu"),
+    )
+    absorption.absorption_probes([_vignetting(0.3, 0.0)], None, inputs)
     assert calls == []
-    falling = _vignetting(-0.1)
-    falling.flat_field = {"deviation": 0.3}
-    falling.decide()
-    absorption.absorption_probes([falling], None, None, None, torch.device("cpu"))
+    absorption.absorption_probes([_vignetting(-0.1, 0.3)], None, inputs)
     assert calls == ["train", "recorded"]
+
+
+def test_flat_field_evidence_decides_the_candidates_its_facts_apply_to():
+    vignetting, exposure = _vignetting(0.3), Candidate("exposure")
+    frames = _falloff(SIZE, SIZE)[None, :, :, None].expand(2, SIZE, SIZE, 3)
+    measurement = flat_field_evidence([vignetting, exposure], frames, DiagnoseConfig())
+    assert measurement["allowance"] == ALLOWANCE and measurement["deviation"] > ALLOWANCE
+    assert vignetting.decided_by == "flat_field"
+    assert exposure.evidence_of("flat_field") is None
 
 
 def test_the_flat_field_figure_is_drawn(tmp_path):
@@ -203,30 +214,3 @@ def test_unusable_frames_are_refused_by_name():
     broken = torch.full((1, 16, 16, 3), float("nan"), dtype=torch.float64)
     with pytest.raises(ReconError, match="non-finite"):
         measure_flat_field(broken)
-
-
-def test_a_dataset_s_unusable_frames_are_reported_and_the_diagnosis_goes_on(tmp_path):
-    from recon.camera import intrinsics_from_fov, look_at
-    from recon.camera.cameras import Cameras
-    from recon.diagnose.diagnose import dataset_flat_field
-    from recon.io.datasets import FLAT_FIELD_SPLIT, write_nerf_synthetic
-
-    assert dataset_flat_field([], tmp_path) == {}
-    cameras = Cameras(
-        world_to_cam=look_at(torch.tensor([[0.0, 0.0, 3.0]])),
-        intrinsics=intrinsics_from_fov(40.0, (16, 16))[None],
-        image_size=(16, 16),
-    )
-    write_nerf_synthetic(tmp_path, FLAT_FIELD_SPLIT, cameras, torch.ones(1, 16, 16, 3))
-    candidate = _vignetting(0.3)
-    result = dataset_flat_field([candidate], tmp_path)
-    assert (
-        "clipped" in result["flat_field_error"] and FLAT_FIELD_SPLIT in result["flat_field_error"]
-    )
-    assert candidate.flat_field is None and candidate.evidence == "probe"
-    write_nerf_synthetic(
-        tmp_path, FLAT_FIELD_SPLIT, cameras, torch.full((1, 16, 16, 3), 0.4), force=True
-    )
-    result = dataset_flat_field([candidate], tmp_path)
-    assert result["flat_field"]["deviation"] < 0.01
-    assert candidate.flat_field is result["flat_field"] and not candidate.significant

@@ -9,12 +9,15 @@ import torch
 from diagnose_scenes import patterned_torus
 
 from recon.camera import orbit_cameras
+from recon.config.run_config import DiagnoseConfig
 from recon.diagnose.data import build_diagnosis_data
 from recon.diagnose.radial_absorption import InteriorPixels, fit_gains, radial_absorption
 from recon.diagnose.which import bootstrap_reduction
 from recon.effects import make_effect
 from recon.render.renderer import Renderer
 from recon.render.shading import Lighting
+
+SETTINGS = DiagnoseConfig()
 
 SIZE, TRAIN, TEST = 64, 12, 6
 
@@ -50,8 +53,8 @@ def training_and_heldout(corner_change: float, noise: float = 0.0):
 
 def test_baked_in_vignetting_is_taken_back_and_its_falloff_recovered() -> None:
     training, heldout = training_and_heldout(-0.5, noise=0.002)
-    control, with_falloff, module = radial_absorption(training, heldout)
-    reduction, (low, _) = bootstrap_reduction(control, with_falloff)
+    control, with_falloff, module = radial_absorption(training, heldout, SETTINGS)
+    reduction, (low, _) = bootstrap_reduction(control, with_falloff, SETTINGS.bootstrap_samples)
     assert low > 0.3 and reduction > 0.5
     summary = module.parameters_summary()
     # The truth is 1 - 0.5 r^2: 0.875 half-way out.
@@ -60,15 +63,15 @@ def test_baked_in_vignetting_is_taken_back_and_its_falloff_recovered() -> None:
 
 def test_clean_views_give_no_evidence() -> None:
     training, heldout = training_and_heldout(0.0, noise=0.002)
-    control, with_falloff, module = radial_absorption(training, heldout)
-    reduction, (low, high) = bootstrap_reduction(control, with_falloff)
+    control, with_falloff, module = radial_absorption(training, heldout, SETTINGS)
+    reduction, (low, high) = bootstrap_reduction(control, with_falloff, SETTINGS.bootstrap_samples)
     assert abs(reduction) < 0.01 and low < 0.005
     assert module.parameters_summary()["half_radius_falloff"] == pytest.approx(1.0, abs=0.01)
 
 
 def test_a_brightening_falloff_is_not_vignetting() -> None:
     training, heldout = training_and_heldout(0.4)
-    control, with_falloff, module = radial_absorption(training, heldout)
+    control, with_falloff, module = radial_absorption(training, heldout, SETTINGS)
     assert module.parameters_summary()["half_radius_falloff"] > 1.05
     assert torch.equal(control, with_falloff)
 
@@ -78,5 +81,5 @@ def test_view_gains_hold_a_per_view_exposure() -> None:
     training, _ = training_and_heldout(0.0)
     gains = torch.linspace(0.7, 1.3, TRAIN)[:, None, None, None]
     training.observed = training.observed * gains
-    fit = fit_gains(InteriorPixels.from_data(training), with_falloff=True)
+    fit = fit_gains(InteriorPixels.from_data(training, SETTINGS), with_falloff=True)
     assert fit.coefficients.abs().max() < 0.01

@@ -10,10 +10,13 @@ import torch
 from diagnose_scenes import patterned_torus
 
 from recon.camera import orbit_cameras
+from recon.config.run_config import DiagnoseConfig
 from recon.diagnose.data import build_diagnosis_data
 from recon.diagnose.relight_probe import relight_response_probe, unshadowed
 from recon.render.renderer import Renderer
 from recon.render.shading import DirectionalLight, Lighting
+
+SETTINGS = DiagnoseConfig()
 
 VIEWS, SIZE = 6, 40
 
@@ -53,14 +56,14 @@ def relight_case(gamma: float, noise: float = 0.002):
 
 def test_a_tone_curve_shows_under_the_second_light():
     relight, under_fitted, fitted_light = relight_case(gamma=0.6)
-    record = relight_response_probe(relight, under_fitted, fitted_light)
+    record = relight_response_probe(relight, under_fitted, fitted_light, SETTINGS)
     assert record["interval"][0] > 0.3, record
     assert abs(record["parameters"]["gamma"] - 0.6) < 0.05, record
 
 
 def test_a_linear_camera_leaves_nothing():
     relight, under_fitted, fitted_light = relight_case(gamma=1.0)
-    record = relight_response_probe(relight, under_fitted, fitted_light)
+    record = relight_response_probe(relight, under_fitted, fitted_light, SETTINGS)
     assert abs(record["reduction"]) < 0.02, record
     assert abs(record["parameters"]["gamma"] - 1.0) < 0.05, record
 
@@ -95,13 +98,13 @@ def test_a_wrong_sun_to_ambient_balance_is_not_a_tone_curve():
         second,
         mesh,
     )
-    record = relight_response_probe(relight, under_true, fitted_first)
+    record = relight_response_probe(relight, under_true, fitted_first, SETTINGS)
     assert record["interval"][0] < 0.01, record
 
 
 def test_cast_shadow_pixels_are_left_out():
     relight, _, fitted_light = relight_case(gamma=1.0)
-    keep = unshadowed(relight, fitted_light)
+    keep = unshadowed(relight, fitted_light, SETTINGS.relight_shadowed_share)
     covered = relight.triangle_id >= 0
     kept_share = float(keep[..., 0][covered].mean())
     # The torus hides part of each light from its inner side, not most of its surface.

@@ -9,13 +9,16 @@ import torch
 from diagnose_scenes import patterned_torus
 
 from recon.camera import orbit_cameras
+from recon.config.run_config import DecisionConfig
 from recon.diagnose.data import build_diagnosis_data
+from recon.diagnose.decision import decide
+from recon.diagnose.records import Candidate
 from recon.diagnose.which import (
-    CandidateResult,
     EffectProbe,
     conditional_probes,
     conditioning_effect,
     probe_effect,
+    probe_evidence,
     rank_candidates,
 )
 from recon.effects import make_effect
@@ -45,20 +48,20 @@ def observed_scene(blur: bool):
     return build_diagnosis_data(observed, output.alpha, output, cameras, lighting, mesh)
 
 
-def by_name(ranking: list[CandidateResult]) -> dict[str, CandidateResult]:
-    return {candidate.effect: candidate for candidate in ranking}
+def by_name(ranking: list[Candidate]) -> dict[str, Candidate]:
+    return {candidate.name: candidate for candidate in ranking}
 
 
 def test_conditioning_removes_a_look_alike():
     data = observed_scene(blur=False)
     ranking = rank_candidates(data, ["exposure", "white_balance", "defocus_blur"])
-    assert ranking[0].effect == "exposure" and ranking[0].significant
+    assert ranking[0].name == "exposure" and ranking[0].significant
     assert conditioning_effect(ranking) == "exposure"
     conditional_probes(ranking, EffectProbe(data), "exposure")
     results = by_name(ranking)
     assert results["exposure"].significant and results["exposure"].conditional_on is None
     assert not results["white_balance"].significant
-    assert results["white_balance"].heldout_reduction < 0.02
+    assert results["white_balance"].evidence_of("probe").details["reduction"] < 0.02
 
 
 def test_a_real_second_effect_survives_the_conditioning():
@@ -93,7 +96,9 @@ def test_the_pose_probe_warp_follows_a_re_render():
 
 def test_only_a_probe_decided_top_effect_conditions():
     def candidate(name, evidence):
-        return CandidateResult(name, 0.0, 0.5, (0.4, 0.6), bool(evidence), evidence=evidence)
+        result = Candidate(name, significant=bool(evidence), decided_by=evidence)
+        result.add(probe_evidence(name, 0.5, (0.4, 0.6), {}))
+        return result
 
     assert conditioning_effect([candidate("pose_error", "probe")]) == "pose_error"
     # A global blur too: motion blur, distortion and pose refinement all imitate part of it.
@@ -102,35 +107,9 @@ def test_only_a_probe_decided_top_effect_conditions():
     assert conditioning_effect([candidate("exposure", "")]) is None
 
 
-def test_relight_evidence_decides_and_survives_a_round_trip():
-    from recon.diagnose.calibration import RELIGHT_ALLOWANCE
-
-    quiet = CandidateResult("response_curve", 0.0, 0.001, (-0.01, 0.01), False)
-    quiet.relight_interval = (RELIGHT_ALLOWANCE + 0.1, RELIGHT_ALLOWANCE + 0.3)
-    quiet.relight_parameters = {"gamma": 0.7, "effective_gamma": 0.7}
-    quiet.decide()
-    assert quiet.significant and quiet.evidence == "relight"
-    record = quiet.to_json()
-    assert record["parameters"] == {"gamma": 0.7, "effective_gamma": 0.7}
-    again = CandidateResult.from_json(record)
-    again.decide()
-    assert again.evidence == "relight" and again.excess() > 0.09
-    below = CandidateResult("response_curve", 0.0, 0.001, (-0.01, 0.01), False)
-    below.relight_interval = (RELIGHT_ALLOWANCE - 0.01, 0.2)
-    below.decide()
-    assert not below.significant
-
-
-def test_vignetting_regression_evidence_has_its_own_floor():
-    """The closed-form vignetting evidence is a share of interior-pixel error: its floor is half
-    the refits', and an interval between the two floors decides vignetting only."""
-    from recon.diagnose.calibration import ABSORPTION_MINIMUM_SHARE, absorption_threshold
-
-    assert absorption_threshold("vignetting") < ABSORPTION_MINIMUM_SHARE
-    assert absorption_threshold("specular") >= ABSORPTION_MINIMUM_SHARE
-    between = (0.5 * (absorption_threshold("vignetting") + ABSORPTION_MINIMUM_SHARE), 0.02)
-    for name, expected in (("vignetting", True), ("specular", False)):
-        candidate = CandidateResult(name, 0.0, 0.001, (-0.01, 0.01), False)
-        candidate.absorption_interval = between
-        candidate.decide()
-        assert candidate.significant is expected
+def test_probe_evidence_is_decided_from_the_config():
+    candidate = Candidate("exposure")
+    candidate.add(probe_evidence("exposure", 0.5, (0.4, 0.6), {"ratios": [1.0, 1.2]}, score=0.3))
+    decide(candidate, DecisionConfig())
+    assert candidate.significant and candidate.parameters == {"ratios": [1.0, 1.2]}
+    assert not decide(candidate, DecisionConfig(minimum_share=0.5)).significant

@@ -28,13 +28,22 @@ def test_parameter_errors_compare_like_with_like():
     refit_ratios = [3 * value for value in true_train]
     refit_ratios[1] *= 1.1
     diagnosis = {
-        "ranking": [
-            {"effect": "exposure", "parameters": {"ratios": [9.0, 9.0, 9.0, 9.0]}},
+        "candidates": [
             {
-                "effect": "vignetting",
+                "name": "exposure",
+                "significant": False,
+                "parameters": {"ratios": [9.0, 9.0, 9.0, 9.0]},
+            },
+            {
+                "name": "vignetting",
+                "significant": False,
                 "parameters": {"corner_falloff": 0.63, "half_radius_falloff": 0.891},
             },
-            {"effect": "response_curve", "parameters": {"effective_gamma": 0.85}},
+            {
+                "name": "response_curve",
+                "significant": False,
+                "parameters": {"effective_gamma": 0.85},
+            },
         ],
         "refits": [
             {
@@ -57,11 +66,11 @@ def test_parameter_errors_compare_like_with_like():
 
 
 def _diagnosis(significant: list[str], others: list[str] = ()) -> dict:
-    ranking = [{"effect": name, "significant": True} for name in significant]
-    ranking += [{"effect": name, "significant": False} for name in others]
+    ranking = [{"name": name, "significant": True} for name in significant]
+    ranking += [{"name": name, "significant": False} for name in others]
     refits = [{"closed_fraction": 0.8, "relight_closed_fraction": 0.5, "parameters": {}}]
     timings = {"diagnose_seconds": 2.0, "refit_seconds": 3.0}
-    return {"ranking": ranking, "refits": refits if significant else [], "timings": timings}
+    return {"candidates": ranking, "refits": refits if significant else [], "timings": timings}
 
 
 def test_a_case_is_labelled_by_what_it_withholds():

@@ -36,7 +36,7 @@ def test_a_diagnosis_sweep_scores_withheld_effects(tmp_path, capsys):
     assert not (out / "trials" / clean["trial_id"] / "truth.json").exists()
     # The diagnosis ran on the run folder, and the record is its score against the truth.
     diagnosis = json.loads((folder / "run" / "diagnosis.json").read_text())
-    significant = [item["effect"] for item in diagnosis["ranking"] if item["significant"]]
+    significant = [item["name"] for item in diagnosis["candidates"] if item["significant"]]
     assert withheld["diagnosis"]["truth"] == ["exposure"]
     assert withheld["diagnosis"]["predicted_top"] == (significant[0] if significant else "none")
     assert withheld["metrics"]["score.top1_correct"] == (

@@ -1,0 +1,378 @@
+"""The decision rule as one table: which evidence makes a candidate significant, and how it ranks.
+
+Every check of the diagnosis ends as ``recon.diagnose.records.Evidence`` on a ``Candidate``.
+``decide`` reads only that evidence, the effect's diagnosis facts (recon.effects.facts) and the
+allowances of ``DecisionConfig`` (config ``diagnose.decision``), so a stored diagnosis can be
+re-decided with other allowances (``redecide``) and a new kind of check is one producer plus,
+at most, one row here.
+
+The rows (``DECISION_TABLE``), in the order they are consulted:
+
+============  ============  =================================================================
+kind          role          effect on the decision
+============  ============  =================================================================
+flat_field    overrule      measures the falloff itself: decides alone, either way
+probe         clear         held-out reduction's lower bound above its allowance: significant
+absorption    clear         the same for the absorption refit (unless voided)
+relight       clear         the same for the relight split's probe
+fingerprint   name          the visibility fingerprint names the effect (ranks after the above)
+null          raise bar     a failed null from the run (placebo, permutation, split half)
+                            keeps the clearing rows from making the candidate significant
+specificity   veto          a failed check says the signature is not the candidate's: it is not
+                            significant, and ``details["instead"]`` (a base-model mismatch
+                            such as view_dependent_reflectance) is named in its place, with the
+                            vetoed candidate's rank, when the vetoed one had cleared
+identifiability  qualify    a failed check: "not identifiable from this data, because ..."
+metadata      inform        recorded (e.g. EXIF agreement), no effect on the decision
+============  ============  =================================================================
+
+Evidence of a kind without a row is recorded and informs nothing.
+
+The producer contract (how a new check plugs in, recon.diagnose.producers): a producer is
+``producer(inputs: EvidenceInputs, candidates: list[Candidate], settings: DiagnoseConfig) ->
+list[Evidence]``; append it to ``recon.diagnose.producers.PRODUCERS``. Each Evidence names its
+candidate (an effect or a mismatch; a mismatch candidate is created when first named), a kind
+above, ``passed`` (for null, specificity and identifiability: whether the candidate survives the
+check) and a one-line ``reason``; ``details["instead"]`` on a failed specificity check names the
+mismatch, ``details["capture"]`` on a failed identifiability check the capture that would settle
+it. The table keeps the producer's ``threshold`` and ``passed`` for these kinds (only the built-in
+rows are re-thresholded from ``DecisionConfig``).
+
+Ranking (``rank_key``): significant first; then evidence from a held-out residual or a direct
+measurement before the fingerprint alone; then by how far the residual evidence clears its own
+allowance (the fingerprint: by its share). The ranks and verdicts on recon's own world are the
+ones the hand-ordered rule gave before this table (tests/diagnose/test_decision.py).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from typing import Any, Literal
+
+from recon.config.run_config import DecisionConfig, DiagnoseConfig
+from recon.diagnose.records import Candidate, Diagnosis, Evidence
+from recon.effects.registry import diagnosis_facts
+
+Role = Literal["overrule", "clear", "name", "null", "veto", "qualify", "inform"]
+NOTHING_SIGNIFICANT = "no significant unmodelled effect"
+
+
+def probe_threshold(effect: str, config: DecisionConfig) -> float:
+    """The held-out reduction a probe's bootstrap lower bound must clear."""
+    return max(config.minimum_share, config.probe_allowance.get(effect, config.minimum_share))
+
+
+def absorption_threshold(effect: str, config: DecisionConfig) -> float:
+    """The reduction over the control refit the absorption lower bound must clear (the
+    closed-form evidence, a share of a smaller error, has its own floor)."""
+    facts = diagnosis_facts(effect)
+    closed_form = facts is not None and facts.absorption == "closed_form"
+    floor = config.regression_minimum_share if closed_form else config.absorption_minimum_share
+    return max(floor, config.absorption_allowance.get(effect, config.minimum_share))
+
+
+def _lower_bound_clears(evidence: Evidence, threshold: float, config: DecisionConfig) -> bool:
+    return evidence.statistic > threshold
+
+
+def _fingerprint_names(evidence: Evidence, threshold: float, config: DecisionConfig) -> bool:
+    """The fingerprint names a candidate when it is testable, its lower bound clears the
+    minimum, and its share falls on the candidate's side of the shadow share."""
+    interval = evidence.interval or (evidence.statistic, evidence.statistic)
+    testable = evidence.details.get("coverage", 0.0) >= config.fingerprint_minimum_coverage
+    if not (testable and interval[0] > threshold):
+        return False
+    side = "blocked" if evidence.statistic >= config.shadow_share else "bounced"
+    facts = diagnosis_facts(evidence.candidate)
+    return facts is not None and facts.fingerprint_side == side
+
+
+@dataclass(frozen=True)
+class Rule:
+    """One row of the decision table.
+
+    kind: the Evidence kind it reads. role: see the module docstring.
+    measured: whether evidence of this kind is a held-out residual or a direct measurement
+        (ranks before evidence that is not).
+    strength: whether its excess over the allowance counts toward the rank.
+    threshold: the allowance from the config (None: keep the producer's threshold).
+    passes: whether the evidence clears the allowance (None: keep the producer's passed).
+    parameters_from: evidence kinds whose parameters are reported when this row decides, in
+        order of preference.
+    """
+
+    kind: str
+    role: Role
+    measured: bool = False
+    strength: bool = False
+    threshold: Callable[[str, DecisionConfig], float] | None = None
+    passes: Callable[[Evidence, float, DecisionConfig], bool] | None = None
+    parameters_from: tuple[str, ...] = ()
+
+
+DECISION_TABLE: tuple[Rule, ...] = (
+    Rule(
+        "flat_field",
+        "overrule",
+        measured=True,
+        threshold=lambda effect, config: config.flat_field_allowance,
+        passes=_lower_bound_clears,
+        parameters_from=("absorption", "probe"),
+    ),
+    Rule(
+        "probe",
+        "clear",
+        measured=True,
+        strength=True,
+        threshold=probe_threshold,
+        passes=_lower_bound_clears,
+        parameters_from=("probe",),
+    ),
+    Rule(
+        "absorption",
+        "clear",
+        measured=True,
+        strength=True,
+        threshold=absorption_threshold,
+        passes=_lower_bound_clears,
+        parameters_from=("absorption", "probe"),
+    ),
+    Rule(
+        "relight",
+        "clear",
+        measured=True,
+        strength=True,
+        threshold=lambda effect, config: config.relight_allowance,
+        passes=_lower_bound_clears,
+        parameters_from=("relight", "probe"),
+    ),
+    Rule(
+        "fingerprint",
+        "name",
+        threshold=lambda effect, config: config.visibility_share_minimum,
+        passes=_fingerprint_names,
+        parameters_from=("probe",),
+    ),
+    Rule("null", "null"),
+    Rule("specificity", "veto", measured=True, parameters_from=("specificity", "probe")),
+    Rule("identifiability", "qualify"),
+    Rule("metadata", "inform"),
+)
+RULES: dict[str, Rule] = {rule.kind: rule for rule in DECISION_TABLE}
+# Whose parameters a candidate that nothing decided reports: the relight split's estimate when
+# it has one (the one estimate of a response curve the albedo cannot absorb), else the probe's.
+UNDECIDED_PARAMETERS = ("relight", "probe")
+
+
+def rethreshold(evidence: Evidence, config: DecisionConfig) -> Evidence:
+    """The evidence with its threshold and passed taken from the config (built-in rows only)."""
+    rule = RULES.get(evidence.kind)
+    if rule is None or rule.threshold is None or rule.passes is None:
+        return evidence
+    threshold = rule.threshold(evidence.candidate, config)
+    return replace(
+        evidence, threshold=threshold, passed=bool(rule.passes(evidence, threshold, config))
+    )
+
+
+def _parameters(candidate: Candidate, kinds: tuple[str, ...]) -> dict[str, Any]:
+    for kind in kinds:
+        evidence = candidate.evidence_of(kind)
+        if evidence is not None and evidence.details.get("parameters"):
+            return evidence.details["parameters"]
+    return {}
+
+
+def _role_evidence(candidate: Candidate, role: Role) -> list[Evidence]:
+    return [
+        item
+        for item in candidate.evidence
+        if item.counts and item.kind in RULES and RULES[item.kind].role == role
+    ]
+
+
+def _first_cleared(candidate: Candidate) -> Evidence | None:
+    """The overruling evidence's verdict, else the first clearing row that passed, else the
+    naming row; None when nothing speaks for the candidate."""
+    overruling = _role_evidence(candidate, "overrule")
+    if overruling:
+        return overruling[0] if overruling[0].passed else None
+    for role in ("clear", "name"):
+        for rule in DECISION_TABLE:
+            if rule.role != role:
+                continue
+            evidence = candidate.evidence_of(rule.kind)
+            if evidence is not None and evidence.counts and evidence.passed:
+                return evidence
+    return None
+
+
+def decide(candidate: Candidate, config: DecisionConfig) -> Candidate:
+    """Decide one candidate in place from its evidence and the config; returns it."""
+    candidate.evidence = [rethreshold(item, config) for item in candidate.evidence]
+    deciding = _first_cleared(candidate)
+    failed_nulls = [item for item in _role_evidence(candidate, "null") if not item.passed]
+    if deciding is not None and RULES[deciding.kind].role == "clear" and failed_nulls:
+        deciding, why = None, failed_nulls[0].reason
+    elif deciding is None:
+        why = _why_not(candidate)
+    else:
+        why = explain(deciding)
+    status = "significant" if deciding is not None else "not_significant"
+    vetoes = [item for item in _role_evidence(candidate, "veto") if not item.passed]
+    if vetoes and status == "significant":
+        status, why = "vetoed", vetoes[0].reason
+    unidentifiable = [item for item in _role_evidence(candidate, "qualify") if not item.passed]
+    if unidentifiable:
+        status = "not_identifiable"
+        capture = unidentifiable[0].details.get("capture")
+        why = f"not identifiable from this data, because {unidentifiable[0].reason}"
+        why += f"; {capture} would make it identifiable" if capture else ""
+    candidate.status = status
+    candidate.significant = status == "significant"
+    candidate.decided_by = deciding.kind if candidate.significant else ""
+    candidate.why = why
+    kinds = RULES[deciding.kind].parameters_from if candidate.significant else ()
+    candidate.parameters = _parameters(candidate, kinds or UNDECIDED_PARAMETERS)
+    return candidate
+
+
+def _why_not(candidate: Candidate) -> str:
+    """The closest miss: the built-in evidence with the largest excess (its reason says what it
+    measured against what), or why there was none."""
+    measured = [
+        item
+        for item in candidate.evidence
+        if item.kind in RULES and RULES[item.kind].threshold is not None
+    ]
+    if not measured:
+        return "no evidence measured"
+    voided = [item for item in measured if not item.counts]
+    counted = [item for item in measured if item.counts]
+    if not counted:
+        return voided[0].void
+    best = max(counted, key=lambda item: item.statistic - item.threshold)
+    return explain(best)
+
+
+def explain(evidence: Evidence) -> str:
+    """One line: the evidence's reason with its statistic against its threshold."""
+    if evidence.threshold != evidence.threshold or evidence.statistic != evidence.statistic:
+        return evidence.reason  # a condition (NaN threshold), not a comparison
+    relation = "clears" if evidence.passed else "does not clear"
+    return (
+        f"{evidence.reason} {evidence.statistic:.3f} {relation} its allowance "
+        f"{evidence.threshold:.3f}"
+    )
+
+
+def excess(candidate: Candidate) -> float:
+    """How far the residual evidence clears its own allowance: the largest of the strength
+    rows' lower bound minus threshold. Comparing raw reductions would favour the flexible
+    probes (pose, blur), whose allowance is several times another's."""
+    values = [
+        item.statistic - item.threshold
+        for item in candidate.evidence
+        if item.counts and item.kind in RULES and RULES[item.kind].strength
+    ]
+    return max(values, default=float("-inf"))
+
+
+def rank_key(candidate: Candidate) -> tuple:
+    """Significant first; then held-out or direct evidence before the fingerprint alone (whose
+    effect shows in no held-out residual); then by excess (the fingerprint: by its share). A
+    mismatch named by a veto ranks where the vetoed candidate would have."""
+    stand_in = candidate.evidence_of("specificity")
+    if candidate.decided_by == "specificity" and stand_in is not None:
+        return tuple(stand_in.details.get("rank", (True, True, 0.0)))
+    deciding = RULES.get(candidate.decided_by)
+    measured = deciding is not None and deciding.measured
+    if candidate.decided_by == "fingerprint":
+        strength = candidate.evidence_of("fingerprint").statistic
+    else:
+        strength = excess(candidate)
+    return (candidate.significant, measured, strength)
+
+
+def _name_mismatches(candidates: list[Candidate], config: DecisionConfig) -> list[Candidate]:
+    """Mismatch candidates named by the vetoes: a failed specificity check with
+    details['instead'] on a candidate that had cleared makes that mismatch significant in its
+    place (ranked as the vetoed candidate would have been)."""
+    by_name = {candidate.name: candidate for candidate in candidates}
+    for candidate in list(candidates):
+        if candidate.status != "vetoed":
+            continue
+        for veto in _role_evidence(candidate, "veto"):
+            instead = veto.details.get("instead")
+            if veto.passed or not instead:
+                continue
+            mismatch = by_name.get(instead)
+            if mismatch is None:
+                mismatch = by_name[instead] = Candidate(instead)
+                candidates.append(mismatch)
+            cleared = replace(candidate, significant=True, status="significant")
+            rank = list(rank_key(replace(cleared, decided_by=_first_cleared(candidate).kind)))
+            mismatch.add(
+                Evidence(
+                    kind="specificity",
+                    candidate=instead,
+                    statistic=veto.statistic,
+                    threshold=veto.threshold,
+                    passed=True,
+                    reason=f"{candidate.name}'s signature is {instead}'s: {veto.reason}",
+                    details={**veto.details, "instead_of": candidate.name, "rank": rank},
+                )
+            )
+            mismatch.status, mismatch.significant = "significant", True
+            mismatch.decided_by, mismatch.why = "specificity", mismatch.evidence[-1].reason
+            mismatch.parameters = veto.details.get("parameters", {})
+    return candidates
+
+
+def _derived(candidate: Candidate) -> bool:
+    """A mismatch candidate that a veto named (re-derived at every decision)."""
+    return diagnosis_facts(candidate.name) is None and candidate.decided_by == "specificity"
+
+
+def decide_all(candidates: list[Candidate], config: DecisionConfig) -> list[Candidate]:
+    """Every candidate decided (mismatches named by vetoes re-derived) and sorted best first;
+    the list is changed in place and returned."""
+    candidates[:] = [candidate for candidate in candidates if not _derived(candidate)]
+    for candidate in candidates:
+        decide(candidate, config)
+    _name_mismatches(candidates, config)
+    candidates.sort(key=rank_key, reverse=True)
+    return candidates
+
+
+def verdict_of(candidates: list[Candidate]) -> str:
+    """The significant candidates in order (or that there is none), then the ones the data
+    cannot identify."""
+    significant = [candidate.name for candidate in candidates if candidate.significant]
+    verdict = (
+        "significant unmodelled effects: " + ", ".join(significant)
+        if significant
+        else NOTHING_SIGNIFICANT
+    )
+    unidentifiable = [item.name for item in candidates if item.status == "not_identifiable"]
+    if unidentifiable:
+        verdict += "; not identifiable from this data: " + ", ".join(unidentifiable)
+    return verdict
+
+
+def redecide(diagnosis: dict | Diagnosis, config: DiagnoseConfig | None = None) -> Diagnosis:
+    """A stored diagnosis (diagnosis.json's dict or a Diagnosis) re-decided from its evidence
+    with `config` (default: the settings it was decided with) and re-sorted; the evidence is
+    kept, thresholds, verdicts and ranks recomputed. Returns a new Diagnosis whose settings
+    are `config`'s. (Refits stay the ones that ran.)"""
+    from recon.config import from_dict, to_dict
+
+    record = diagnosis.to_json() if isinstance(diagnosis, Diagnosis) else diagnosis
+    stored = Diagnosis.from_json(record)  # a copy
+    if config is None:
+        config = from_dict(stored.settings, DiagnoseConfig) if stored.settings else DiagnoseConfig()
+    decide_all(stored.candidates, config.decision)
+    stored.verdict = verdict_of(stored.candidates)
+    stored.settings = to_dict(config)
+    return stored

@@ -1,0 +1,368 @@
+"""Identifiability: whether the data can tell an effect apart at all, and which capture would.
+
+Some effects cannot be separated from the fitted scene (or from each other) by any residual of
+some data, whatever the diagnosis does: a tone curve under one light with no exposure change (a
+texel is seen at one intensity, so the albedo absorbs the curve), a vignetting falloff where the
+object never reaches the corners, a lens distortion where the object covers the centre only (it
+then moves pixels like a per-view zoom and shift, which a pose correction also makes), a
+motion blur in views whose edges all run one way (a blur along them looks like a defocus).
+Saying so is part of the answer: "not identifiable from this data, because ...", and what
+capture would settle it.
+
+Producers return recon.diagnose.records.Evidence of kind "identifiability": passed means the
+data can identify the effect; a failed one turns a miss or a wrong name into that sentence.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from recon.diagnose.data import DiagnosisData
+from recon.diagnose.pixel_table import pixel_table
+from recon.diagnose.records import Evidence
+
+KIND = "identifiability"
+
+
+@dataclass(frozen=True)
+class IdentifiabilityOptions:
+    """Choices of the identifiability conditions (movable to the `diagnose:` config section).
+
+    minimum_exposure_ratio: the known exposure range (largest over smallest per-view gain)
+        that lets a tone curve be read off: one third of a stop (2^(1/3)), the finest common
+        bracketing step.
+    corner_radius: the normalised radius (half image diagonal = 1) the object must reach for
+        a falloff at the corners to be measured rather than extrapolated; the corners are at
+        1, and beyond 0.9 the even polynomial's extrapolation is short.
+    minimum_radius_spread: how far apart (normalised radius) the same surface region must be
+        seen across views for a falloff to be told from the albedo (which is the same in every
+        view): a tenth of the half diagonal.
+    reference_corner_shift: the distortion judged when none was recovered: its displacement at
+        the image corners over the half diagonal (a tenth: a strong consumer-lens barrel, so
+        that "not identifiable" means even a strong distortion would hide).
+    minimum_distinguishable_pixels: the RMS (pixels) of the part of that distortion's flow
+        over the object that no per-view zoom, shift and rotation reproduces, below which a
+        pose correction explains it as well: half a pixel, about what the probes resolve.
+    maximum_edge_coherence: the views' edge orientation coherence (structure tensor, 0 = all
+        orientations, 1 = one) above which a directional blur is a blur along the only edges.
+    surface_cells: cells per axis of the grid over the object for the radius spread.
+    """
+
+    minimum_exposure_ratio: float = 2.0 ** (1 / 3)
+    corner_radius: float = 0.9
+    minimum_radius_spread: float = 0.1
+    reference_corner_shift: float = 0.1
+    minimum_distinguishable_pixels: float = 0.5
+    maximum_edge_coherence: float = 0.8
+    surface_cells: int = 3
+
+
+@dataclass(frozen=True)
+class CaptureConditions:
+    """What the capture holds besides the held-out views.
+
+    relight: a relight split with its known light (the same object under a second light).
+    exposure_gains: known per-view gains [B] (EXIF exposure) or None.
+    flat_field: flat-field frames (a uniform target) are present.
+    """
+
+    relight: bool = False
+    exposure_gains: torch.Tensor | None = None
+    flat_field: bool = False
+
+
+def response_curve_evidence(
+    data: DiagnosisData, conditions: CaptureConditions, options: IdentifiabilityOptions
+) -> Evidence:
+    """A tone curve is identifiable when some texel is seen at two intensities: under a second
+    light (relight split), at known different exposures, or under a light that turns with the
+    camera (the shading of a texel changes from view to view)."""
+    ratio = 1.0
+    if conditions.exposure_gains is not None and conditions.exposure_gains.numel():
+        gains = conditions.exposure_gains.double()
+        ratio = float(gains.max() / gains.min().clamp_min(1e-30))
+    bracketed = ratio >= options.minimum_exposure_ratio
+    camera_light = data.lighting.frame == "camera"
+    passed = conditions.relight or bracketed or camera_light
+    if passed:
+        sources = [
+            text
+            for text, present in (
+                ("a relight split", conditions.relight),
+                (f"known exposures spanning x{ratio:.2f}", bracketed),
+                ("a light that turns with the camera", camera_light),
+            )
+            if present
+        ]
+        reason = (
+            "response_curve is identifiable: "
+            + " and ".join(sources)
+            + (" show the same surface at different intensities")
+        )
+    else:
+        known = (
+            "no known exposure change"
+            if ratio == 1.0
+            else f"known exposures spanning only x{ratio:.2f}"
+        )
+        reason = (
+            "response_curve is not identifiable from this data, because every surface point "
+            f"is seen at one intensity only (one fixed light, no relight split, {known}): the "
+            "albedo and the exposure absorb any tone curve; capture with bracketed exposures "
+            "or a second light would settle it"
+        )
+    return Evidence(
+        kind=KIND,
+        candidate="response_curve",
+        statistic=ratio,
+        threshold=options.minimum_exposure_ratio,
+        passed=passed,
+        reason=reason,
+        details={
+            "relight": conditions.relight,
+            "exposure_ratio": ratio,
+            "camera_frame_light": camera_light,
+            "confused_with": ["exposure", "albedo"],
+        },
+    )
+
+
+def covered_radius(data: DiagnosisData) -> float:
+    """The largest normalised radius (half image diagonal from the principal point = 1) of a
+    pixel the observed object covers in any view."""
+    batch, height, width, _ = data.observed.shape
+    intrinsics = data.cameras.intrinsics.float()
+    rows = torch.arange(height, dtype=torch.float32)[None, :, None] + 0.5
+    columns = torch.arange(width, dtype=torch.float32)[None, None, :] + 0.5
+    dx = columns - intrinsics[:, 0, 2, None, None]
+    dy = rows - intrinsics[:, 1, 2, None, None]
+    radius = torch.sqrt(dx * dx + dy * dy) / (0.5 * math.hypot(height, width))
+    covered = data.observed_alpha[..., 0] > 0.5
+    return float(radius[covered].max()) if bool(covered.any()) else 0.0
+
+
+def radius_spread(data: DiagnosisData, options: IdentifiabilityOptions) -> float:
+    """Median over surface regions of how far apart (normalised radius) the views see it."""
+    table = pixel_table(data, surface_cells=options.surface_cells)
+    cells = table.labels["surface"]
+    radius = table.values["radius"].double()
+    spreads = []
+    for cell in torch.unique(cells):
+        chosen = cells == cell
+        if int(chosen.sum()) < 4:
+            continue
+        per_view = []
+        for view in torch.unique(table.view[chosen]):
+            per_view.append(float(radius[chosen & (table.view == view)].mean()))
+        if len(per_view) > 1:
+            spreads.append(max(per_view) - min(per_view))
+    return float(torch.tensor(spreads).median()) if spreads else 0.0
+
+
+def vignetting_evidence(
+    data: DiagnosisData, conditions: CaptureConditions, options: IdentifiabilityOptions
+) -> Evidence:
+    """A falloff is measured where the object is: up to its covered radius, and told from the
+    albedo only if the same surface is seen at different radii. Flat-field frames measure it
+    everywhere."""
+    radius = covered_radius(data)
+    spread = radius_spread(data, options)
+    details = {
+        "covered_radius": radius,
+        "radius_spread": spread,
+        "flat_field": conditions.flat_field,
+    }
+    if conditions.flat_field:
+        return Evidence(
+            KIND,
+            "vignetting",
+            1.0,
+            options.corner_radius,
+            True,
+            "vignetting is identifiable: flat-field frames measure the falloff over the whole "
+            "image",
+            details,
+        )
+    reasons = []
+    if radius < options.corner_radius:
+        reasons.append(
+            f"the object covers radii up to {radius:.2f} of the half diagonal only (the "
+            "corners are at 1.0), so the corner falloff is an extrapolation"
+        )
+    if spread < options.minimum_radius_spread:
+        reasons.append(
+            f"each surface region is seen at nearly one radius in every view (median spread "
+            f"{spread:.2f}), so the albedo absorbs the falloff"
+        )
+    if not reasons:
+        return Evidence(
+            KIND,
+            "vignetting",
+            radius,
+            options.corner_radius,
+            True,
+            f"vignetting is identifiable: the object reaches radius {radius:.2f} and each "
+            f"surface region is seen at radii {spread:.2f} apart",
+            details,
+        )
+    reason = (
+        "vignetting is not identifiable from this data, because "
+        + "; and ".join(reasons)
+        + "; flat-field frames, or views with the object near the corners and moving "
+        "across the image, would settle it"
+    )
+    return Evidence(KIND, "vignetting", radius, options.corner_radius, False, reason, details)
+
+
+def similarity_share(data: DiagnosisData) -> tuple[float, float, int]:
+    """How a radial distortion's flow r^2 (x - c) (1 at the image corners) over each view's
+    covered pixels compares with a per-view shift, zoom and rotation (least squares): the share
+    of its energy they reproduce, the RMS of the rest (in corner displacements), and the number
+    of views with coverage."""
+    batch, height, width, _ = data.observed.shape
+    intrinsics = data.cameras.intrinsics.double()
+    half_diagonal = 0.5 * math.hypot(height, width)
+    rows = torch.arange(height, dtype=torch.float64)[:, None].expand(height, width) + 0.5
+    columns = torch.arange(width, dtype=torch.float64)[None, :].expand(height, width) + 0.5
+    total, residual, views, points = 0.0, 0.0, 0, 0
+    for view in range(batch):
+        covered = data.observed_alpha[view, ..., 0] > 0.5
+        if int(covered.sum()) < 8:
+            continue
+        views += 1
+        points += int(covered.sum())
+        x = (columns[covered] - intrinsics[view, 0, 2]) / half_diagonal
+        y = (rows[covered] - intrinsics[view, 1, 2]) / half_diagonal
+        squared = x * x + y * y
+        flow = torch.cat([squared * x, squared * y])  # [2N]: the radial distortion's flow
+        ones, zeros = torch.ones_like(x), torch.zeros_like(x)
+        design = torch.stack(
+            [
+                torch.cat([ones, zeros]),  # shift x
+                torch.cat([zeros, ones]),  # shift y
+                torch.cat([x, y]),  # zoom
+                torch.cat([-y, x]),  # rotation
+            ],
+            dim=1,
+        )
+        solution = torch.linalg.lstsq(design, flow[:, None]).solution
+        residual += float(((design @ solution)[:, 0] - flow).pow(2).sum())
+        total += float(flow.pow(2).sum())
+    share = 1 - residual / total if total > 0 else 1.0
+    return share, math.sqrt(residual / max(points, 1)), views
+
+
+def lens_distortion_evidence(
+    data: DiagnosisData,
+    options: IdentifiabilityOptions,
+    corner_shift_pixels: float | None = None,
+) -> Evidence:
+    """A radial distortion is told from a pose error by the part of its flow that no per-view
+    zoom, shift and rotation makes; where the object covers only the centre, that part is
+    small and a pose correction explains the distortion as well.
+
+    corner_shift_pixels: the distortion to judge, by its displacement at the image corners
+    (e.g. the probe's recovered one); default options.reference_corner_shift of the half
+    diagonal."""
+    explained, distinguishable, views = similarity_share(data)
+    height, width = data.image_size
+    if corner_shift_pixels is None:
+        corner_shift_pixels = options.reference_corner_shift * 0.5 * math.hypot(height, width)
+    pixels = distinguishable * abs(corner_shift_pixels)
+    passed = pixels >= options.minimum_distinguishable_pixels
+    radius = covered_radius(data)
+    details = {
+        "similarity_share": explained,
+        "distinguishable_flow": distinguishable,
+        "distinguishable_pixels": pixels,
+        "corner_shift_pixels": corner_shift_pixels,
+        "covered_radius": radius,
+        "views": views,
+        "confused_with": ["pose_error"],
+    }
+    if passed:
+        reason = (
+            "lens_distortion is identifiable: a radial distortion moving the corners by "
+            f"{corner_shift_pixels:.1f} px leaves {pixels:.2f} px (RMS) over the object (radius "
+            f"up to {radius:.2f}) that no per-view zoom, shift or rotation makes"
+        )
+    else:
+        reason = (
+            "lens_distortion is not identifiable from pose_error on this data, because the "
+            f"object covers radii up to {radius:.2f} only, where a radial distortion moving the "
+            f"corners by {corner_shift_pixels:.1f} px is a per-view zoom and shift but for "
+            f"{pixels:.2f} px (RMS, over {views} views): a pose correction explains it as "
+            "well; views with the object off-centre or near "
+            "the image edges, or a calibration target, would settle it"
+        )
+    return Evidence(
+        KIND,
+        "lens_distortion",
+        pixels,
+        options.minimum_distinguishable_pixels,
+        passed,
+        reason,
+        details,
+    )
+
+
+def edge_coherence(data: DiagnosisData) -> float:
+    """Median over views of the orientation coherence of the rendered image's edges:
+    (l1 - l2) / (l1 + l2) of the summed gradient structure tensor (0 = edges of every
+    orientation, 1 = all parallel)."""
+    luminance = data.rendered.mean(dim=-1).double()
+    dx = torch.zeros_like(luminance)
+    dy = torch.zeros_like(luminance)
+    dx[:, :, 1:-1] = (luminance[:, :, 2:] - luminance[:, :, :-2]) / 2
+    dy[:, 1:-1] = (luminance[:, 2:] - luminance[:, :-2]) / 2
+    xx, yy, xy = (dx * dx).sum((1, 2)), (dy * dy).sum((1, 2)), (dx * dy).sum((1, 2))
+    trace = (xx + yy).clamp_min(1e-30)
+    difference = torch.sqrt((xx - yy) ** 2 + 4 * xy * xy)
+    return float((difference / trace).median())
+
+
+def motion_blur_evidence(data: DiagnosisData, options: IdentifiabilityOptions) -> Evidence:
+    """A motion blur is told from a defocus blur by edges across its direction: in views
+    whose edges all run one way, the blur along them is invisible and across them it is any
+    blur."""
+    coherence = edge_coherence(data)
+    passed = coherence <= options.maximum_edge_coherence
+    details = {"edge_coherence": coherence, "confused_with": ["defocus_blur"]}
+    if passed:
+        reason = (
+            f"motion_blur is identifiable: the views' edges run in many directions (coherence "
+            f"{coherence:.2f})"
+        )
+    else:
+        reason = (
+            "motion_blur is not identifiable from defocus_blur on this data, because the "
+            f"views' edges nearly all run one way (coherence {coherence:.2f}): a blur across "
+            "them is any blur; views of a textured object with edges in several directions "
+            "would settle it"
+        )
+    return Evidence(
+        KIND, "motion_blur", coherence, options.maximum_edge_coherence, passed, reason, details
+    )
+
+
+def identifiability_evidence(
+    data: DiagnosisData,
+    conditions: CaptureConditions | None = None,
+    options: IdentifiabilityOptions | None = None,
+    corner_shift_pixels: float | None = None,
+) -> list[Evidence]:
+    """Identifiability Evidence of the effects whose identifiability depends on the capture:
+    response_curve, vignetting, lens_distortion (against pose_error; corner_shift_pixels: the
+    recovered distortion's displacement at the corners, when known) and motion_blur (against
+    defocus_blur)."""
+    conditions = conditions or CaptureConditions()
+    options = options or IdentifiabilityOptions()
+    return [
+        response_curve_evidence(data, conditions, options),
+        vignetting_evidence(data, conditions, options),
+        lens_distortion_evidence(data, options, corner_shift_pixels),
+        motion_blur_evidence(data, options),
+    ]

@@ -1,0 +1,134 @@
+"""Capture metadata as a check on the diagnosis: recovered exposure against EXIF exposure.
+
+Real photos often carry their exposure (exposure time x ISO / f-number^2, recon.io.exif). When
+they do, a recovered per-view exposure is a claim that can be checked: up to one common scale
+(the exposure x light gauge), the recovered gains should equal the EXIF ones. The check reports
+the median ratio error (|recovered / EXIF - 1| after the common scale), the correlation of the
+log gains over views, and the same error of the baseline that predicts the same exposure for
+every view: a recovered exposure that does no better than "all equal" has not found the
+camera's exposure, whatever it absorbed.
+
+The producer returns recon.diagnose.records.Evidence of kind "metadata".
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+
+from recon.diagnose.records import Evidence
+from recon.errors import ReconError
+from recon.io.exif import exposure_value
+
+KIND = "metadata"
+
+
+@dataclass(frozen=True)
+class MetadataOptions:
+    """Choices of the metadata check (movable to the `diagnose:` config section as is).
+
+    permutations: view permutations for the correlation's p-value.
+    alpha: the correlation's level (one-sided, positive): the conventional 5 %.
+    seed: the permutations' random seed.
+    """
+
+    permutations: int = 2000
+    alpha: float = 0.05
+    seed: int = 0
+
+
+def exif_exposure_gains(metadata: Sequence[dict[str, Any]] | None) -> torch.Tensor | None:
+    """Per-view EXIF exposure [B] (time x ISO / f-number^2) over its median, or None when any
+    view lacks one of the three values (the check then does not apply)."""
+    if not metadata:
+        return None
+    values = [exposure_value(record or {}) for record in metadata]
+    if any(value is None for value in values):
+        return None
+    gains = torch.tensor(values, dtype=torch.float64)
+    return gains / gains.median()
+
+
+def ratio_error(predicted: torch.Tensor, known: torch.Tensor) -> torch.Tensor:
+    """|predicted / known - 1| per view [B], after the common scale that the gauge leaves free
+    (the median ratio, so one wrong view does not move it)."""
+    ratio = predicted.double() / known.double()
+    return (ratio / ratio.median() - 1).abs()
+
+
+def log_correlation(one: torch.Tensor, other: torch.Tensor) -> float:
+    a = one.double().log()
+    b = other.double().log()
+    a, b = a - a.mean(), b - b.mean()
+    denominator = ((a * a).sum() * (b * b).sum()).sqrt()
+    return float((a * b).sum() / denominator) if float(denominator) > 0 else 0.0
+
+
+def metadata_evidence(
+    recovered: Sequence[float] | torch.Tensor,
+    known: Sequence[float] | torch.Tensor,
+    candidate: str = "exposure",
+    options: MetadataOptions | None = None,
+) -> Evidence:
+    """Recovered per-view exposure gains [B] (e.g. the exposure probe's "ratios") against the
+    known ones [B] (EXIF, in the same view order): median ratio error, log correlation with a
+    permutation p-value, and the all-equal baseline's error. Passes when the recovered gains
+    beat the baseline and correlate with the EXIF gains."""
+    options = options or MetadataOptions()
+    recovered = torch.as_tensor(recovered, dtype=torch.float64).flatten()
+    known = torch.as_tensor(known, dtype=torch.float64).flatten()
+    if recovered.shape != known.shape:
+        raise ReconError(
+            f"metadata check: recovered gains for {recovered.numel()} views, known (EXIF) "
+            f"gains for {known.numel()}"
+        )
+    if recovered.numel() < 3 or bool((recovered <= 0).any()) or bool((known <= 0).any()):
+        raise ReconError(
+            "metadata check: expected at least 3 positive gains per side, got recovered "
+            f"{recovered.tolist()} and known {known.tolist()}"
+        )
+    error = float(ratio_error(recovered, known).median())
+    baseline = float(ratio_error(torch.ones_like(known), known).median())
+    correlation = log_correlation(recovered, known)
+    generator = torch.Generator().manual_seed(options.seed)
+    permuted = [
+        log_correlation(recovered[torch.randperm(recovered.numel(), generator=generator)], known)
+        for _ in range(options.permutations)
+    ]
+    p_value = (1 + sum(value >= correlation for value in permuted)) / (1 + len(permuted))
+    spread = float(known.max() / known.min())
+    if spread == 1.0:
+        # Known equal exposures: the baseline is exact and any recovered spread is an error.
+        passed = error <= baseline
+        agreement = f"EXIF exposure is the same in all {known.numel()} views"
+    else:
+        passed = error < baseline and p_value < options.alpha
+        agreement = (
+            f"r = {correlation:.2f} with EXIF exposure (p = {p_value:.2g}, spanning "
+            f"x{spread:.2f} over {known.numel()} views)"
+        )
+    verdict = "agrees with" if passed else "does not agree with"
+    reason = (
+        f"recovered {candidate} {verdict} the capture's metadata: median ratio error "
+        f"{100 * error:.1f} % against {100 * baseline:.1f} % for equal exposure in every view; "
+        f"{agreement}"
+    )
+    return Evidence(
+        kind=KIND,
+        candidate=candidate,
+        statistic=error,
+        threshold=baseline,
+        passed=passed,
+        reason=reason,
+        details={
+            "median_ratio_error": error,
+            "baseline_error": baseline,
+            "correlation": correlation,
+            "p_value": p_value,
+            "known_spread": spread,
+            "views": int(known.numel()),
+        },
+    )

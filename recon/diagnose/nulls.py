@@ -1,0 +1,347 @@
+"""Nulls derived from the run itself: what an effect's held-out reduction must beat on this fit.
+
+A fixed allowance measured on clean 36 dB fits says nothing about a 20 dB fit of a glossy real
+object: there, the base model's mismatch leaves a large structured residual, and any flexible
+effect removes part of it. The nulls here come from the run:
+
+- placebo effects: random smooth effects with as many parameters as the candidate (per view
+  where the candidate is per view), fitted and scored exactly as the probe is (first half of the
+  pixel blocks, held-out on the second). A gain-like candidate's placebo multiplies the render
+  by random smooth fields; a geometric one's moves it along random smooth displacement fields.
+  Their held-out reductions on this fit's residual are the null: a candidate must remove more
+  than its placebos do (a quantile of the draws). The null grows with the residual's structure.
+- split-half agreement: a per-view gain fitted on the two halves of the held-out blocks
+  separately; real per-view parameters agree between halves, noise does not. The null is the
+  same agreement with the views of one half permuted.
+
+Producers return recon.diagnose.records.Evidence of kind "null".
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from recon.diagnose.data import DiagnosisData
+from recon.diagnose.records import Evidence
+from recon.effects.registry import make_effect
+
+KIND = "null"
+
+# Candidates whose image change is a movement of the render (not a scaling of it): their
+# placebo is a displacement along random smooth fields.
+GEOMETRIC_EFFECTS = ("lens_distortion", "defocus_blur", "motion_blur", "pose_error")
+
+
+@dataclass(frozen=True)
+class NullOptions:
+    """Choices of the run-derived nulls (movable to the `diagnose:` config section as is).
+
+    placebo_draws: random placebo effects per candidate: enough for a 95 % quantile to be
+        read off (20 draws: the largest but one).
+    quantile: the placebo quantile a candidate's reduction (its interval's lower bound) must
+        exceed: a one-sided 5 % test against effects of its size that mean nothing.
+    field_cells: the random fields are bilinear upsamplings of a field_cells^2 grid of normal
+        draws, less their mean over the object: smooth, like an effect's image change, not
+        pixel noise (which held-out pixels already reject), and never the candidate's own
+        signature (a uniform gain or shift).
+    block_pixels: the checkerboard blocks of the held-out halves (the probes' BLOCK_PIXELS).
+    permutations: view permutations for the split-half agreement's null.
+    seed: random seed of the placebos and permutations.
+    """
+
+    placebo_draws: int = 20
+    quantile: float = 0.95
+    field_cells: int = 4
+    block_pixels: int = 4
+    permutations: int = 1000
+    seed: int = 0
+
+
+def parameter_layout(name: str, view_count: int) -> tuple[int, int]:
+    """(parameters per view, global parameters) of the candidate's probe (the pose probe fits
+    rotations only, recon.diagnose.which.probe_effect)."""
+    effect = make_effect(name, view_count=view_count, pinned_view=None)
+    per_view, shared = 0, 0
+    for parameter_name, parameter in effect.named_parameters():
+        if name == "pose_error" and parameter_name == "translation":
+            continue
+        if effect.per_view and parameter.ndim >= 1 and parameter.shape[0] == view_count:
+            per_view += parameter.numel() // view_count
+        else:
+            shared += parameter.numel()
+    return per_view, shared
+
+
+def checkerboard(batch: int, height: int, width: int, block_pixels: int) -> torch.Tensor:
+    """[B, H, W, 1] float: 1 on the fitting half's blocks, 0 on the held-out half's."""
+    rows = torch.arange(height) // block_pixels
+    columns = torch.arange(width) // block_pixels
+    first = ((rows[:, None] + columns[None, :]) % 2 == 0).float()
+    return first[None, :, :, None].expand(batch, height, width, 1)
+
+
+def smooth_fields(count: int, height: int, width: int, cells: int, generator) -> torch.Tensor:
+    """count random smooth fields [count, H, W] (unit variance grid, bilinear upsampled)."""
+    grid = torch.randn(count, 1, cells, cells, generator=generator)
+    return torch.nn.functional.interpolate(
+        grid, size=(height, width), mode="bilinear", align_corners=True
+    )[:, 0]
+
+
+def image_gradients(image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Central-difference gradients (d/dx, d/dy) of [B, H, W, C] images, zero at the border."""
+    dx = torch.zeros_like(image)
+    dy = torch.zeros_like(image)
+    dx[:, :, 1:-1] = (image[:, :, 2:] - image[:, :, :-2]) / 2
+    dy[:, 1:-1] = (image[:, 2:] - image[:, :-2]) / 2
+    return dx, dy
+
+
+@dataclass
+class _Pixels:
+    """The region's pixels of a DiagnosisData, flattened (N pixels): where they are, their
+    render, its gradients, the residual, and which held-out half they belong to."""
+
+    view: torch.Tensor  # [N]
+    row: torch.Tensor  # [N]
+    column: torch.Tensor  # [N]
+    rendered: torch.Tensor  # [N, 3]
+    gradient_x: torch.Tensor  # [N, 3]
+    gradient_y: torch.Tensor  # [N, 3]
+    residual: torch.Tensor  # [N, 3]
+    first: torch.Tensor  # [N] bool
+
+    @classmethod
+    def of(cls, data: DiagnosisData, block_pixels: int) -> _Pixels:
+        batch, height, width, _ = data.observed.shape
+        inside = data.region[..., 0] > 0.5
+        view, row, column = inside.nonzero(as_tuple=True)
+        gradient_x, gradient_y = image_gradients(data.rendered)
+        first = checkerboard(batch, height, width, block_pixels)[..., 0] > 0.5
+        return cls(
+            view=view,
+            row=row,
+            column=column,
+            rendered=data.rendered[inside],
+            gradient_x=gradient_x[inside],
+            gradient_y=gradient_y[inside],
+            residual=data.residual[inside].double(),
+            first=first[inside],
+        )
+
+
+def placebo_bases(
+    pixels: _Pixels,
+    size: tuple[int, int, int],
+    count: int,
+    geometric: bool,
+    options: NullOptions,
+    generator,
+    shared: bool = False,
+) -> torch.Tensor:
+    """count random basis images [count, N, 3] (at the region's N pixels) of one placebo
+    parameter each: a random smooth gain field times the render, or (geometric) the render's
+    change along a random smooth displacement field (its first-order image change). size:
+    (B, H, W); shared: one field for every view's image frame (a global parameter), else one
+    per view."""
+    batch, height, width = size
+    views = 1 if shared else batch
+    fields = smooth_fields(count * views * 2, height, width, options.field_cells, generator)
+    fields = fields.view(count, views, 2, height, width)
+    view = torch.zeros_like(pixels.view) if shared else pixels.view
+    values = fields.permute(1, 3, 4, 0, 2)[view, pixels.row, pixels.column]  # [N, count, 2]
+    values = values.permute(1, 0, 2).contiguous()  # [count, N, 2]
+    # A placebo must mean nothing: without its mean over the view's object (weighted by the
+    # render's energy), a random gain field is partly a uniform gain (an exposure), and a
+    # random displacement field partly a shift (a pose change).
+    weight = (pixels.rendered**2).sum(-1)
+    total = torch.zeros(batch).index_add_(0, pixels.view, weight).clamp_min(1e-30)
+    for component in range(2):
+        sums = torch.zeros(count, batch).index_add_(1, pixels.view, values[..., component] * weight)
+        values[..., component] -= (sums / total)[:, pixels.view]
+    if not geometric:
+        return values[..., :1] * pixels.rendered[None]
+    return values[..., :1] * pixels.gradient_x[None] + values[..., 1:] * pixels.gradient_y[None]
+
+
+def _least_squares(bases: torch.Tensor, target: torch.Tensor, fit: torch.Tensor) -> torch.Tensor:
+    """Coefficients [P] of bases [P, N, 3] that fit target [N, 3] on the pixels fit [N]."""
+    chosen = bases[:, fit].double().flatten(1)
+    gram = chosen @ chosen.T
+    gram = gram + 1e-9 * gram.diagonal().mean().clamp_min(1e-30) * torch.eye(len(bases))
+    return torch.linalg.solve(gram, chosen @ target[fit].flatten())
+
+
+def placebo_reduction(
+    data: DiagnosisData, per_view: int, shared: int, geometric: bool, options: NullOptions, seed
+) -> float:
+    """The held-out reduction of one random placebo with per_view parameters per view and
+    shared global ones, fitted by linear least squares on the first half of the blocks (the
+    residual's projection on the placebo's basis) and scored on the second."""
+    pixels = _Pixels.of(data, options.block_pixels)
+    return _placebo_reduction(pixels, data, per_view, shared, geometric, options, seed)
+
+
+def _placebo_reduction(
+    pixels: _Pixels,
+    data: DiagnosisData,
+    per_view: int,
+    shared: int,
+    geometric: bool,
+    options: NullOptions,
+    seed: int,
+) -> float:
+    generator = torch.Generator().manual_seed(seed)
+    size = (data.view_count, *data.image_size)
+    residual = pixels.residual
+    explained = torch.zeros_like(residual)
+    if per_view:
+        bases = placebo_bases(pixels, size, per_view, geometric, options, generator)
+        for view in range(data.view_count):
+            here = pixels.view == view
+            if not bool((here & pixels.first).any()):
+                continue
+            local = bases[:, here]
+            theta = _least_squares(local, residual[here], pixels.first[here])
+            explained[here] += torch.einsum("p,pnc->nc", theta, local.double())
+    if shared:
+        bases = placebo_bases(pixels, size, shared, geometric, options, generator, shared=True)
+        theta = _least_squares(bases, residual - explained, pixels.first)
+        explained += torch.einsum("p,pnc->nc", theta, bases.double())
+    test = ~pixels.first
+    before = (residual[test] ** 2).sum()
+    after = ((residual - explained)[test] ** 2).sum()
+    return float(1 - after / before.clamp_min(1e-30))
+
+
+def placebo_null(
+    data: DiagnosisData, name: str, options: NullOptions | None = None
+) -> tuple[float, list[float]]:
+    """The candidate's null: the options.quantile of its placebos' held-out reductions on this
+    run, and the draws."""
+    options = options or NullOptions()
+    per_view, shared = parameter_layout(name, data.view_count)
+    geometric = name in GEOMETRIC_EFFECTS
+    pixels = _Pixels.of(data, options.block_pixels)
+    draws = [
+        _placebo_reduction(pixels, data, per_view, shared, geometric, options, options.seed + d)
+        for d in range(options.placebo_draws)
+    ]
+    threshold = float(torch.quantile(torch.tensor(draws, dtype=torch.float64), options.quantile))
+    return threshold, draws
+
+
+def fit_psnr(data: DiagnosisData) -> float:
+    """The fit's held-out PSNR over the region (peak 1, linear): how much mismatch there is."""
+    weight = data.region
+    mse = float((data.residual**2 * weight).sum() / (weight.sum() * 3).clamp_min(1))
+    return 10 * math.log10(1 / max(mse, 1e-20))
+
+
+def null_evidence(
+    data: DiagnosisData,
+    name: str,
+    reduction: float,
+    interval: tuple[float, float],
+    options: NullOptions | None = None,
+) -> Evidence:
+    """Whether a candidate's held-out reduction (the probe's, with its bootstrap interval over
+    views) clears its placebo null on this run, with the reason in one line."""
+    options = options or NullOptions()
+    threshold, draws = placebo_null(data, name, options)
+    per_view, shared = parameter_layout(name, data.view_count)
+    size = f"{per_view} per view" if per_view else f"{shared}"
+    if per_view and shared:
+        size = f"{per_view} per view and {shared} shared"
+    psnr = fit_psnr(data)
+    low = interval[0]
+    passed = low > threshold
+    verdict = "significant" if passed else "not significant"
+    reason = (
+        f"{name} removes {100 * reduction:.1f} % of the held-out error (lower bound "
+        f"{100 * low:.1f} %); {len(draws)} placebo effects with the same parameters "
+        f"({size}) remove up to {100 * threshold:.1f} % ({100 * options.quantile:.0f}th "
+        f"percentile) on this {psnr:.1f} dB fit: {verdict}"
+    )
+    return Evidence(
+        kind=KIND,
+        candidate=name,
+        statistic=float(low),
+        threshold=threshold,
+        passed=passed,
+        reason=reason,
+        details={
+            "test": "placebo",
+            "reduction": float(reduction),
+            "interval": [float(interval[0]), float(interval[1])],
+            "placebo_reductions": draws,
+            "parameters_per_view": per_view,
+            "shared_parameters": shared,
+            "fit_psnr": psnr,
+        },
+    )
+
+
+def per_view_log_gains(data: DiagnosisData, weight: torch.Tensor) -> torch.Tensor:
+    """Least-squares log gain per view and channel [B, 3] of observed against rendered over
+    weight [B, H, W, 1] (the exposure and white balance probes' parameters, in closed form)."""
+    observed, rendered = data.observed.double(), data.rendered.double()
+    weight = weight.double()
+    cross = (observed * rendered * weight).sum(dim=(1, 2))
+    energy = (rendered**2 * weight).sum(dim=(1, 2))
+    return torch.log(cross.clamp_min(1e-20) / energy.clamp_min(1e-20))
+
+
+def split_half_evidence(
+    data: DiagnosisData, name: str, options: NullOptions | None = None
+) -> Evidence | None:
+    """Split-half agreement of a per-view gain's parameters (exposure: the luminance log gain
+    per view; white balance: red and blue over green): fitted on each half of the held-out
+    blocks, correlated over views, against the same correlation with one half's views
+    permuted. None for other candidates (their parameters need the probe's fit)."""
+    if name not in ("exposure", "white_balance"):
+        return None
+    options = options or NullOptions()
+    batch, height, width, _ = data.observed.shape
+    first = checkerboard(batch, height, width, options.block_pixels) * data.region
+    second = (1 - checkerboard(batch, height, width, options.block_pixels)) * data.region
+    halves = []
+    for weight in (first, second):
+        gains = per_view_log_gains(data, weight)
+        if name == "exposure":
+            values = gains.mean(dim=1, keepdim=True)
+        else:
+            values = torch.stack([gains[:, 0] - gains[:, 1], gains[:, 2] - gains[:, 1]], -1)
+        halves.append(values - values.mean(dim=0, keepdim=True))
+    one, other = (half.flatten() for half in halves)
+
+    def correlation(a: torch.Tensor, b: torch.Tensor) -> float:
+        return float((a * b).sum() / ((a * a).sum() * (b * b).sum()).sqrt().clamp_min(1e-30))
+
+    observed = correlation(one, other)
+    generator = torch.Generator().manual_seed(options.seed)
+    permuted = []
+    for _ in range(options.permutations):
+        order = torch.randperm(batch, generator=generator)
+        permuted.append(correlation(one, halves[1][order].flatten()))
+    null = torch.tensor(permuted, dtype=torch.float64)
+    threshold = float(torch.quantile(null, options.quantile))
+    p_value = float((1 + (null >= observed).sum()) / (1 + len(permuted)))
+    passed = observed > threshold
+    reason = (
+        f"{name}'s per-view parameters from the two halves of the held-out blocks agree "
+        f"(r = {observed:.2f} over {batch} views; permuted views reach {threshold:.2f}, "
+        f"p = {p_value:.2g}): " + ("not noise" if passed else "indistinguishable from noise")
+    )
+    return Evidence(
+        kind=KIND,
+        candidate=name,
+        statistic=observed,
+        threshold=threshold,
+        passed=passed,
+        reason=reason,
+        details={"test": "split_half", "p_value": p_value, "views": batch},
+    )

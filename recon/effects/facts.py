@@ -1,0 +1,58 @@
+"""What the gap diagnosis needs to know about an effect, as data beside the effect.
+
+Each model effect (recon.effects) carries one ``DiagnosisFacts`` as its class attribute
+``diagnosis``: which family it belongs to (a camera effect can be vetoed by a specificity check
+that finds the base model's mismatch instead), which kinds of evidence apply to it, how its
+absorption evidence is measured, where its probe starts, what it is most often confused with,
+and what capture makes it identifiable. The diagnosis (recon.diagnose) reads these facts and
+names no effect itself.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+Family = Literal["camera", "light_transport"]
+AbsorptionMode = Literal["none", "frozen", "geometry", "closed_form"]
+
+
+@dataclass(frozen=True)
+class DiagnosisFacts:
+    """One effect's diagnosis facts.
+
+    family: 'camera' (the camera or sensor changes the image) or 'light_transport' (the scene's
+        light does something the base model's shading leaves out).
+    evidence: the evidence kinds besides the probe that apply (recon.diagnose.decision's rows):
+        'absorption', 'relight', 'flat_field', 'fingerprint'.
+    absorption: how its absorption evidence is measured: 'frozen' (texture, light and the
+        effect refitted on the frozen geometry), 'geometry' (a refit that moves the vertices:
+        the effect bends the geometry the fit absorbed it into), 'closed_form' (a regression
+        of texel gains and the effect), 'none'.
+    probe_start: (parameter, value) a probe starts from instead of the identity, for a
+        parameter whose image changes to second order at zero (None: the identity).
+    probe_frozen: parameters the probe keeps at zero (their image looks like other effects').
+    fingerprint_side: which side of the visibility fingerprint's share names it: 'blocked'
+        (light missing entirely: at or above the shadow share) or 'bounced' (partly filled back).
+    radial_falloff: its parameters describe a falloff over the image radius, measured only as
+        far as the object's pixels reach (the diagnosis records that radius beside them).
+    relight_exponent: a refit holds its exponent at the relight split's estimate (under one
+        light the albedo absorbs a curve, so a refit cannot pin it).
+    confusable: effects and base-model mismatches whose signature resembles this one's (the
+        specificity checks test against them).
+    identifiable_when: the capture that makes it identifiable (said when the data cannot).
+    modelled_by: fit materials (config fit.material) that model it already: with one of them
+        it is part of the model, not a candidate.
+    """
+
+    family: Family
+    evidence: tuple[str, ...] = ()
+    absorption: AbsorptionMode = "none"
+    probe_start: tuple[str, float] | None = None
+    probe_frozen: tuple[str, ...] = ()
+    fingerprint_side: Literal["blocked", "bounced", ""] = ""
+    radial_falloff: bool = False
+    relight_exponent: bool = False
+    confusable: tuple[str, ...] = ()
+    identifiable_when: str = ""
+    modelled_by: tuple[str, ...] = ()

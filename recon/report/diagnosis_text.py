@@ -1,0 +1,82 @@
+"""What `recon diagnose` prints: the diagnosis in a few lines a user can read."""
+
+from __future__ import annotations
+
+from recon.diagnose.records import Diagnosis
+from recon.report.report import recovered_parameters, summarise_parameters
+
+
+def _measurement(candidate) -> str:
+    """The probe's held-out reduction with its interval, and the other built-in measurements."""
+    parts = []
+    probe = candidate.evidence_of("probe")
+    if probe is not None:
+        low, high = probe.interval
+        parts.append(
+            f"held-out reduction {probe.details['reduction']:7.3f} [{low:.3f}, {high:.3f}]"
+        )
+    absorption = candidate.evidence_of("absorption")
+    if absorption is not None:
+        void = f" (void beside {absorption.details['discounted_by']})" if absorption.void else ""
+        parts.append(f"absorption {absorption.details['reduction']:6.3f}{void}")
+    relight = candidate.evidence_of("relight")
+    if relight is not None:
+        parts.append(f"relight {relight.details['reduction']:6.3f}")
+    return " ".join(parts)
+
+
+def diagnosis_lines(diagnosis: Diagnosis) -> list[str]:
+    """The lines `recon diagnose` prints for a diagnosis."""
+    lines = []
+    for candidate in diagnosis.candidates:
+        flag = f"significant ({candidate.decided_by})" if candidate.significant else ""
+        if candidate.status in ("vetoed", "not_identifiable"):
+            flag = candidate.status.replace("_", " ")
+        lines.append(f"{candidate.name:16} {_measurement(candidate)} {flag}".rstrip())
+        lines.append(f"  why: {candidate.why}")
+    record = diagnosis.to_json()
+    for effect, source, parameters in recovered_parameters(record):
+        lines.append(f"  {effect} ({source}): {summarise_parameters(parameters)}")
+    gap = diagnosis.gap
+    fingerprint = gap.get("visibility_fingerprint")
+    if fingerprint:
+        low, high = fingerprint["interval"]
+        lines.append(
+            f"visibility fingerprint: {fingerprint['share']:.2f} [{low:.2f}, {high:.2f}] of the "
+            f"predicted self-shadowing baked into the albedo ({fingerprint['names'] or 'nothing'})"
+        )
+    model = diagnosis.model
+    if model.get("effects") or model.get("material", "lambert") != "lambert":
+        effects = ", ".join(model.get("effects", [])) or "none"
+        lines.append(
+            f"model: material {model.get('material')}, light frame {model.get('light_frame')}, "
+            f"fit effects {effects} (part of the model, not candidates)"
+        )
+    if gap.get("flat_field_error"):
+        lines.append(f"flat field not used: {gap['flat_field_error']}")
+    flat = gap.get("flat_field")
+    if flat:
+        reading = "vignetting" if flat["deviation"] > flat["allowance"] else "flat"
+        lines.append(
+            f"flat field ({flat['frames']} frames): corner falloff {flat['corner_falloff']:.3f}, "
+            f"half-way {flat['half_radius_falloff']:.3f} ({reading}; allowance "
+            f"{flat['allowance']:.2f})"
+        )
+    if gap.get("how_far_skipped"):
+        lines.append(f"no refit: {gap['how_far_skipped']}")
+    for refit in diagnosis.refits:
+        relight = (
+            f" (relight split: {100 * refit['relight_closed_fraction']:.0f} %)"
+            if "relight_closed_fraction" in refit
+            else ""
+        )
+        lines.append(
+            f"refit with {' + '.join(refit['effects'])}: RMSE {refit['before_rmse']:.4f} -> "
+            f"{refit['after_rmse']:.4f}, closed {100 * refit['closed_fraction']:.0f} % of the gap "
+            f"above the floor{relight}"
+        )
+    lines.append(f"verdict: {diagnosis.verdict}")
+    if diagnosis.refits:
+        confirmed = diagnosis.confirmed_by_refit
+        lines.append(f"confirmed by a refit: {', '.join(confirmed) if confirmed else 'none'}")
+    return lines

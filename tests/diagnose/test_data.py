@@ -1,0 +1,55 @@
+"""DiagnosisData: the region is the object plus a band, and shapes are checked by name."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from diagnose_where_scene import make_scene
+
+from recon.diagnose.data import DiagnosisData
+from recon.errors import ReconError
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return make_scene()
+
+
+def test_region_is_the_object_plus_a_band(scene):
+    data = scene.data(scene.output.color)
+    covered = scene.output.alpha[..., 0] > 0.5
+    region = data.region[..., 0] > 0.5
+    assert bool(region[covered].all())
+    # Chebyshev distance to the object: <= 3 pixels inside the band, farther outside it.
+    distance = torch.full_like(covered, False)
+    grown = covered.float()[:, None]
+    for band in range(1, 6):
+        grown = torch.nn.functional.max_pool2d(grown, 3, stride=1, padding=1)
+        ring = (grown[:, 0] > 0.5) & ~distance & ~covered
+        if band <= 3:
+            assert bool(region[ring].all())
+        else:
+            assert not bool(region[ring].any())
+        distance |= ring
+    uv = data.texel_uv
+    assert bool((uv[data.rendered_mask] >= 0).all()) and bool((uv[data.rendered_mask] <= 1).all())
+    assert bool((uv[~data.rendered_mask] == -1).all())
+
+
+def test_diagnosis_data_checks_shapes(scene):
+    data = scene.data(scene.output.color)
+    with pytest.raises(ReconError, match="diagnosis_data.rendered"):
+        DiagnosisData(
+            observed=data.observed,
+            rendered=data.rendered[:, :-1],
+            observed_alpha=data.observed_alpha,
+            rendered_alpha=data.rendered_alpha,
+            region=data.region,
+            normals=data.normals,
+            depth=data.depth,
+            texel_uv=data.texel_uv,
+            triangle_id=data.triangle_id,
+            cameras=data.cameras,
+            lighting=data.lighting,
+            mesh=data.mesh,
+        )

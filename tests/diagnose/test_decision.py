@@ -1,0 +1,250 @@
+"""The decision table: the built-in evidence decides and ranks as the hand-ordered rule did
+(flat field overrules either way, probe before absorption before relight, the fingerprint names
+its effect and ranks after held-out evidence, voided absorption does not count), a stored
+diagnosis is re-decided with other allowances, and the producer kinds (specificity, null,
+identifiability, metadata) act as their rows say."""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import replace
+
+from recon.config.run_config import DecisionConfig, DiagnoseConfig
+from recon.diagnose.decision import (
+    DECISION_TABLE,
+    absorption_threshold,
+    decide,
+    decide_all,
+    probe_threshold,
+    rank_key,
+    redecide,
+    verdict_of,
+)
+from recon.diagnose.records import Candidate, Diagnosis, Evidence
+from recon.effects.registry import MODEL_EFFECTS
+
+CONFIG = DecisionConfig()
+
+
+def evidence(kind, name, statistic, **details):
+    return Evidence(kind, name, statistic, math.nan, False, kind, details)
+
+
+def candidate(name, probe=None, absorption=None, relight=None, flat_field=None, share=None):
+    """A candidate with the given evidence: probe/absorption/relight (low, high) intervals,
+    flat_field a deviation, share a fingerprint share with a tight interval."""
+    result = Candidate(name)
+    for kind, interval in (("probe", probe), ("absorption", absorption), ("relight", relight)):
+        if interval is not None:
+            parameters = {"source": kind}
+            result.add(
+                evidence(
+                    kind,
+                    name,
+                    interval[0],
+                    interval=list(interval),
+                    reduction=sum(interval) / 2,
+                    parameters=parameters,
+                )
+            )
+    if flat_field is not None:
+        result.add(evidence("flat_field", name, flat_field))
+    if share is not None:
+        result.add(
+            evidence(
+                "fingerprint", name, share, interval=[share - 0.05, share + 0.05], coverage=0.3
+            )
+        )
+    return decide(result, CONFIG)
+
+
+def test_every_effect_has_an_allowance_at_least_the_minimum():
+    for effect in MODEL_EFFECTS:
+        assert probe_threshold(effect, CONFIG) >= CONFIG.minimum_share
+
+
+def test_a_probe_decides_by_its_lower_bound_against_the_allowance():
+    threshold = probe_threshold("defocus_blur", CONFIG)
+    assert threshold > CONFIG.minimum_share  # a flexible probe has a larger null
+    above = candidate("defocus_blur", probe=(threshold + 0.01, 0.5))
+    below = candidate("defocus_blur", probe=(threshold - 0.01, 0.5))
+    assert above.significant and above.decided_by == "probe" and above.status == "significant"
+    assert not below.significant and below.decided_by == "" and "does not clear" in below.why
+    assert above.parameters == {"source": "probe"}
+
+
+def test_the_flat_field_overrules_the_residual_evidence_either_way():
+    loud = candidate("vignetting", probe=(0.3, 0.5), flat_field=CONFIG.flat_field_allowance / 2)
+    assert not loud.significant and loud.decided_by == ""
+    quiet = candidate("vignetting", probe=(-0.1, 0.5), flat_field=0.3)
+    assert quiet.significant and quiet.decided_by == "flat_field"
+
+
+def test_relight_evidence_decides_and_reports_its_parameters():
+    quiet = candidate(
+        "response_curve", probe=(-0.01, 0.01), relight=(CONFIG.relight_allowance + 0.1, 0.4)
+    )
+    assert quiet.significant and quiet.decided_by == "relight"
+    assert quiet.parameters == {"source": "relight"}
+    below = candidate("response_curve", probe=(-0.01, 0.01), relight=(0.02, 0.2))
+    assert not below.significant
+    # Nothing decided: the relight split's estimate is still the one reported.
+    assert below.parameters == {"source": "relight"}
+
+
+def test_the_closed_form_absorption_has_its_own_floor():
+    """Vignetting's absorption evidence is a regression (its facts' absorption mode): its floor
+    is the regression's, lower than the refits'; an interval between the two decides it only."""
+    vignetting = absorption_threshold("vignetting", CONFIG)
+    specular = absorption_threshold("specular", CONFIG)
+    assert vignetting < CONFIG.absorption_minimum_share <= specular
+    between = (0.5 * (vignetting + CONFIG.absorption_minimum_share), 0.02)
+    assert candidate("vignetting", probe=(-0.01, 0.01), absorption=between).significant
+    assert not candidate("specular", probe=(-0.01, 0.01), absorption=between).significant
+    decided = candidate("vignetting", probe=(-0.01, 0.01), absorption=between)
+    assert decided.decided_by == "absorption" and decided.parameters == {"source": "absorption"}
+
+
+def test_voided_absorption_does_not_count_but_stays_recorded():
+    lens = candidate("lens_distortion", probe=(-0.01, 0.01), absorption=(0.2, 0.4))
+    assert lens.significant and lens.decided_by == "absorption"
+    voided = replace(lens.evidence_of("absorption"), void="void beside defocus_blur")
+    lens.add(voided)
+    decide(lens, CONFIG)
+    assert not lens.significant and lens.evidence_of("absorption") is not None
+
+
+def test_the_fingerprint_names_shadows_or_interreflection_by_its_share():
+    high = [
+        candidate(name, probe=(-0.01, 0.0), share=0.8) for name in ("shadows", "interreflection")
+    ]
+    assert [item.significant for item in high] == [True, False]
+    low = [
+        candidate(name, probe=(-0.01, 0.0), share=0.4) for name in ("shadows", "interreflection")
+    ]
+    assert [item.significant for item in low] == [False, True]
+    faint = candidate("shadows", probe=(-0.01, 0.0), share=0.1)
+    assert not faint.significant
+
+
+def test_ranking_puts_residual_evidence_before_the_fingerprint():
+    ranking = [
+        candidate("shadows", probe=(-0.01, 0.0), share=0.8),
+        candidate("pose_error", probe=(0.05, 0.3)),
+        candidate("specular", probe=(0.2, 0.3)),
+    ]
+    decide_all(ranking, CONFIG)
+    assert [item.name for item in ranking] == ["specular", "shadows", "pose_error"]
+
+
+def test_significant_ones_rank_by_excess_over_their_own_allowance():
+    """A flexible probe's raw reduction is larger, but clears less of its own null."""
+    blur = candidate("defocus_blur", probe=(probe_threshold("defocus_blur", CONFIG) + 0.01, 0.3))
+    exposure = candidate("exposure", probe=(0.1, 0.2))
+    ranking = decide_all([blur, exposure], CONFIG)
+    assert [item.name for item in ranking] == ["exposure", "defocus_blur"]
+    assert rank_key(ranking[0]) > rank_key(ranking[1])
+    assert verdict_of(ranking) == "significant unmodelled effects: exposure, defocus_blur"
+    assert verdict_of([]) == "no significant unmodelled effect"
+
+
+def test_a_failed_specificity_check_vetoes_and_names_the_mismatch_in_its_place():
+    exposure = candidate("exposure", probe=(0.3, 0.5))
+    white_balance = candidate("white_balance", probe=(0.05, 0.1))
+    exposure.add(
+        Evidence(
+            "specificity",
+            "exposure",
+            0.6,
+            0.2,
+            False,
+            "per-view gains follow n.h (r = 0.6)",
+            {"instead": "view_dependent_reflectance", "parameters": {"r": 0.6}},
+        )
+    )
+    ranking = decide_all([white_balance, exposure], CONFIG)
+    names = [item.name for item in ranking]
+    assert names[0] == "view_dependent_reflectance", names
+    mismatch = ranking[0]
+    assert mismatch.significant and mismatch.decided_by == "specificity"
+    assert mismatch.parameters == {"r": 0.6} and "exposure" in mismatch.why
+    vetoed = next(item for item in ranking if item.name == "exposure")
+    assert vetoed.status == "vetoed" and not vetoed.significant and "n.h" in vetoed.why
+    assert (
+        verdict_of(ranking)
+        == "significant unmodelled effects: view_dependent_reflectance, white_balance"
+    )
+    # A veto on a candidate that had not cleared names nothing.
+    quiet = candidate("exposure", probe=(0.0, 0.01))
+    quiet.add(replace(exposure.evidence_of("specificity")))
+    assert [item.name for item in decide_all([quiet], CONFIG)] == ["exposure"]
+
+
+def test_a_failed_null_from_the_run_raises_the_bar():
+    exposure = candidate("exposure", probe=(0.1, 0.2))
+    assert exposure.significant
+    exposure.add(Evidence("null", "exposure", 0.1, 0.15, False, "placebo effects reach 0.15"))
+    decide(exposure, CONFIG)
+    assert not exposure.significant and exposure.why == "placebo effects reach 0.15"
+    exposure.add(Evidence("null", "exposure", 0.1, 0.05, True, "placebo effects reach 0.05"))
+    assert decide(exposure, CONFIG).significant
+
+
+def test_failed_identifiability_says_why_and_what_capture_would_settle_it():
+    curve = candidate("response_curve", probe=(0.3, 0.4))
+    curve.add(
+        Evidence(
+            "identifiability",
+            "response_curve",
+            math.nan,
+            math.nan,
+            False,
+            "one light and no exposure change",
+            {"capture": "a second light"},
+        )
+    )
+    ranking = decide_all([curve, candidate("exposure", probe=(0.0, 0.01))], CONFIG)
+    assert curve.status == "not_identifiable" and not curve.significant
+    assert curve.why == (
+        "not identifiable from this data, because one light and no exposure change; "
+        "a second light would make it identifiable"
+    )
+    assert verdict_of(ranking) == (
+        "no significant unmodelled effect; not identifiable from this data: response_curve"
+    )
+
+
+def test_metadata_and_unknown_kinds_inform_only():
+    exposure = candidate("exposure", probe=(0.1, 0.2))
+    exposure.add(Evidence("metadata", "exposure", 0.9, math.nan, False, "EXIF agrees r = 0.9"))
+    exposure.add(Evidence("something_new", "exposure", 1.0, 0.0, False, "a future check"))
+    assert decide(exposure, CONFIG).significant and exposure.decided_by == "probe"
+
+
+def test_every_row_has_a_known_role():
+    roles = {rule.role for rule in DECISION_TABLE}
+    assert roles <= {"overrule", "clear", "name", "null", "veto", "qualify", "inform"}
+    assert [rule.kind for rule in DECISION_TABLE][:4] == [
+        "flat_field",
+        "probe",
+        "absorption",
+        "relight",
+    ]
+
+
+def test_redecide_uses_the_stored_evidence_and_the_given_config():
+    ranking = decide_all(
+        [candidate("exposure", probe=(0.1, 0.2)), candidate("vignetting", probe=(0.03, 0.1))],
+        CONFIG,
+    )
+    stored = Diagnosis(candidates=ranking, verdict=verdict_of(ranking)).to_json()
+    stored = json.loads(json.dumps(stored, allow_nan=False))
+    assert redecide(stored).verdict == "significant unmodelled effects: exposure, vignetting"
+    strict = DiagnoseConfig(decision=DecisionConfig(minimum_share=0.05))
+    decided = redecide(stored, strict)
+    assert decided.verdict == "significant unmodelled effects: exposure"
+    assert decided.settings["decision"]["minimum_share"] == 0.05
+    assert decided.candidate("vignetting").evidence_of("probe").threshold == 0.05
+    # The stored record itself is unchanged.
+    assert stored["candidates"][1]["significant"]

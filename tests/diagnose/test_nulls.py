@@ -1,0 +1,109 @@
+"""Nulls from the run: placebo effects of the candidate's size, split-half agreement.
+
+Built to fool them: a strongly glossy fit (a large structured residual) where a fixed allowance
+would call a one-gain-per-view effect significant, beside a clean fit with a small but real
+exposure; and per-view parameters that are pure noise beside real ones.
+"""
+
+from __future__ import annotations
+
+import json
+
+import torch
+from diagnose_scenes import albedo_error_views, glossy_torus_views
+
+from recon.diagnose.nulls import (
+    NullOptions,
+    null_evidence,
+    parameter_layout,
+    placebo_null,
+    split_half_evidence,
+)
+from recon.diagnose.which import rank_candidates
+
+OPTIONS = NullOptions(placebo_draws=12, permutations=300)
+
+
+class Probed:
+    """A candidate's probe result: significant, reduction, interval."""
+
+    def __init__(self, data, name):
+        candidate = next(item for item in rank_candidates(data, [name]) if item.name == name)
+        evidence = candidate.evidence_of("probe")
+        self.effect = name
+        self.significant = candidate.significant
+        self.heldout_reduction = evidence.details["reduction"]
+        self.interval = evidence.interval
+
+
+def probe(data, name):
+    return Probed(data, name)
+
+
+def test_placebos_have_the_candidate_s_parameters():
+    assert parameter_layout("exposure", 12) == (1, 0)
+    assert parameter_layout("white_balance", 12) == (2, 0)
+    assert parameter_layout("pose_error", 12) == (3, 0)  # rotations only, like the probe
+    assert parameter_layout("vignetting", 12) == (0, 2)
+
+
+def test_the_null_grows_with_the_fit_s_mismatch():
+    clean, _ = glossy_torus_views(specular=0.0, size=32)
+    glossy, _ = glossy_torus_views(specular=1.5, shininess=2.0, size=32)
+    clean_null, _ = placebo_null(clean, "white_balance", OPTIONS)
+    glossy_null, draws = placebo_null(glossy, "white_balance", OPTIONS)
+    assert len(draws) == OPTIONS.placebo_draws
+    assert clean_null < 0.005
+    assert glossy_null > 0.03 and glossy_null > 10 * max(clean_null, 1e-4)
+
+
+def test_a_20_db_albedo_mismatch_does_not_turn_into_effects():
+    # No effect at all, only a wrong texture: the fixed allowances call four effects
+    # significant; against placebos of their own size on this fit, three are not.
+    data = albedo_error_views(seed=1)
+    names = ["exposure", "response_curve", "vignetting"]
+    for candidate in (probe(data, name) for name in names):
+        assert candidate.significant, candidate.effect
+        evidence = null_evidence(
+            data, candidate.effect, candidate.heldout_reduction, candidate.interval, OPTIONS
+        )
+        assert evidence.kind == "null" and not evidence.passed, evidence.reason
+        assert "not significant" in evidence.reason and "dB fit" in evidence.reason
+    white = probe(albedo_error_views(seed=2), "white_balance")
+    assert white.significant
+    evidence = null_evidence(
+        albedo_error_views(seed=2),
+        "white_balance",
+        white.heldout_reduction,
+        white.interval,
+        OPTIONS,
+    )
+    assert not evidence.passed, evidence.reason
+
+
+def test_a_small_real_exposure_on_a_clean_fit_is_significant():
+    real, _ = glossy_torus_views(specular=0.0, exposure_sigma=0.05, size=32)
+    exposure = probe(real, "exposure")
+    evidence = null_evidence(
+        real, "exposure", exposure.heldout_reduction, exposure.interval, OPTIONS
+    )
+    assert evidence.passed, evidence.reason
+    json.dumps(evidence.to_json())
+
+
+def test_split_half_agreement_tells_real_per_view_gains_from_noise():
+    real, _ = glossy_torus_views(specular=0.0, exposure_sigma=0.1, size=32)
+    agreement = split_half_evidence(real, "exposure", OPTIONS)
+    assert agreement.passed and agreement.statistic > 0.95, agreement.reason
+    # A clean diffuse fit: its white balance "parameters" are noise.
+    clean, _ = glossy_torus_views(specular=0.0, size=32)
+    noise = split_half_evidence(clean, "white_balance", OPTIONS)
+    assert not noise.passed, noise.reason
+    assert split_half_evidence(clean, "lens_distortion", OPTIONS) is None
+
+
+def test_geometric_placebos_move_the_render():
+    data, _ = glossy_torus_views(specular=0.0, size=32, views=6)
+    threshold, draws = placebo_null(data, "pose_error", NullOptions(placebo_draws=4))
+    assert all(torch.isfinite(torch.tensor(draws)))
+    assert threshold < 0.05
