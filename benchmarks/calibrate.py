@@ -13,16 +13,150 @@ For example the clean calibration seeds of the benchmark (fitted with
 100-102 are scored):
 
     recon-bench calibrate runs/bench_diagnose/*/none_seed10[345]
+
+``calibrate_thresholds`` is the same rule as a function over stored diagnoses, returning the
+flat threshold set of benchmarks.blind.decide (``diagnose_section`` turns it into a
+``diagnose:`` config section); the broadened blind check (recon-bench diagnose-blind --worlds)
+calls it once per held-out scene, on the other scenes' clean cases only.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
+import subprocess
 import sys
 from pathlib import Path
 
 import yaml
+
+# An allowance is this many times the largest statistic seen on the clean calibration fits.
+CALIBRATION_MARGIN = 2.0
+
+
+def clean_statistics(diagnosis: dict, present: tuple[str, ...] = ()) -> dict[str, float]:
+    """The statistics of one clean diagnosis (diagnosis.json, either schema) that its thresholds
+    are compared with, by threshold name (benchmarks.blind.decide): each probe's, absorption
+    refit's and relight probe's reduction, the flat field's deviation and the visibility
+    fingerprint's lower bound. present: effects the data holds although nothing was injected (a
+    path tracer's cast shadows): their statistics measure the effect, not the null, and are left
+    out (the visibility fingerprint with shadows or interreflection)."""
+    from recon.diagnose.records import Diagnosis
+
+    found: dict[str, float] = {}
+
+    def keep(name: str, value: float | None) -> None:
+        if value is not None:
+            found[name] = max(found.get(name, float("-inf")), float(value))
+
+    stored = Diagnosis.from_json(diagnosis)
+    for candidate in stored.candidates:
+        if candidate.name in present:
+            continue
+        for kind, name in (
+            ("probe", f"probe.{candidate.name}"),
+            ("absorption", f"absorption.{candidate.name}"),
+            ("relight", "relight"),
+        ):
+            evidence = candidate.evidence_of(kind)
+            if evidence is not None:
+                keep(name, evidence.details.get("reduction"))
+        flat_field = candidate.evidence_of("flat_field")
+        if flat_field is not None:
+            keep("flat_field", flat_field.statistic)
+    fingerprint = (stored.gap or {}).get("visibility_fingerprint") or {}
+    if fingerprint.get("interval") and not {"shadows", "interreflection"} & set(present):
+        keep("visibility_share", fingerprint["interval"][0])
+    return found
+
+
+def threshold_floors() -> dict[str, float]:
+    """The least value of each threshold, whatever the clean fits show: the decision config's
+    floors (minimum_share, the absorption evidence's own), its flat-field allowance and
+    fingerprint minimum."""
+    from benchmarks.blind.decide import code_thresholds
+    from recon.config.run_config import DecisionConfig
+
+    defaults = DecisionConfig()
+    return code_thresholds(
+        DecisionConfig(
+            probe_allowance={},
+            absorption_allowance={},
+            relight_allowance=defaults.minimum_share,
+        )
+    )
+
+
+def calibrate_thresholds(
+    diagnoses: list[dict],
+    present: list[tuple[str, ...]] | None = None,
+    margin: float = CALIBRATION_MARGIN,
+) -> dict[str, float]:
+    """Thresholds from clean diagnoses: margin x the largest statistic of each (clean_statistics),
+    floored at threshold_floors(), leaving out each diagnosis' present effects; thresholds no
+    clean diagnosis measured keep the default's value (benchmarks.blind.decide.code_thresholds),
+    and so does shadow_share (a physical split, not a null)."""
+    from benchmarks.blind.decide import code_thresholds
+
+    if not diagnoses:
+        from recon.errors import ReconError
+
+        raise ReconError("calibrate_thresholds: no clean diagnoses to calibrate on")
+    largest: dict[str, float] = {}
+    present = present or [()] * len(diagnoses)
+    for diagnosis, held in zip(diagnoses, present, strict=True):
+        for name, value in clean_statistics(diagnosis, held).items():
+            largest[name] = max(largest.get(name, float("-inf")), value)
+    floors = threshold_floors()
+    thresholds = code_thresholds()
+    for name, value in largest.items():
+        if name in thresholds and name != "shadow_share":
+            thresholds[name] = round(max(floors[name], margin * value), 4)
+    return thresholds
+
+
+def git_commit(folder: Path) -> str:
+    """HEAD of the repository at folder ('+dirty' when tracked files changed), or 'unknown'."""
+    try:
+        head = subprocess.run(
+            ["git", "-C", str(folder), "rev-parse", "--short=12", "HEAD"],
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "-C", str(folder), "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+    return head + ("+dirty" if dirty else "")
+
+
+def calibration_record(
+    thresholds: dict[str, float], calibrated_on: list[dict], base_config: dict
+) -> dict:
+    """thresholds with their provenance: the commit, the hash of the base config the cases were
+    made from, and the clean cases (world, scene, seed) they were calibrated on."""
+    from benchmarks.blind.decide import diagnose_section
+
+    canonical = json.dumps(base_config, sort_keys=True, separators=(",", ":"), default=str)
+    return {
+        "thresholds": thresholds,
+        # The same values as a run config's `diagnose:` section.
+        "diagnose": diagnose_section(thresholds) if thresholds else {},
+        "provenance": {
+            "commit": git_commit(Path(__file__).resolve().parents[1]),
+            "base_config_sha256": hashlib.sha256(canonical.encode()).hexdigest()[:12],
+            "rule": f"max(floor, {CALIBRATION_MARGIN:g} x largest clean statistic)",
+            "calibrated_on": calibrated_on,
+            "scenes": sorted({case["scene"] for case in calibrated_on}),
+            "seeds": sorted({case["seed"] for case in calibrated_on}),
+        },
+    }
 
 
 def _largest(candidates, kind: str, into: dict) -> None:

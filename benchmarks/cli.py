@@ -26,7 +26,8 @@ from recon.errors import ReconError, describe_os_error
 BENCHMARKS: dict[str, tuple[str, str]] = {
     "diagnose-blind": (
         "benchmarks.diagnose_blind",
-        "blind check: withheld effects -> fit -> diagnose -> score",
+        "blind check: withheld effects -> fit -> diagnose -> score (--worlds: across worlds and "
+        "scenes, leave-one-scene-out)",
     ),
     "calibrate": ("benchmarks.calibrate", "null allowances of the diagnosis from clean fits"),
     "render": ("benchmarks.render", "renderer forward + backward timings, Mitsuba 3 peer"),

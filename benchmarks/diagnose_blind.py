@@ -9,6 +9,18 @@ Writes bench.json, confusion.png and bench.md.
 
     recon-bench diagnose-blind CONFIG --out DIR [--effects all] [--seeds 0,1,2] [--clean 3]
 
+Broadened (issue 20): several worlds and scenes, scored leave-one-scene-out
+(the benchmarks.blind package):
+
+    recon-bench diagnose-blind configs/bench/diagnose_blind_48.yaml --out DIR \
+        --worlds own,mitsuba,real --scenes spot,bob,bunny,teapot,torus,spot_glossy,torus_glossy \
+        --seeds 0 [--doc docs/diagnosis/blind.md]
+
+collects every case's evidence once (synth or derived photos, fit, diagnose with --refit none by
+default), then calibrates the thresholds per held-out scene group on the other groups' clean
+cases and scores by re-deciding the stored evidence; writes blind.json, blind.md,
+blind_confusion.png and calibration.json.
+
 The scoring itself (BenchCase, score_case) is recon.sweep.scoring, shared with recon's
 diagnosis sweeps.
 """
@@ -261,6 +273,159 @@ def diagnose_blind(
     return write_outputs(records, out) if records else {"fitted_cases": len(cases)}
 
 
+def diagnose_blind_worlds(
+    config_path: str | Path,
+    out: str | Path,
+    device: torch.device,
+    worlds: list[str],
+    scenes: list[str],
+    effects: list[str] | None,
+    seeds: list[int],
+    pairs: list[tuple[str, str]],
+    refit: str = "none",
+    real_options=None,
+    doc: str | Path | None = None,
+    command: str = "",
+    collect_only: bool = False,
+    score_only: bool = False,
+    shard: tuple[int, int] = (0, 1),
+    candidates: list[str] | None = None,
+) -> dict:
+    """The broadened blind check: collect every case's evidence (skipping finished ones), then
+    score leave-one-scene-out per world. Cases whose inputs are absent (../shared) are skipped
+    with a note; a case that fails is recorded and skipped, never scored. score_only: score the
+    cases collected so far (an interrupted run), collecting nothing. shard (i, n): collect only
+    every n-th case from the i-th (several processes on one folder), then stop; score the whole
+    with a later score_only call. candidates: the effects each diagnosis considers (None: all;
+    the suite's tiny benchmark narrows it)."""
+    import platform
+    import shutil
+    import traceback
+
+    import yaml
+
+    from benchmarks.blind.cases import WORLDS, build_cases, interleaved, missing_inputs
+    from benchmarks.blind.collect import (
+        RealOptions,
+        collect_real,
+        collect_synthetic,
+        finished_case,
+    )
+    from benchmarks.blind.score import score_and_write
+    from benchmarks.calibrate import calibration_record
+    from recon.errors import ReconError
+
+    unknown = sorted(set(worlds) - set(WORLDS))
+    if unknown:
+        raise ReconError(f"--worlds: unknown {unknown}; known: {', '.join(WORLDS)}")
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    base = yaml.safe_load(Path(config_path).read_text())
+    real_options = real_options or RealOptions()
+    cases = interleaved(build_cases(worlds, scenes, effects, seeds, pairs))
+    index, count = shard
+    if count > 1:
+        cases, collect_only = cases[index::count], True
+    collected, skipped = [], []
+    for case in tqdm(cases, desc="diagnose-blind", unit="case"):
+        reason = missing_inputs(case.scene)
+        if reason:
+            skipped.append({"case": case.to_json(), "reason": reason})
+            continue
+        if score_only:
+            stored = finished_case(case, out)
+            if stored is None:
+                skipped.append({"case": case.to_json(), "reason": "not collected (--score-only)"})
+            else:
+                collected.append(stored)
+            continue
+        try:
+            if case.world == "real":
+                record = collect_real(case, real_options, out, device, refit, candidates)
+            else:
+                record = collect_synthetic(case, base, out, device, refit, candidates)
+        except Exception as error:  # noqa: BLE001 - one failed case must not end the run
+            skipped.append({"case": case.to_json(), "reason": f"{type(error).__name__}: {error}"})
+            print(traceback.format_exc(), file=sys.stderr)
+            continue
+        collected.append(record)
+        if count == 1:
+            # Kept as it goes: an interrupted run can be scored (--score-only) or continued.
+            atomic_write_json(out / "collected.json", {"cases": collected, "skipped": skipped})
+    if count == 1:
+        atomic_write_json(out / "collected.json", {"cases": collected, "skipped": skipped})
+    if collect_only:
+        return {"collected": len(collected), "skipped": skipped}
+    provenance = calibration_record({}, [], base)["provenance"]
+    provenance = {
+        "commit": provenance["commit"],
+        "base_config_sha256": provenance["base_config_sha256"],
+        "command": command,
+        "finished": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        "machine": f"{platform.machine()}, {__import__('os').cpu_count()} CPUs, torch "
+        f"{torch.__version__}, device {device}",
+        "skipped": skipped,
+    }
+    result = score_and_write(collected, base, out, provenance)
+    if doc is not None:
+        doc = Path(doc)
+        atomic_write_text(doc, (out / "blind.md").read_text())
+        shutil.copyfile(out / "blind_confusion.png", doc.parent / "blind_confusion.png")
+        if (out / "calibration.json").exists():
+            # The thresholds from every synthetic scene with their provenance: the form a
+            # `diagnose:` config section takes.
+            shutil.copyfile(out / "calibration.json", doc.parent / "blind_calibration.json")
+    return {key: result[key]["summary"] for key in ("loso", "code")}
+
+
+TITLE = "Blind diagnosis check"
+
+
+def markdown(result: dict) -> str:
+    """The record's summary (recon-bench diagnose-blind --record): with --worlds, the
+    leave-one-scene-out metrics per world beside the code's thresholds; else the generic table."""
+    if "loso" not in result:
+        from benchmarks.record import generic_markdown
+
+        return generic_markdown(result)
+    from benchmarks.blind.score import SUMMARY_ROWS
+
+    worlds = list(result["loso"])
+    lines = [
+        "| measure | " + " | ".join(f"{w} (held out) | {w} (code)" for w in worlds) + " |",
+        "|---" * (2 * len(worlds) + 1) + "|",
+    ]
+    for title, field in SUMMARY_ROWS:
+        cells = []
+        for world in worlds:
+            for key in ("loso", "code"):
+                value = result[key].get(world, {}).get(field)
+                cells.append("" if value is None else f"{value:g}")
+        lines.append(f"| {title} | " + " | ".join(cells) + " |")
+    lines += [
+        "",
+        "Cases, confusion matrices and thresholds: [diagnosis/blind.md](diagnosis/blind.md).",
+    ]
+    return "\n".join(lines)
+
+
+def _reproducing_command(argv: list[str]) -> str:
+    """The command that collects and scores what this call scores: --score-only and --shard
+    only split the same work (any split gives the same cases)."""
+    kept, skip = [], False
+    for argument in argv:
+        if skip:
+            skip = False
+            continue
+        if argument == "--shard":
+            skip = True
+            continue
+        if argument == "--score-only" or argument.startswith("--shard="):
+            continue
+        kept.append(argument)
+    return "recon-bench diagnose-blind " + " ".join(kept)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The options of `recon-bench diagnose-blind` (formerly `recon diagnose-bench`)."""
     parser = argparse.ArgumentParser(
@@ -272,7 +437,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--seeds", default="0,1,2", help="comma-separated seeds")
     parser.add_argument("--clean", type=int, default=3, help="clean datasets")
     parser.add_argument("--no-pairs", action="store_true", help="skip two-effect cases")
-    parser.add_argument("--refit", choices=["none", "top", "greedy"], default="top")
+    parser.add_argument(
+        "--refit",
+        choices=["none", "top", "greedy"],
+        help="refit after the diagnosis (default: top; none with --worlds)",
+    )
     parser.add_argument(
         "--reuse-fits",
         action="store_true",
@@ -295,6 +464,39 @@ def build_parser() -> argparse.ArgumentParser:
         help="override a config value, e.g. --set capture.train_views=8 (repeatable)",
     )
     parser.add_argument("--device", choices=["auto", "cpu", "cuda"], help="overrides 'device'")
+    broad = parser.add_argument_group("broadened check (issue 20)")
+    broad.add_argument(
+        "--worlds",
+        help="comma-separated worlds (own, mitsuba, real): run the broadened check, "
+        "scored leave-one-scene-out (refit defaults to none)",
+    )
+    broad.add_argument(
+        "--scenes",
+        default="spot,bob,bunny,teapot,torus,spot_glossy,torus_glossy",
+        help="comma-separated scenes of the synthetic worlds (benchmarks/blind/cases.py)",
+    )
+    broad.add_argument(
+        "--pairs",
+        default="exposure+vignetting,response_curve+lens_distortion",
+        help="comma-separated pairs A+B per scene ('' for none)",
+    )
+    broad.add_argument("--real-resolution", type=int, default=96, help="photos' longer side")
+    broad.add_argument("--real-view-every", type=int, default=2, help="keep every N-th photo")
+    broad.add_argument(
+        "--doc",
+        help="also write the Markdown page here (its figure and calibration.json beside it)",
+    )
+    broad.add_argument("--collect-only", action="store_true", help="collect evidence, do not score")
+    broad.add_argument(
+        "--score-only",
+        action="store_true",
+        help="score the cases collected so far (an interrupted run); collect nothing",
+    )
+    broad.add_argument(
+        "--shard",
+        default="0/1",
+        help="I/N: collect every N-th case from the I-th (parallel collectors), no scoring",
+    )
     return parser
 
 
@@ -303,6 +505,33 @@ def main(argv: list[str] | None = None) -> int:
     from recon import pipeline
 
     arguments = build_parser().parse_args(argv)
+    if arguments.worlds:
+        from benchmarks.blind.collect import RealOptions
+
+        pairs = [
+            tuple(pair.split("+")) for pair in arguments.pairs.split(",") if pair and "+" in pair
+        ]
+        summary = diagnose_blind_worlds(
+            arguments.config,
+            arguments.out,
+            pipeline.resolve_device(arguments.device or "auto"),
+            worlds=arguments.worlds.split(","),
+            scenes=arguments.scenes.split(","),
+            effects=None if arguments.effects == "all" else arguments.effects.split(","),
+            seeds=[int(seed) for seed in arguments.seeds.split(",")],
+            pairs=pairs,
+            refit=arguments.refit or "none",
+            real_options=RealOptions(
+                max_resolution=arguments.real_resolution, view_every=arguments.real_view_every
+            ),
+            doc=arguments.doc,
+            command=_reproducing_command(argv if argv is not None else sys.argv[1:]),
+            collect_only=arguments.collect_only,
+            score_only=arguments.score_only,
+            shard=tuple(int(part) for part in arguments.shard.split("/")),
+        )
+        print(json.dumps(summary, indent=2))
+        return 0
     summary = diagnose_blind(
         arguments.config,
         arguments.out,
@@ -311,7 +540,7 @@ def main(argv: list[str] | None = None) -> int:
         seeds=[int(seed) for seed in arguments.seeds.split(",")],
         pairs=[] if arguments.no_pairs else None,
         clean=arguments.clean,
-        refit=arguments.refit,
+        refit=arguments.refit or "top",
         overrides=arguments.overrides,
         reuse_fits=arguments.reuse_fits,
         fits_only=arguments.fits_only,

@@ -88,3 +88,89 @@ def test_blind_vignetting_is_measured_out_to_the_corners(tiny_config, tmp_path):
     assert vignetting["decided_by"] == "flat_field"
     assert vignetting["parameters"]["falloff_source"] == "flat_field"
     assert diagnosis["gap"]["flat_field"]["frames"] == 2
+
+
+# ---------------------------------------------------------------------------------------------
+# The broadened check (issue 20): worlds, scenes, leave-one-scene-out calibration.
+# ---------------------------------------------------------------------------------------------
+
+
+def _tiny_worlds_config(tmp_path: Path) -> Path:
+    config = yaml.safe_load(
+        (REPO_ROOT / "configs" / "bench" / "diagnose_blind_48.yaml").read_text()
+    )
+    config["capture"]["cameras"]["resolution"] = [32, 32]
+    config["capture"]["train_views"] = 6
+    config["capture"]["test_views"] = 3
+    config["capture"]["relight"]["views"] = 0
+    config["capture"]["flat_field"]["views"] = 0
+    config["scene"]["shape"]["resolution"] = 24
+    config["fit"] = {
+        "hull_resolution": 32,
+        "geometry": {"steps": 16, "resolutions": [32], "remesh_every": 0},
+        "texture": {"steps": 8, "texture_size": 64},
+        "simplify": {"target_faces": 1500},
+    }
+    path = tmp_path / "tiny_worlds.yaml"
+    path.write_text(yaml.safe_dump(config))
+    return path
+
+
+def test_tiny_broadened_benchmark_writes_every_metric(tmp_path):
+    """Two procedural scenes of the own world, two effects and a clean case each, fitted in a
+    few steps at 32 px: the harness collects, calibrates leave-one-scene-out and writes the
+    metrics, the confusion matrix, the page and an engine-ready calibration (not accuracy)."""
+    from benchmarks.diagnose_blind import diagnose_blind_worlds
+
+    torch.set_num_threads(1)
+    out = tmp_path / "bench"
+    doc = tmp_path / "docs" / "blind.md"
+    doc.parent.mkdir()
+    summary = diagnose_blind_worlds(
+        _tiny_worlds_config(tmp_path),
+        out,
+        torch.device("cpu"),
+        worlds=["own"],
+        scenes=["torus", "blob"],
+        effects=["exposure", "vignetting"],
+        seeds=[0],
+        pairs=[],
+        doc=doc,
+        command="test",
+        candidates=["exposure", "vignetting", "pose_error"],
+    )
+    result = json.loads((out / "blind.json").read_text())
+    cases = result["loso"]["cases"]
+    assert len(cases) == 6 and not result["provenance"]["skipped"]
+    for record in cases:
+        assert record["scene"] not in record["calibrated_on"] and record["calibrated_on"]
+    own = summary["loso"]["own"]
+    assert own["cases"] == {"single": 4, "pair": 0, "clean": 2}
+    for key in ("top1_accuracy", "exact_set_accuracy", "false_positive_rate"):
+        assert 0.0 <= own[key] <= 1.0
+    assert own["median_fit_seconds"] > 0 and own["median_diagnose_seconds"] > 0
+    matrix = result["loso"]["confusion"]["own"]["matrix"]
+    assert sum(map(sum, matrix)) == 6
+    calibration = json.loads((out / "calibration.json").read_text())
+    assert calibration["provenance"]["scenes"] == ["blob", "torus"]
+    assert calibration["thresholds"]["probe.exposure"] >= 0.02
+    page = doc.read_text()
+    assert "leave-one-scene-out" in page and "| own |" in page
+    assert (doc.parent / "blind_confusion.png").stat().st_size > 0
+    assert json.loads((doc.parent / "blind_calibration.json").read_text()) == calibration
+    # Collected once: a second call re-scores the stored evidence without fitting again.
+    started = json.loads((out / "collected.json").read_text())["cases"][0]
+    again = diagnose_blind_worlds(
+        _tiny_worlds_config(tmp_path),
+        out,
+        torch.device("cpu"),
+        worlds=["own"],
+        scenes=["torus", "blob"],
+        effects=["exposure", "vignetting"],
+        seeds=[0],
+        pairs=[],
+        command="test",
+        candidates=["exposure", "vignetting", "pose_error"],
+    )
+    assert again["loso"] == summary["loso"]
+    assert json.loads((out / "collected.json").read_text())["cases"][0] == started

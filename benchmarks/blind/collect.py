@@ -1,0 +1,209 @@
+"""Collect the evidence of one blind case: synthesise (or derive) its data, fit without effects,
+diagnose without reading the truth. Scoring comes later (benchmarks.blind.score), with
+thresholds calibrated on other scenes: the evidence is collected once and re-decided.
+
+Layout under the benchmark folder OUT:
+    OUT/configs/WORLD_SCENE.yaml            the case config without its seed (synthetic worlds)
+    OUT/cases/WORLD/SCENE/LABEL_seedN/      the run folder (dataset/, fit, diagnosis.json)
+        bench_case.json                     config hash, fit and diagnosis seconds
+    OUT/real_datasets/LABEL_seedN/          derived real-photo datasets (LLFF)
+    OUT/truth/WORLD__SCENE__LABEL_seedN.json   the withheld truth (never inside a run folder)
+A case whose bench_case.json matches its config hash and refit mode is not run again.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+import yaml
+
+from benchmarks.blind.cases import SHARED, BlindCase, case_config
+from recon.config import config_hash, dump_resolved, load_config
+from recon.config.run_config import RunConfig
+from recon.io.atomic import atomic_write_json, atomic_write_text
+from recon.io.run_folder import RunPaths, open_run_folder, prepare_run_folder
+
+
+@dataclass
+class RealOptions:
+    """How the real-photo world is made: the capture folder, the size the photos are read at,
+    which views are kept, and the fit config (configs/real_capture.yaml's settings scaled)."""
+
+    source: Path = SHARED / "captures" / "ethiopian_head"
+    config: Path = Path(__file__).resolve().parents[2] / "configs" / "bench" / "blind_real.yaml"
+    max_resolution: int = 96
+    view_every: int = 2
+
+
+def truth_path(out: Path, case: BlindCase) -> Path:
+    return out / "truth" / (case.folder_name.replace("/", "__") + ".json")
+
+
+def _stored(
+    record_path: Path,
+    digest: str,
+    refit: str,
+    paths: RunPaths,
+    config: RunConfig,
+    device,
+    candidates: list[str] | None = None,
+) -> dict | None:
+    """The case's stored record when its fit was made under the same config (digest): as it is
+    when its diagnosis ran with the same refit mode, else diagnosed again on the same fit."""
+    if not record_path.exists():
+        return None
+    record = json.loads(record_path.read_text())
+    if record.get("config_hash") != digest or not paths.fitted_mesh.exists():
+        return None
+    same = record.get("refit") == refit and record.get("candidates") == candidates
+    if same and paths.diagnosis.exists():
+        return record
+    record["diagnose_seconds"] = round(_diagnose(paths, config, device, refit, candidates), 2)
+    record["refit"], record["candidates"] = refit, candidates
+    atomic_write_json(record_path, record)
+    return record
+
+
+def finished_case(case: BlindCase, out: Path) -> dict | None:
+    """The stored record of a case collected earlier (whatever its config), or None."""
+    record_path = out / "cases" / case.folder_name / "bench_case.json"
+    if not record_path.exists() or not RunPaths(record_path.parent).diagnosis.exists():
+        return None
+    return json.loads(record_path.read_text())
+
+
+def _diagnose(
+    paths: RunPaths,
+    config: RunConfig,
+    device: torch.device,
+    refit: str,
+    candidates: list[str] | None = None,
+) -> float:
+    """Diagnose a fitted case (candidates: the effects considered, None = all); its seconds."""
+    from recon.stages.diagnose import run_diagnosis
+
+    started = time.perf_counter()
+    run_diagnosis(paths, config, device, refit=refit, candidates=candidates)
+    return time.perf_counter() - started
+
+
+def collect_synthetic(
+    case: BlindCase,
+    base: dict,
+    out: Path,
+    device: torch.device,
+    refit: str,
+    candidates: list[str] | None = None,
+) -> dict:
+    """Synth (effects withheld) -> fit -> diagnose one case of the own or Mitsuba world."""
+    from recon.pipeline import run_stages
+
+    folder = out / "cases" / case.folder_name
+    config_file = out / "configs" / f"{case.world}_{case.scene}.yaml"
+    config_file.parent.mkdir(parents=True, exist_ok=True)
+    config_dict = case_config(base, case)
+    text = yaml.safe_dump({**config_dict, "seed": 0})
+    if not config_file.exists() or config_file.read_text() != text:
+        atomic_write_text(config_file, text)
+    config = load_config(config_file, RunConfig, overrides=[f"seed={case.seed}"])
+    digest = config_hash(config)
+    record_path = folder / "bench_case.json"
+    if record_path.exists():
+        stored = _stored(
+            record_path, digest, refit, open_run_folder(folder), config, device, candidates
+        )
+        if stored is not None:
+            return stored
+    truth = truth_path(out, case)
+    paths = prepare_run_folder(folder, force=True)
+    dump_resolved(config, paths.resolved_config)
+    options = {"withhold_effects": list(case.withheld), "truth_out": truth} if case.withheld else {}
+    started = time.perf_counter()
+    run_stages(config, paths, device, ["synth", "fit"], {"synth": options})
+    fit_seconds = time.perf_counter() - started
+    if not case.withheld:
+        atomic_write_json(truth, {"withheld": [], "realised": {}})
+    diagnose_seconds = _diagnose(paths, config, device, refit, candidates)
+    record = {
+        "case": case.to_json(),
+        "config_hash": digest,
+        "refit": refit,
+        "candidates": candidates,
+        "run_folder": str(folder),
+        "truth_file": str(truth),
+        "fit_seconds": round(fit_seconds, 2),
+        "diagnose_seconds": round(diagnose_seconds, 2),
+    }
+    atomic_write_json(record_path, record)
+    return record
+
+
+def collect_real(
+    case: BlindCase,
+    options: RealOptions,
+    out: Path,
+    device: torch.device,
+    refit: str,
+    candidates: list[str] | None = None,
+) -> dict:
+    """Derive the photos with the case's effects injected -> fit (LLFF, the real-capture
+    settings) -> diagnose."""
+    from benchmarks.blind.real import derive_real_dataset
+    from recon.pipeline import run_stages
+
+    folder = out / "cases" / case.folder_name
+    dataset = out / "real_datasets" / f"{case.label}_seed{case.seed}"
+    config = load_config(
+        options.config,
+        RunConfig,
+        overrides=[
+            f"data={dataset}",
+            f"seed={case.seed}",
+            f"dataset.max_resolution={options.max_resolution}",
+        ],
+    )
+    digest = config_hash(config)
+    record_path = folder / "bench_case.json"
+    if dataset.is_dir() and record_path.exists():
+        stored = _stored(
+            record_path, digest, refit, open_run_folder(folder, dataset), config, device, candidates
+        )
+        if stored is not None:
+            return stored
+    truth = truth_path(out, case)
+    derive_real_dataset(
+        options.source,
+        dataset,
+        truth,
+        list(case.withheld),
+        case.seed,
+        options.max_resolution,
+        options.view_every,
+        config.dataset.holdout_every,
+    )
+    started_paths = prepare_run_folder(folder, force=True)
+    paths = RunPaths(started_paths.root, dataset)
+    dump_resolved(config, paths.resolved_config)
+    started = time.perf_counter()
+    run_stages(config, paths, device, ["fit"], {})
+    fit_seconds = time.perf_counter() - started
+    diagnose_seconds = _diagnose(
+        open_run_folder(folder, dataset), config, device, refit, candidates
+    )
+    record = {
+        "case": case.to_json(),
+        "config_hash": digest,
+        "refit": refit,
+        "candidates": candidates,
+        "run_folder": str(folder),
+        "dataset": str(dataset),
+        "truth_file": str(truth),
+        "fit_seconds": round(fit_seconds, 2),
+        "diagnose_seconds": round(diagnose_seconds, 2),
+    }
+    atomic_write_json(record_path, record)
+    return record

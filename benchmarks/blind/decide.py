@@ -1,0 +1,87 @@
+"""The diagnosis' decision thresholds as one flat dict, and stored evidence re-decided with them.
+
+A threshold set maps names to values:
+
+    probe.<effect>        the held-out reduction a probe's bootstrap lower bound must clear
+    absorption.<effect>   the reduction over the control refit an absorption bound must clear
+    relight               the relight probe's allowance
+    flat_field            the flat-field deviation that makes vignetting significant
+    visibility_share      the visibility fingerprint's lower bound that makes it name an effect
+    shadow_share          above this share the fingerprint names shadows, below interreflection
+
+``code_thresholds()`` is the set the diagnosis uses by default (the ``diagnose.decision``
+section's defaults, resolved per effect); ``diagnose_section(thresholds)`` is the same set as a
+``diagnose:`` config section, and ``redecide_with(diagnosis, thresholds)`` re-decides a stored
+diagnosis.json with it through the diagnosis' own ``redecide`` (the evidence is kept).
+"""
+
+from __future__ import annotations
+
+from recon.config.run_config import DecisionConfig, DiagnoseConfig
+from recon.effects.registry import MODEL_EFFECTS
+
+
+def code_thresholds(config: DecisionConfig | None = None) -> dict[str, float]:
+    """The thresholds of a decision config (default: the diagnosis' defaults), per effect."""
+    from recon.diagnose.decision import absorption_threshold, probe_threshold
+
+    config = config or DecisionConfig()
+    thresholds: dict[str, float] = {}
+    for effect in sorted(MODEL_EFFECTS):
+        thresholds[f"probe.{effect}"] = probe_threshold(effect, config)
+        thresholds[f"absorption.{effect}"] = absorption_threshold(effect, config)
+    thresholds["relight"] = config.relight_allowance
+    thresholds["flat_field"] = config.flat_field_allowance
+    thresholds["visibility_share"] = config.visibility_share_minimum
+    thresholds["shadow_share"] = config.shadow_share
+    return thresholds
+
+
+def diagnose_section(thresholds: dict[str, float]) -> dict:
+    """thresholds as a run config's ``diagnose:`` section (its ``decision`` allowances, as the
+    diagnosis reads them): every probe and absorption threshold per effect, the relight,
+    flat-field, fingerprint and shadow-share values."""
+
+    def per_effect(prefix: str) -> dict[str, float]:
+        return {
+            name.split(".", 1)[1]: value
+            for name, value in sorted(thresholds.items())
+            if name.startswith(prefix + ".")
+        }
+
+    return {
+        "decision": {
+            "probe_allowance": per_effect("probe"),
+            "absorption_allowance": per_effect("absorption"),
+            "relight_allowance": thresholds["relight"],
+            "flat_field_allowance": thresholds["flat_field"],
+            "visibility_share_minimum": thresholds["visibility_share"],
+            "shadow_share": thresholds["shadow_share"],
+        }
+    }
+
+
+def diagnose_config(thresholds: dict[str, float]) -> DiagnoseConfig:
+    """A DiagnoseConfig deciding with thresholds (every other setting at its default)."""
+    # Per-effect allowances are resolved values: their floors must not raise them again.
+    decision = DecisionConfig(
+        **diagnose_section(thresholds)["decision"],
+        minimum_share=0.0,
+        absorption_minimum_share=0.0,
+        regression_minimum_share=0.0,
+    )
+    return DiagnoseConfig(decision=decision)
+
+
+def redecide_with(diagnosis: dict, thresholds: dict[str, float] | None = None) -> dict:
+    """diagnosis (a stored diagnosis.json, either schema) re-decided with thresholds (None: the
+    defaults); returns the re-decided diagnosis as JSON."""
+    from recon.diagnose.decision import redecide
+
+    thresholds = {**code_thresholds(), **(thresholds or {})}
+    return redecide(diagnosis, diagnose_config(thresholds)).to_json()
+
+
+def significant_effects(diagnosis: dict) -> list[str]:
+    """The significant candidates of a (re-decided) diagnosis, strongest first."""
+    return [item["name"] for item in diagnosis["candidates"] if item["significant"]]

@@ -1,0 +1,104 @@
+"""benchmarks/blind/score.py: leave-one-scene-out calibration and the metrics, on stored
+diagnoses made up for the purpose (no fit: the scoring is what is tested)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from benchmarks.blind.score import leave_one_scene_out, load_collected, summarise_world
+
+
+def _fake_record(
+    tmp_path: Path, world: str, scene: str, withheld: tuple, pose: float, shadows: float = 0.0
+) -> dict:
+    """A collected case whose stored diagnosis has a pose probe reaching `pose`, a shadows probe
+    reaching `shadows`, and an exposure probe reaching 0.5 where exposure was withheld (no fit:
+    the scoring is what is tested)."""
+    folder = tmp_path / world / scene / ("+".join(withheld) or "none")
+    folder.mkdir(parents=True)
+    exposure = 0.5 if "exposure" in withheld else 0.0
+
+    def item(effect: str, reduction: float) -> dict:
+        return {
+            "effect": effect,
+            "score": reduction,
+            "heldout_reduction": reduction,
+            "interval": [0.9 * reduction, 1.1 * reduction],
+            "significant": False,
+        }
+
+    diagnosis = {
+        "ranking": [
+            item("pose_error", pose),
+            item("exposure", exposure),
+            item("shadows", shadows),
+        ],
+        "refits": [],
+        "gap": {},
+        "timings": {"diagnose_seconds": 1.0},
+    }
+    (folder / "diagnosis.json").write_text(json.dumps(diagnosis))
+    truth = tmp_path / "truth" / f"{world}_{scene}_{'+'.join(withheld)}.json"
+    truth.parent.mkdir(parents=True, exist_ok=True)
+    truth.write_text(json.dumps({"withheld": [], "realised": {}}))
+    return {
+        "case": {"world": world, "scene": scene, "withheld": list(withheld), "seed": 0},
+        "run_folder": str(folder),
+        "truth_file": str(truth),
+        "fit_seconds": 10.0,
+        "diagnose_seconds": 1.0,
+    }
+
+
+def test_leave_one_scene_out_never_scores_a_scene_it_calibrated_on(tmp_path):
+    # The torus' clean fit leaves a large pose misfit (0.3); the blob's a small one (0.01).
+    records = [
+        _fake_record(tmp_path, "own", "torus", (), pose=0.3),
+        _fake_record(tmp_path, "own", "torus", ("exposure",), pose=0.3),
+        _fake_record(tmp_path, "own", "blob", (), pose=0.01),
+        _fake_record(tmp_path, "own", "blob", ("exposure",), pose=0.01),
+        _fake_record(tmp_path, "mitsuba", "spot_glossy", (), pose=0.01),
+        # The path tracer's cast shadows are in every render: a clean case's shadows evidence
+        # (0.4) is neither a false positive nor a null for calibration.
+        _fake_record(tmp_path, "mitsuba", "blob", (), pose=0.01, shadows=0.4),
+        _fake_record(tmp_path, "real", "ethiopian_head", (), pose=0.01),
+    ]
+    for record in records[4:5]:  # the glossy spot
+        record["case"]["intrinsic"] = ["specular"]
+    loaded = [load_collected(record) for record in records]
+    scored, calibrations = leave_one_scene_out(loaded, {"name": "test"})
+    assert len(scored) == len(records)
+    for record in scored:
+        assert record["scene"] not in record["calibrated_on"]
+    # The torus is scored with the blob's (and spot's glossy: no clean case) allowance: its own
+    # pose misfit of 0.3 clears twice the blob's 0.01 and is named, a spurious second effect.
+    torus = {record["case"]: record for record in scored if record["scene"] == "torus"}
+    assert calibrations["torus"]["thresholds"]["probe.pose_error"] == pytest.approx(0.02)
+    assert torus["none"]["significant"] == ["pose_error"]
+    assert torus["none"]["false_positive"] is True
+    assert torus["exposure"]["top1_correct"] and not torus["exposure"]["exact_set"]
+    # The blob calibrated on the torus: pose allowance 0.6, its own 0.01 stays silent.
+    blob = {record["case"]: record for record in scored if record["scene"] == "blob"}
+    assert calibrations["blob"]["thresholds"]["probe.pose_error"] == pytest.approx(0.6)
+    assert blob["none"]["significant"] == [] and blob["exposure"]["exact_set"]
+    # The real photos are calibrated on every synthetic scene with a clean case, never on
+    # themselves; the glossy spot has no clean case (its truth is specular), so it calibrates
+    # nothing.
+    real = next(record for record in scored if record["world"] == "real")
+    assert real["calibrated_on"] == ["blob", "torus"]
+    glossy = next(record for record in scored if record["scene"] == "spot_glossy")
+    assert glossy["kind"] == "single" and glossy["truth"] == ["specular"]
+    mitsuba_blob = next(r for r in scored if r["world"] == "mitsuba" and r["scene"] == "blob")
+    assert mitsuba_blob["false_positive"] is False and mitsuba_blob["exact_set"]
+    assert mitsuba_blob["present_named"] == ["shadows"] and not mitsuba_blob["exact_set_strict"]
+    assert calibrations["torus"]["thresholds"]["probe.shadows"] == pytest.approx(0.02)
+    summary = summarise_world([record for record in scored if record["world"] == "own"])
+    assert summary["false_positive_rate"] == 0.5
+    assert summary["top1_accuracy"] == 1.0
+    assert summary["exact_set_accuracy"] == 0.5
+    provenance = calibrations["blob"]["provenance"]
+    assert provenance["scenes"] == ["torus"] and provenance["seeds"] == [0]
+    assert provenance["commit"]
