@@ -582,6 +582,25 @@ class NormalizeConfig:
 
 
 @dataclass
+class SfmConfig:
+    """Structure from motion for plain folders of photos (recon.io.sfm, pycolmap)."""
+
+    peak_threshold: float = setting(
+        0.004,
+        "SIFT contrast threshold (COLMAP's default 0.0067): lower keeps more features on small photos.",
+    )
+    init_min_inliers: int = setting(
+        50,
+        "Inlier matches the first image pair needs (COLMAP's default 100): lower lets few, small photos start a model.",
+    )
+    seed: int = setting(0, "Random seed of the mapper (the same photos give the same poses).")
+
+    def __post_init__(self) -> None:
+        check_range(self.peak_threshold, "peak_threshold", low=0.0, low_inclusive=False)
+        check_range(self.init_min_inliers, "init_min_inliers", low=8)
+
+
+@dataclass
 class DatasetConfig:
     """How a dataset folder (config key 'data', or the synth stage's dataset) is read."""
 
@@ -606,6 +625,10 @@ class DatasetConfig:
     )
     normalize: NormalizeConfig = setting(
         factory=NormalizeConfig, doc="Recentring and rescaling of the cameras before the fit."
+    )
+    sfm: SfmConfig = setting(
+        factory=SfmConfig,
+        doc="Structure from motion for folders of photos without poses (the result is cached in the folder).",
     )
 
     def __post_init__(self) -> None:

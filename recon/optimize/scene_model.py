@@ -45,6 +45,40 @@ class FitEffects:
             "optimizer": None if self.optimizer is None else self.optimizer.state_dict(),
         }
 
+    def to_json(self) -> dict:
+        """The fitted effects for the run folder (effects.json): name, view count and each
+        parameter's values, enough for from_json to rebuild them for rendering."""
+        return {
+            "effects": [
+                {
+                    "name": module.name,
+                    "view_count": module.view_count,
+                    "parameters": {
+                        key: value.detach().cpu().tolist()
+                        for key, value in module.state_dict().items()
+                    },
+                    "summary": module.parameters_summary(),
+                }
+                for module in self.modules
+            ]
+        }
+
+    @staticmethod
+    def modules_from_json(data: dict, device: torch.device) -> list:
+        """The effect modules [ModelEffect] of a to_json record, on device, for rendering."""
+        from recon.effects.registry import make_effect
+
+        modules = []
+        for record in data.get("effects", []):
+            module = make_effect(record["name"], view_count=record.get("view_count"))
+            state = {
+                key: torch.as_tensor(value, dtype=torch.float32)
+                for key, value in record["parameters"].items()
+            }
+            module.load_state_dict(state)
+            modules.append(module.to(device))
+        return modules
+
     def load_state_dict(self, state: dict) -> None:
         for module, module_state in zip(self.modules, state["modules"], strict=True):
             module.load_state_dict(module_state)

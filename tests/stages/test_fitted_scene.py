@@ -1,5 +1,5 @@
 """The fitted scene's files in a run folder: a `pbr` fit's mesh, maps, environment and light
-written and read back (recon.stages.fitted_scene)."""
+written and read back (recon.stages.fitted_scene); the fitted effects record read back."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from recon.io.meshes import load_material_maps
 from recon.io.run_folder import RunPaths
 from recon.mesh.mesh import Mesh
 from recon.optimize.material_stage import PbrTextureResult, light_from_environment
-from recon.stages.fitted_scene import load_pbr_fit, write_pbr_fit
+from recon.stages.fitted_scene import load_fitted_effects, load_pbr_fit, write_pbr_fit
 
 
 def _textured_quad() -> tuple[Mesh, torch.Tensor]:
@@ -96,3 +96,11 @@ def test_a_normalised_fit_is_written_in_the_dataset_frame(tmp_path):
     loaded = load_pbr_fit(paths)
     torch.testing.assert_close(loaded.mesh.verts, transform.to_dataset(mesh.verts))
     assert load_material_maps(paths.normalized_mesh) is not None
+
+
+def test_no_effects_file_means_no_effects_and_a_broken_one_is_named(tmp_path) -> None:
+    paths = RunPaths(tmp_path)
+    assert load_fitted_effects(paths, torch.device("cpu")) == []
+    paths.fitted_effects.write_text("{not json")
+    with pytest.raises(ReconError, match="effects.json"):
+        load_fitted_effects(paths, torch.device("cpu"))
