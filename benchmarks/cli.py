@@ -51,6 +51,14 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
         "benchmarks.real_capture",
         "the shared real capture fitted from its raw layout",
     ),
+    "sfm-poses": (
+        "benchmarks.sfm_poses",
+        "plain-folder SfM poses against the real capture's published ones",
+    ),
+    "nerf-synthetic": (
+        "benchmarks.nerf_synthetic",
+        "NeRF-synthetic style Mitsuba scenes at 200 px beside nvdiffrec",
+    ),
     "material": ("benchmarks.material", "pbr against lambert on a Mitsuba-rendered glossy scene"),
 }
 

@@ -1,14 +1,17 @@
 """Appearance-model benchmark: `pbr` against `lambert` on the same glossy path-traced captures.
 
-For the config (default configs/bench/glossy_torus_studio.yaml: Mitsuba's principled BSDF,
-roughness 0.25, a studio environment) it runs `recon run` twice in fresh processes with the
-same seed (so the same captures), once per fit.material, and prints one JSON object: held-out
-PSNR (all pixels and masked), Chamfer-L1, the fitted roughness against the true one (pbr), and
-wall time, beside the issue's targets. --size/--views/--steps shrink the run for a small
-machine. Run from the repository root:
+For each config (default: configs/bench/glossy_torus_studio.yaml, a procedural torus with
+Mitsuba's principled BSDF at roughness 0.25 in a studio, and configs/bench/glossy_spot_sky.yaml,
+spot at roughness 0.35 under a sky with a sun) it runs `recon run` once per fit.material in
+fresh processes with the same seed (so the same captures), and prints one JSON object: held-out
+PSNR (all pixels and masked), Chamfer-L1 (in reference diagonals), the fitted roughness against
+the true one (pbr) and wall time, beside the issue's targets. --size/--views/--steps shrink the
+run for a small machine; `--record` writes docs/bench/material.json (benchmarks.record, whose
+summary is markdown() here). Run from the repository root:
 
-    recon-bench material [--size 64] [--views 16] [--test-views 4]
-        [--geometry-steps 150] [--texture-steps 100] [--spp 32] [--out runs/bench_material]
+    recon-bench material [--record] [--configs A.yaml B.yaml] [--size 64] [--views 16]
+        [--test-views 4] [--geometry-steps 150] [--texture-steps 100] [--spp 32]
+        [--out runs/bench_material]
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ import json
 import subprocess
 import sys
 import time
+from datetime import datetime, timezone
 from pathlib import Path
 
 from benchmarks import common
@@ -25,7 +29,13 @@ from recon.io.run_folder import RunPaths
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
-TARGETS = {"psnr": (">=", 32.0), "roughness_error": ("<=", 0.05), "seconds": ("<=", 600.0)}
+TARGETS = {
+    "psnr": (">=", 32.0),
+    "chamfer_l1": ("<=", 1e-3),
+    "roughness_error": ("<=", 0.05),
+    "seconds": ("<=", 600.0),
+}
+DEFAULT_CONFIGS = ["configs/bench/glossy_torus_studio.yaml", "configs/bench/glossy_spot_sky.yaml"]
 
 
 def _true_roughness(config: dict) -> float | None:
@@ -35,8 +45,15 @@ def _true_roughness(config: dict) -> float | None:
     return None
 
 
+def _meets(value: float | None, rule: tuple[str, float]) -> bool | None:
+    if value is None:
+        return None
+    comparison, bound = rule
+    return value <= bound if comparison == "<=" else value >= bound
+
+
 def run_material(material: str, config: Path, out: Path, overrides: list[str]) -> dict:
-    run_folder = out / material
+    run_folder = out / config.stem / material
     command = [sys.executable, "-m", "recon.cli", "run", str(config), "--out", str(run_folder)]
     command += ["--force", "--set", f"fit.material={material}"]
     for override in overrides:
@@ -59,6 +76,8 @@ def run_material(material: str, config: Path, out: Path, overrides: list[str]) -
         "ssim": metrics["image"].get("ssim"),
         "chamfer_l1": metrics.get("geometry", {}).get("chamfer_l1"),
     }
+    # recon's Chamfer-L1 is in units of the reference's bounding-box diagonal already.
+    figures["chamfer_l1_floor"] = metrics.get("geometry", {}).get("sampling_floor")
     if material == "pbr":
         import yaml
 
@@ -76,12 +95,55 @@ def run_material(material: str, config: Path, out: Path, overrides: list[str]) -
                 "metalness_median": float(maps[..., 1].median()),
             }
         )
+    figures["targets"] = {
+        key: _meets(figures.get(key), rule) for key, rule in TARGETS.items() if key in figures
+    }
     return figures
+
+
+def markdown(result: dict) -> str:
+    """The result as a Markdown table: the summary of docs/bench/material.json (--record)."""
+    environment = result["environment"]
+    lines = [
+        f"Commit {result['commit']}, {result['date']}; {environment['cpu_count']} CPUs "
+        f"({environment['cpu_model']}), load average at start {environment['load_average_at_start']}"
+        f", torch {environment['torch']}, mitsuba {environment['mitsuba']}.  ",
+        f"Overrides: `{' '.join(result['overrides']) or 'none'}`.  ",
+        "Targets: " + ", ".join(f"{key} {rule[0]} {rule[1]}" for key, rule in TARGETS.items()),
+        "",
+        "| scene | material | PSNR | masked PSNR | Chamfer-L1 / diagonal | roughness (true) "
+        "| metalness | seconds |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+
+    def number(value, digits=2, scientific=False):
+        if value is None:
+            return "-"
+        return f"{value:.{digits}e}" if scientific else f"{value:.{digits}f}"
+
+    for scene in result["scenes"]:
+        for row in scene["results"]:
+            if "failed" in row:
+                lines.append(
+                    f"| {Path(scene['config']).stem} | {row['material']} | failed ({row['failed']}) "
+                    "| | | | | |"
+                )
+                continue
+            roughness = "-"
+            if row.get("roughness_median") is not None:
+                roughness = f"{row['roughness_median']:.3f} ({row['roughness_true']})"
+            lines.append(
+                f"| {Path(scene['config']).stem} | {row['material']} | {number(row['psnr'])} "
+                f"| {number(row['psnr_masked'])} "
+                f"| {number(row.get('chamfer_l1'), 2, True)} | {roughness} "
+                f"| {number(row.get('metalness_median'), 3)} | {row['seconds']:.0f} |"
+            )
+    return "\n".join(lines) + "\n"
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--config", default="configs/bench/glossy_torus_studio.yaml")
+    parser.add_argument("--configs", nargs="+", default=DEFAULT_CONFIGS)
     parser.add_argument("--out", default="runs/bench_material")
     parser.add_argument("--size", type=int, default=None, help="image side (config's if unset)")
     parser.add_argument("--views", type=int, default=None, help="training views")
@@ -110,24 +172,42 @@ def main(argv: list[str] | None = None) -> int:
         if value is not None:
             overrides.append(f"{key}={value}")
     overrides += arguments.overrides
-    config = (REPO_ROOT / arguments.config).resolve()
-    results = [
-        run_material(material, config, Path(arguments.out).resolve(), overrides)
-        for material in arguments.materials
-    ]
-    print(
-        json.dumps(
-            {
-                "config": arguments.config,
-                "overrides": overrides,
-                "targets": {key: list(rule) for key, rule in TARGETS.items()},
-                "environment": common.environment("cpu"),
-                "results": results,
-            },
-            indent=2,
-        )
-    )
+    started = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    commit = _commit()  # HEAD may move while the runs go on
+    environment = common.environment("cpu")
+    scenes = []
+    for name in arguments.configs:
+        config = (REPO_ROOT / name).resolve()
+        results = [
+            run_material(material, config, Path(arguments.out).resolve(), overrides)
+            for material in arguments.materials
+        ]
+        scenes.append({"config": name, "results": results})
+    result = {
+        "date": started,
+        "commit": commit,
+        "command": "recon-bench material " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "overrides": overrides,
+        "targets": {key: list(rule) for key, rule in TARGETS.items()},
+        "environment": environment,
+        "load_average_at_end": common.load_average(),
+        "scenes": scenes,
+    }
+    print(json.dumps(result, indent=2))
     return 0
+
+
+def _commit() -> str:
+    try:
+        return subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"],
+            cwd=REPO_ROOT,
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
 
 
 if __name__ == "__main__":

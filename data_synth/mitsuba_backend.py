@@ -70,7 +70,7 @@ from recon.render.shading import Lighting, sh_basis
 PREFERRED_VARIANT = "llvm_ad_rgb"
 FALLBACK_VARIANT = "scalar_rgb"
 INTEGRATORS = ("path", "direct")
-MATERIALS = ("diffuse", "specular")
+MATERIALS = ("diffuse", "specular", "roughplastic")
 SAMPLERS = ("independent", "stratified", "multijitter", "orthogonal", "ldsampler")
 
 # Mitsuba's camera: +x left, +y up, +z forward; OpenCV's: +x right, +y down, +z forward.
@@ -119,12 +119,15 @@ class MitsubaOptions:
     max_depth: longest path in segments (Mitsuba's meaning): 2 = direct light only (camera ray
         plus one bounce toward the lights), larger adds diffuse interreflection, -1 unbounded.
     integrator: 'path' (default) or 'direct' (direct light only; then max_depth must be 2).
-    material: 'diffuse' (Lambertian albedo, like recon) or 'specular' (a GGX microfacet
-        specular lobe with Schlick Fresnel over the diffuse albedo: Mitsuba's ``principled``
-        with metallic 0).
-    roughness: principled's perceptual roughness r of the specular lobe (GGX alpha = r^2).
-    specular_level: principled's ``specular`` s in [0, 1]: normal-incidence reflectance 0.08 s
-        (0.5 -> 4%, ior 1.5).
+    material: 'diffuse' (Lambertian albedo, like recon), 'specular' (a GGX microfacet
+        specular lobe with Schlick Fresnel over the diffuse albedo: Mitsuba's ``principled``,
+        with ``metalness`` as its metallic: 1 is a GGX conductor whose F0 is the albedo) or
+        'roughplastic' (Mitsuba's ``roughplastic``: a GGX dielectric coating with exact
+        Fresnel over a diffuse base, whose diffuse part the coating's transmittance darkens).
+    roughness: perceptual roughness r of the specular lobe (GGX alpha = r^2).
+    specular_level: s in [0, 1]: normal-incidence reflectance 0.08 s (0.5 -> 4%, ior 1.5);
+        roughplastic's interior ior is the one with that reflectance (s > 0).
+    metalness: principled's metallic in [0, 1] ('specular' only).
     albedo_scale: multiplies the albedo (clipped to 1): stronger interreflection.
     area_lights: extra one-sided rectangle emitters (soft shadows): objects with center [3],
         normal [3] (the emitting side), edge_u [3], edge_v [3] (full edge vectors) and
@@ -147,6 +150,7 @@ class MitsubaOptions:
     material: str = "diffuse"
     roughness: float = 0.3
     specular_level: float = 0.5
+    metalness: float = 0.0
     albedo_scale: float = 1.0
     area_lights: tuple[Any, ...] = ()
     suns: tuple[DiskSun, ...] = ()
@@ -187,6 +191,20 @@ class MitsubaOptions:
             raise ReconError(
                 "mitsuba options: specular_level: expected a value in [0, 1], "
                 f"got {self.specular_level}"
+            )
+        if not 0.0 <= float(self.metalness) <= 1.0:
+            raise ReconError(
+                f"mitsuba options: metalness: expected a value in [0, 1], got {self.metalness}"
+            )
+        if self.material == "roughplastic" and float(self.metalness) != 0.0:
+            raise ReconError(
+                "mitsuba options: metalness: material 'roughplastic' is a dielectric (metalness "
+                f"0), got {self.metalness}; use material 'specular' for a conductor"
+            )
+        if self.material == "roughplastic" and not float(self.specular_level) > 0.0:
+            raise ReconError(
+                "mitsuba options: specular_level: material 'roughplastic' needs a coating "
+                f"(specular_level > 0), got {self.specular_level}"
             )
         if not 0.0 < float(self.albedo_scale) <= 2.0:
             raise ReconError(
@@ -534,9 +552,26 @@ def _albedo_texture(mesh: Mesh, albedo_scale: float) -> tuple[dict, np.ndarray |
     return {"type": "rgb", "value": [min(1.0, 0.5 * albedo_scale)] * 3}, None
 
 
+def plastic_ior(specular_level: float) -> float:
+    """The interior index of refraction whose normal-incidence reflectance is 0.08 x level
+    (F0 = ((n - 1) / (n + 1))^2; level 0.5 gives 1.5)."""
+    root = math.sqrt(0.08 * float(specular_level))
+    return (1 + root) / (1 - root)
+
+
 def _bsdf_dict(albedo: dict, options: MitsubaOptions) -> dict:
     if options.material == "diffuse":
         inner = {"type": "diffuse", "reflectance": albedo}
+    elif options.material == "roughplastic":
+        inner = {
+            "type": "roughplastic",
+            "distribution": "ggx",
+            "alpha": float(options.roughness) ** 2,
+            "int_ior": plastic_ior(options.specular_level),
+            "ext_ior": 1.0,
+            "diffuse_reflectance": albedo,
+            "nonlinear": False,
+        }
     else:
         # principled with metallic 0: Burley's diffuse (Lambertian at normal incidence, within
         # ~5% of it up to 80 degrees) under a GGX lobe with Schlick Fresnel. Mitsuba's
@@ -545,7 +580,7 @@ def _bsdf_dict(albedo: dict, options: MitsubaOptions) -> dict:
         inner = {
             "type": "principled",
             "base_color": albedo,
-            "metallic": 0.0,
+            "metallic": float(options.metalness),
             "roughness": float(options.roughness),
             "specular": float(options.specular_level),
         }
@@ -565,6 +600,12 @@ def mesh_to_mitsuba(mesh: Mesh, options: MitsubaOptions, name: str = "mesh") -> 
     normals = vertex_normals(verts, mesh.faces.detach().cpu()).numpy()[source]
     positions = verts.numpy()[source]
     albedo, colors = _albedo_texture(mesh, float(options.albedo_scale))
+    if options.material == "roughplastic" and colors is not None:
+        # roughplastic weighs its lobes by the albedo's mean, which a vertex attribute lacks.
+        raise ReconError(
+            "mitsuba options: material 'roughplastic' needs a textured mesh (uvs + texture), "
+            "got vertex colours; use material 'specular' or a texture"
+        )
     properties = mitsuba.Properties()
     properties["bsdf"] = mitsuba.load_dict(_bsdf_dict(albedo, options))
     result = mitsuba.Mesh(

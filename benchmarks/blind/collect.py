@@ -110,7 +110,7 @@ def collect_synthetic(
     if not config_file.exists() or config_file.read_text() != text:
         atomic_write_text(config_file, text)
     config = load_config(config_file, RunConfig, overrides=[f"seed={case.seed}"])
-    digest = config_hash(config)
+    digest = config_hash(config, exclude=("diagnose",))
     record_path = folder / "bench_case.json"
     if record_path.exists():
         stored = _stored(
@@ -166,7 +166,7 @@ def collect_real(
             f"dataset.max_resolution={options.max_resolution}",
         ],
     )
-    digest = config_hash(config)
+    digest = config_hash(config, exclude=("diagnose",))
     record_path = folder / "bench_case.json"
     if dataset.is_dir() and record_path.exists():
         stored = _stored(

@@ -92,22 +92,28 @@ class Specular(LightTransportEffect):
     """A GGX microfacet specular lobe with Fresnel over the diffuse albedo (principled BSDF).
 
     roughness: perceptual roughness r (GGX alpha = r^2); specular_level: principled's level,
-    normal-incidence reflectance 0.08 * level (0.5 -> 4%, a typical dielectric).
+    normal-incidence reflectance 0.08 * level (0.5 -> 4%, a typical dielectric); metalness:
+    principled's metallic (1: a GGX conductor whose F0 is the albedo, no diffuse); plastic:
+    Mitsuba's roughplastic instead (a GGX dielectric coating with exact Fresnel over a diffuse
+    base; metalness must be 0).
     """
 
     name = "specular"
     PARAMETERS = {
         "roughness": ParameterSpec(0.25, 0.01, 1.0, "perceptual roughness (GGX alpha = r^2)"),
         "specular_level": ParameterSpec(0.5, 0.0, 1.0, "Fresnel F0 = 0.08 * level"),
+        "metalness": ParameterSpec(0.0, 0.0, 1.0, "principled metallic (1 = GGX conductor)"),
+        "plastic": ParameterSpec(False, 0, 1, "Mitsuba's roughplastic BSDF", kind="bool"),
     }
     SAMPLE_RANGES = {"roughness": (0.15, 0.4), "specular_level": (0.3, 0.8)}
 
     def configure(self, options: MitsubaOptions) -> MitsubaOptions:
         return replace(
             options,
-            material="specular",
+            material="roughplastic" if self.parameters["plastic"] else "specular",
             roughness=float(self.parameters["roughness"]),
             specular_level=float(self.parameters["specular_level"]),
+            metalness=float(self.parameters["metalness"]),
         )
 
 
@@ -234,7 +240,7 @@ def _build(effect: Any, material: Any) -> LightTransportEffect:
     parameters = dict(parameters or {})
     if name == "specular" and material is not None:
         # The scene's material gives the specular lobe unless the effect sets it itself.
-        for key in ("roughness", "specular_level"):
+        for key in ("roughness", "specular_level", "metalness"):
             if key not in parameters and hasattr(material, key):
                 parameters[key] = getattr(material, key)
     return make_light_transport_effect(name, parameters)

@@ -486,11 +486,31 @@ class PbrFitConfig:
     material_learning_rate: float = setting(
         0.02, "Adam learning rate of the roughness/metalness texture."
     )
+    material_warmup_steps: int = setting(
+        0,
+        "Texture steps during which roughness and metalness stay at their initial values while the environment and base colour settle (with a low initial_roughness the light is fitted sharp first).",
+    )
+    material_texture_size: int = setting(
+        0,
+        "Height of the grid the roughness/metalness texture is optimised on (bilinearly upsampled to the base colour's texels): 0 = the base colour's own size, 1 = one uniform material.",
+    )
     environment_learning_rate: float = setting(
-        0.03, "Adam learning rate of the environment texels."
+        0.03,
+        "Adam learning rate of the environment texels (of their log with parameterization log).",
+    )
+    environment_parameterization: Literal["linear", "log"] = setting(
+        "linear",
+        "log: the fit optimises the log radiance of each environment texel (relative steps: bright lights are reached as fast as dim ones); linear: the radiance itself.",
     )
     material_smoothness_weight: float = setting(
         0.01, "Total variation of the roughness/metalness texture (keeps unseen texels quiet)."
+    )
+    normal_map: bool = setting(
+        False,
+        "Also fit a tangent-space normal map on the base colour's UVs (tangents from the UVs); exported as the MTL's norm / map_Bump and the GLB's normalTexture.",
+    )
+    normal_map_smoothness_weight: float = setting(
+        0.01, "Total variation of the normal map's tilts (used with normal_map)."
     )
     environment_smoothness_weight: float = setting(
         0.01, "Total variation of the environment map (neighbouring texels alike)."
@@ -505,6 +525,8 @@ class PbrFitConfig:
         for value, key in zip(self.environment_size, ("height", "width"), strict=True):
             check_range(value, f"environment_size {key}", low=2, high=512)
         check_range(self.prefilter_levels, "prefilter_levels", low=1, high=16)
+        check_range(self.material_texture_size, "material_texture_size", low=0, high=8192)
+        check_range(self.material_warmup_steps, "material_warmup_steps", low=0)
         check_range(self.initial_roughness, "initial_roughness", low=0.0, high=1.0)
         check_range(self.initial_metalness, "initial_metalness", low=0.0, high=1.0)
         check_range(self.specular_level, "specular_level", low=0.0, high=1.0)
@@ -512,6 +534,7 @@ class PbrFitConfig:
             "material_learning_rate",
             "environment_learning_rate",
             "material_smoothness_weight",
+            "normal_map_smoothness_weight",
             "environment_smoothness_weight",
             "environment_whiteness_weight",
         ):
@@ -559,6 +582,25 @@ class NormalizeConfig:
 
 
 @dataclass
+class SfmConfig:
+    """Structure from motion for plain folders of photos (recon.io.sfm, pycolmap)."""
+
+    peak_threshold: float = setting(
+        0.004,
+        "SIFT contrast threshold (COLMAP's default 0.0067): lower keeps more features on small photos.",
+    )
+    init_min_inliers: int = setting(
+        50,
+        "Inlier matches the first image pair needs (COLMAP's default 100): lower lets few, small photos start a model.",
+    )
+    seed: int = setting(0, "Random seed of the mapper (the same photos give the same poses).")
+
+    def __post_init__(self) -> None:
+        check_range(self.peak_threshold, "peak_threshold", low=0.0, low_inclusive=False)
+        check_range(self.init_min_inliers, "init_min_inliers", low=8)
+
+
+@dataclass
 class DatasetConfig:
     """How a dataset folder (config key 'data', or the synth stage's dataset) is read."""
 
@@ -583,6 +625,10 @@ class DatasetConfig:
     )
     normalize: NormalizeConfig = setting(
         factory=NormalizeConfig, doc="Recentring and rescaling of the cameras before the fit."
+    )
+    sfm: SfmConfig = setting(
+        factory=SfmConfig,
+        doc="Structure from motion for folders of photos without poses (the result is cached in the folder).",
     )
 
     def __post_init__(self) -> None:
@@ -634,15 +680,6 @@ class FitConfig:
     def __post_init__(self) -> None:
         check_range(self.hull_resolution, "hull_resolution", low=8, high=512)
         check_range(self.checkpoint_every, "checkpoint_every", low=1)
-        if self.material == "pbr" and self.light.frame == "camera":
-            # The pbr stage's environment is fixed in the world; silently shading a turntable
-            # capture that way fits a light that does not turn with the camera.
-            raise ConfigFieldError(
-                "material",
-                "'pbr' does not support light.frame 'camera' yet (its environment light is fixed "
-                "in the world); use material 'lambert' for turntable captures, or light.frame "
-                "'world'",
-            )
 
 
 @dataclass

@@ -6,7 +6,10 @@ rendered colour, weighted by the antialiased alpha (the render's colour is premu
 
 The light they use is the fitted light's dominant direction (dominant_light): the brightest
 directional light when there is one, else the direction of the SH environment's linear band
-with the irradiance of the directional light that band would come from.
+with the irradiance of the directional light that band would come from. A light fixed to the
+camera (Lighting.frame 'camera', turntable captures) has that direction in each view's camera
+axes: view_light_directions turns it into the world per view, so the highlight and the shadow
+move with the camera as the render's diffuse shading does.
 
 - specular: a normalised Blinn-Phong lobe (e + 8) / (8 pi) (n.h)^e under the dominant light,
   white (dielectric), strength s (linear, 0 = off) and exponent e = 32 exp(log_exponent). The
@@ -90,6 +93,22 @@ def dominant_light(lighting: Lighting) -> tuple[torch.Tensor, torch.Tensor]:
     direction = mean_vector / length
     irradiance = (direction @ linear).clamp(min=0.0) / _SH_BAND_ONE
     return direction, irradiance
+
+
+def view_light_directions(
+    lighting: Lighting, cameras: Cameras, like: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(directions [B, 3] unit world directions toward the dominant light per view, irradiance
+    [C]). A world-frame light has the same direction in every view; a camera-frame light's
+    direction d (OpenCV camera axes) is R_b^T d in view b's world axes."""
+    direction, irradiance = dominant_light(lighting)
+    direction, irradiance = direction.to(like), irradiance.to(like)
+    batch = len(cameras)
+    if lighting.frame != "camera":
+        return direction.expand(batch, 3), irradiance
+    rotation = cameras.world_to_cam[:, :3, :3].to(like)
+    # Row vector d @ R = (R^T d)^T.
+    return direction @ rotation, irradiance
 
 
 def mean_irradiance(lighting: Lighting) -> torch.Tensor:
@@ -277,8 +296,8 @@ class Specular(ModelEffect):
         _check_shading_inputs(render_output, context, self.name)
         color = render_output.color
         height, width = color.shape[1:3]
-        direction, irradiance = dominant_light(context.lighting)
-        direction, irradiance = direction.to(color), irradiance.to(color)
+        directions, irradiance = view_light_directions(context.lighting, context.cameras, color)
+        direction = directions[:, None, None, :]  # [B, 1, 1, 3]
         normals = render_output.normals.to(color)
         to_camera = view_directions(context.cameras, height, width, color)
         halfway = torch.nn.functional.normalize(to_camera + direction, dim=-1)
@@ -351,36 +370,61 @@ class Shadows(ModelEffect):
         self._cache: tuple[tuple, OrthographicFrames, torch.Tensor] | None = None
 
     def shadow_map(
-        self, mesh: Mesh, direction: torch.Tensor
+        self, mesh: Mesh, directions: torch.Tensor
     ) -> tuple[OrthographicFrames, torch.Tensor]:
-        """(frame, depth map [1, R, R]) along direction (cached for an unchanged mesh)."""
+        """(frames, depth maps [K, R, R]) along directions [K, 3] or [3] (K = 1), cached for
+        an unchanged mesh and light."""
+        directions = directions.reshape(-1, 3)
         key = (
             _fingerprint(mesh.verts),
             _fingerprint(mesh.faces),
-            tuple(float(value) for value in direction.detach().cpu()),
+            tuple(float(value) for value in directions.detach().cpu().reshape(-1)),
             self.map_resolution,
         )
         if self._cache is None or self._cache[0] != key:
-            frames = OrthographicFrames.build(mesh.verts, direction[None])
+            frames = OrthographicFrames.build(mesh.verts, directions)
             maps = frames.depth_maps(mesh.verts, mesh.faces, self.map_resolution)
             self._cache = (key, frames, maps)
         return self._cache[1], self._cache[2]
 
     def visibility(
-        self, render_output: RenderOutput, mesh: Mesh, direction: torch.Tensor
+        self, render_output: RenderOutput, mesh: Mesh, directions: torch.Tensor
     ) -> torch.Tensor:
-        """Soft visibility [B, H, W, 1] of the light from each covered pixel (1 on background)."""
-        frames, maps = self.shadow_map(mesh, direction)
+        """Soft visibility [B, H, W, 1] of the light from each covered pixel (1 on background).
+
+        directions: [3] (every view) or [B, 3] (one per view: a camera-frame light), unit world
+        directions toward the light."""
         fragments = render_output.fragments
         dtype = render_output.color.dtype
+        per_view = directions.ndim == 2 and directions.shape[0] > 1
+        directions = directions.reshape(-1, 3)
+        frames, maps = self.shadow_map(mesh, directions if per_view else directions[:1])
         points = interpolate_packed(mesh.verts, fragments, mesh.faces).to(dtype)  # [N, 3]
         normals = render_output.normals.reshape(-1, 3)[fragments.covered_index].to(dtype)
-        cosine = (normals * direction.to(dtype)).sum(-1).clamp(0.05, 1.0)
+        # Each covered pixel's own map: its view's (per-view light) or the only one.
+        which = fragments.covered_batch if per_view else torch.zeros_like(fragments.covered_batch)
+        direction = directions.to(dtype)[which]  # [N, 3]
+        cosine = (normals * direction).sum(-1).clamp(0.05, 1.0)
         slope = torch.sqrt(1 - cosine * cosine) / cosine
         texel = 2.0 / self.map_resolution  # NDC units
         bias = texel * (self.bias_texels + self.slope_bias_texels * slope.clamp(max=10.0))
         softness = 0.5 * texel * self.log_softness.exp().to(dtype)
-        packed = filtered_visibility(maps, frames.to_ndc(points), bias[None], softness)[0]
+        ndc = frames.to_ndc(points)  # [K, N, 3]
+        if per_view:
+            packed = torch.ones_like(cosine)
+            for view in range(maps.shape[0]):
+                chosen = which == view
+                packed = packed.masked_scatter(
+                    chosen,
+                    filtered_visibility(
+                        maps[view : view + 1],
+                        ndc[view : view + 1, chosen],
+                        bias[chosen][None],
+                        softness,
+                    )[0],
+                )
+        else:
+            packed = filtered_visibility(maps, ndc, bias[None], softness)[0]
         batch = fragments.batch_size
         height, width = fragments.resolution
         visible = scatter_to_image(
@@ -391,11 +435,13 @@ class Shadows(ModelEffect):
     def forward(self, render_output: RenderOutput, context: EffectContext) -> RenderOutput:
         _check_shading_inputs(render_output, context, self.name)
         color = render_output.color
-        direction, irradiance = dominant_light(context.lighting)
-        direction, irradiance = direction.to(color), irradiance.to(color)
-        visibility = self.visibility(render_output, context.mesh, direction)
+        directions, irradiance = view_light_directions(context.lighting, context.cameras, color)
+        if context.lighting.frame == "camera":
+            visibility = self.visibility(render_output, context.mesh, directions)
+        else:
+            visibility = self.visibility(render_output, context.mesh, directions[0])
         normals = render_output.normals.to(color)
-        cosine = (normals * direction).sum(-1, keepdim=True).clamp(min=0.0)
+        cosine = (normals * directions[:, None, None, :]).sum(-1, keepdim=True).clamp(min=0.0)
         direct = render_output.albedo.to(color) / math.pi * irradiance * cosine
         darkening = self.strength.to(color) * (1 - visibility) * direct
         return replace(render_output, color=color - darkening * render_output.alpha.to(color))

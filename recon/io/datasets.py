@@ -711,6 +711,31 @@ def llff_to_world_to_cam(poses: torch.Tensor) -> torch.Tensor:
     return rigid_inverse(camera_to_world)
 
 
+def llff_downscale_for(folder: str | os.PathLike, max_resolution: int | None) -> int | None:
+    """The largest N of the LLFF folder's `images_N/` downscales whose images are still at
+    least max_resolution on their longer side (from poses_bounds.npy's full size), so that a
+    large capture is read from its prepared smaller copies; None when there is none (or no
+    cap). A folder with another count of images than images/ is ignored."""
+    folder = Path(folder)
+    if max_resolution is None or not (folder / "images").is_dir():
+        return None
+    try:
+        table = np.load(folder / "poses_bounds.npy", allow_pickle=False)
+        longer = float(max(table[0, 4], table[0, 9]))  # hwf: H, W in the pose's last column
+    except (OSError, ValueError, IndexError):
+        return None  # read_llff reports a broken table
+    count = len(_image_files(folder / "images"))
+    best = None
+    for candidate in folder.glob("images_*"):
+        suffix = candidate.name.removeprefix("images_")
+        if not suffix.isdigit() or int(suffix) < 2 or not candidate.is_dir():
+            continue
+        factor = int(suffix)
+        if longer / factor >= max_resolution and len(_image_files(candidate)) == count:
+            best = factor if best is None else max(best, factor)
+    return best
+
+
 def read_llff(
     folder: str | os.PathLike,
     factor: float | None = None,
@@ -966,7 +991,7 @@ def read_captures(folder: str | os.PathLike, split: str, options: Any = None) ->
     if layout == "photos":
         from recon.io.sfm import estimate_poses
 
-        estimate_poses(folder)
+        estimate_poses(folder, options=getattr(options, "sfm", None))
         layout = "colmap"
     if layout in ("llff", "colmap"):
         if split not in ("train", "test"):
@@ -975,7 +1000,12 @@ def read_captures(folder: str | os.PathLike, split: str, options: Any = None) ->
                 f"got {split!r}"
             )
         if layout == "llff":
-            captures = read_llff(folder, max_resolution=max_resolution, premultiply=True)
+            captures = read_llff(
+                folder,
+                factor=llff_downscale_for(folder, max_resolution),
+                max_resolution=max_resolution,
+                premultiply=True,
+            )
         else:
             from recon.io.colmap import read_colmap
 

@@ -279,6 +279,17 @@ def _save_obj(
                     encode_srgb=False,
                 )
                 pbr_lines += f"{key} 1\nmap_{key} {name}\n"
+            if maps.shape[-1] == 5:
+                # A tangent-space normal map (+y up in the image), coded (n + 1) / 2 as usual.
+                name = f"{path.stem}_normal.png"
+                write_png(
+                    path.parent / name,
+                    (maps[..., 2:5].clamp(-1, 1) + 1) / 2,
+                    bits=texture_bits,
+                    encode_srgb=False,
+                )
+                # `norm` is the MTL PBR extension's key; map_Bump is what most importers read.
+                pbr_lines += f"norm {name}\nmap_Bump {name}\n"
         atomic_write_text(
             path.parent / f"{path.stem}.mtl",
             f"newmtl {_MATERIAL_NAME}\nKa 0 0 0\nKd 1 1 1\nKs 0 0 0\nd 1\nillum 1\n"
@@ -338,12 +349,16 @@ def _save_glb(path: Path, mesh: Mesh, material_maps: torch.Tensor | None = None)
             if material_maps is not None:
                 maps = material_maps.detach().cpu().float().clamp(0, 1).numpy()
                 packed = np.zeros((*maps.shape[:2], 3), dtype=np.uint8)
-                packed[..., 1:] = np.round(maps * 255).astype(np.uint8)
+                packed[..., 1:] = np.round(maps[..., :2] * 255).astype(np.uint8)
                 pbr_maps = {
                     "metallicFactor": 1.0,
                     "roughnessFactor": 1.0,
                     "metallicRoughnessTexture": Image.fromarray(packed),
                 }
+                if maps.shape[-1] == 5:
+                    coded = (material_maps.detach().cpu().float()[..., 2:5].clamp(-1, 1) + 1) / 2
+                    normal_pixels = np.round(coded.numpy() * 255).astype(np.uint8)
+                    pbr_maps["normalTexture"] = Image.fromarray(normal_pixels)
             material = trimesh.visual.material.PBRMaterial(
                 name=_MATERIAL_NAME, baseColorTexture=image, **pbr_maps
             )
@@ -372,16 +387,19 @@ def save_mesh(
     bottom-up convention and writes vertex colours as sRGB `v x y z r g b`. GLB splits vertices at
     UV seams (glTF has one index buffer). texture_bits (8 or 16) is the OBJ texture PNG depth.
     material_maps: [h, w, 2] roughness and metalness on the texture's UVs (the `pbr` material;
-    needs mesh.texture as base colour): OBJ map_Pr / map_Pm, GLB metallicRoughnessTexture.
+    needs mesh.texture as base colour): OBJ map_Pr / map_Pm, GLB metallicRoughnessTexture;
+    [h, w, 5] adds a tangent-space normal map (x, y, z in [-1, 1]): OBJ norm / map_Bump, GLB
+    normalTexture.
     """
     path = Path(path)
     suffix = path.suffix.lower()
     if material_maps is not None and (
-        mesh.texture is None or material_maps.ndim != 3 or material_maps.shape[-1] != 2
+        mesh.texture is None or material_maps.ndim != 3 or material_maps.shape[-1] not in (2, 5)
     ):
         raise ReconError(
-            f"{path}: material_maps: expected [h, w, 2] (roughness, metalness) with a textured "
-            f"mesh, got {tuple(material_maps.shape)} (texture: {mesh.texture is not None})"
+            f"{path}: material_maps: expected [h, w, 2] (roughness, metalness) or [h, w, 5] "
+            "(+ a tangent-space normal map) with a textured mesh, got "
+            f"{tuple(material_maps.shape)} (texture: {mesh.texture is not None})"
         )
     if suffix == ".obj":
         _save_obj(path, mesh, texture_bits, material_maps)
@@ -393,8 +411,9 @@ def save_mesh(
 
 def load_material_maps(path: str | os.PathLike) -> torch.Tensor | None:
     """Roughness and metalness [h, w, 2] (float32, linear) that save_mesh wrote with
-    material_maps: OBJ's map_Pr / map_Pm, GLB's metallicRoughnessTexture (green, blue). None
-    when the file has none."""
+    material_maps: OBJ's map_Pr / map_Pm, GLB's metallicRoughnessTexture (green, blue); [h, w, 5]
+    with the tangent-space normal map (OBJ's norm, GLB's normalTexture) after them. None when
+    the file has none."""
     path = Path(path)
     if path.suffix.lower() == ".glb":
         scene = trimesh.load(path, force="scene")
@@ -403,7 +422,12 @@ def load_material_maps(path: str | os.PathLike) -> torch.Tensor | None:
             image = getattr(material, "metallicRoughnessTexture", None)
             if image is not None:
                 pixels = np.asarray(image.convert("RGB"), dtype=np.float32) / 255.0
-                return torch.from_numpy(pixels[..., 1:3].copy())
+                maps = torch.from_numpy(pixels[..., 1:3].copy())
+                normal = getattr(material, "normalTexture", None)
+                if normal is not None:
+                    coded = np.asarray(normal.convert("RGB"), dtype=np.float32) / 255.0
+                    maps = torch.cat([maps, torch.from_numpy(coded * 2 - 1)], dim=-1)
+                return maps
         return None
     maps: dict[str, Path] = {}
     library = path.with_suffix(".mtl")
@@ -411,9 +435,11 @@ def load_material_maps(path: str | os.PathLike) -> torch.Tensor | None:
         return None
     for line in library.read_text(encoding="utf-8", errors="replace").splitlines():
         tokens = line.split()
-        if len(tokens) > 1 and tokens[0] in ("map_Pr", "map_Pm"):
+        if len(tokens) > 1 and tokens[0] in ("map_Pr", "map_Pm", "norm"):
             maps[tokens[0]] = library.parent / tokens[-1]
-    if set(maps) != {"map_Pr", "map_Pm"}:
+    if not {"map_Pr", "map_Pm"} <= set(maps):
         return None
     channels = [read_png(maps[key], decode_srgb=False)[..., :1] for key in ("map_Pr", "map_Pm")]
+    if "norm" in maps:
+        channels.append(read_png(maps["norm"], decode_srgb=False)[..., :3] * 2 - 1)
     return torch.cat(channels, dim=-1).float()

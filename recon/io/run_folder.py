@@ -145,6 +145,11 @@ class RunPaths:
         return self.mesh_folder / "normalized" / "model.obj"
 
     @property
+    def normalized_light(self) -> Path:
+        """The fitted light in the fit's normalised frame (dataset.normalize), beside light.json."""
+        return self.light_folder / "normalized" / "light.json"
+
+    @property
     def light_folder(self) -> Path:
         """light.json (SH coefficients, directional lights) and environment.exr."""
         return self.root / "light"
@@ -152,6 +157,11 @@ class RunPaths:
     @property
     def fitted_light(self) -> Path:
         return self.light_folder / "light.json"
+
+    @property
+    def fitted_effects(self) -> Path:
+        """The fit's effect modules (fit.effects), when it had any: evaluate renders with them."""
+        return self.root / "effects.json"
 
     @property
     def fitted_environment(self) -> Path:

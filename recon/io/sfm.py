@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from recon.config.run_config import SfmConfig
 from recon.errors import DatasetError, warn_user
 
 
@@ -48,10 +49,16 @@ def _colmap_masks(folder: Path, names: list[str], target: Path) -> bool:
     return True
 
 
-def estimate_poses(folder: str | os.PathLike, camera_model: str = "SIMPLE_RADIAL") -> Path:
+def estimate_poses(
+    folder: str | os.PathLike,
+    camera_model: str = "SIMPLE_RADIAL",
+    options: SfmConfig | None = None,
+) -> Path:
     """Run structure from motion on folder/images (one shared camera of camera_model) and cache
     the largest model in folder/sparse/0; returns that path. An existing folder/sparse/0 is
-    returned untouched. DatasetError when pycolmap is missing or no model can be built."""
+    returned untouched. options: config dataset.sfm (features and mapper). DatasetError when
+    pycolmap is missing or no model can be built."""
+    options = options or SfmConfig()
     from recon.io.colmap import _pycolmap
     from recon.io.datasets import _image_files
 
@@ -83,18 +90,28 @@ def estimate_poses(folder: str | os.PathLike, camera_model: str = "SIMPLE_RADIAL
         reader.camera_model = camera_model
         if _colmap_masks(folder, names, scratch / "masks"):
             reader.mask_path = str(scratch / "masks")
+        extraction = pycolmap.FeatureExtractionOptions()
+        # Photos shrunk for a small machine (a few hundred pixels) give COLMAP's default SIFT
+        # too few features on the object: a lower contrast threshold keeps more.
+        extraction.sift.peak_threshold = options.peak_threshold
         pycolmap.extract_features(
             database,
             images,
             image_names=names,
             camera_mode=pycolmap.CameraMode.SINGLE,
             reader_options=reader,
+            extraction_options=extraction,
             device=pycolmap.Device.cpu,
         )
         pycolmap.match_exhaustive(database, device=pycolmap.Device.cpu)
         output = scratch / "models"
         output.mkdir()
-        models = pycolmap.incremental_mapping(database, images, output)
+        mapping = pycolmap.IncrementalPipelineOptions()
+        # The same photos give the same poses (RANSAC draws from this seed).
+        mapping.random_seed = options.seed
+        mapping.min_model_size = 3
+        mapping.mapper.init_min_num_inliers = options.init_min_inliers
+        models = pycolmap.incremental_mapping(database, images, output, options=mapping)
         if not models:
             raise DatasetError(
                 f"{images}: structure from motion registered no model ({len(names)} photos): "

@@ -103,6 +103,43 @@ def vertex_normals(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
     return torch.nn.functional.normalize(normals, dim=-1, eps=1e-20)
 
 
+def uv_tangents(
+    verts: torch.Tensor, faces: torch.Tensor, uvs: torch.Tensor, uv_faces: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Tangent frames of a UV-mapped mesh for tangent-space normal maps, per UV vertex.
+
+    verts: [V, 3]; faces, uv_faces: [F, 3]; uvs: [T, 2] (recon's convention: v grows
+    downwards). Returns (tangents, bitangents), each [T, 3], not normalised: the sums over the
+    faces around each UV vertex of dP/du and dP/dv_up (v_up = 1 - v, so a map's +y points up
+    in the image, the convention of glTF and most tools). Degenerate UV triangles add nothing.
+    Differentiable in verts.
+    """
+    corners = verts[faces]  # [F, 3, 3]
+    coordinates = uvs[uv_faces].to(verts.dtype)  # [F, 3, 2]
+    edge_one, edge_two = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
+    du_one = coordinates[:, 1, 0] - coordinates[:, 0, 0]
+    du_two = coordinates[:, 2, 0] - coordinates[:, 0, 0]
+    # v_up = 1 - v: its differences are the negated v differences.
+    dv_one = coordinates[:, 0, 1] - coordinates[:, 1, 1]
+    dv_two = coordinates[:, 0, 1] - coordinates[:, 2, 1]
+    determinant = du_one * dv_two - du_two * dv_one
+    valid = determinant.abs() > 1e-12
+    safe = torch.where(valid, determinant, torch.ones_like(determinant))
+    scale = torch.where(valid, 1 / safe, torch.zeros_like(determinant))[:, None]
+    face_tangents = (edge_one * dv_two[:, None] - edge_two * dv_one[:, None]) * scale
+    face_bitangents = (edge_two * du_one[:, None] - edge_one * du_two[:, None]) * scale
+    # Weight each face by its area so that slivers do not dominate a vertex's frame.
+    area = torch.linalg.cross(edge_one, edge_two, dim=-1).norm(dim=-1, keepdim=True)
+    face_tangents = torch.nn.functional.normalize(face_tangents, dim=-1, eps=1e-20) * area
+    face_bitangents = torch.nn.functional.normalize(face_bitangents, dim=-1, eps=1e-20) * area
+    tangents = verts.new_zeros(uvs.shape[0], 3)
+    bitangents = verts.new_zeros(uvs.shape[0], 3)
+    for corner in range(3):
+        tangents = tangents.index_add(0, uv_faces[:, corner], face_tangents)
+        bitangents = bitangents.index_add(0, uv_faces[:, corner], face_bitangents)
+    return tangents, bitangents
+
+
 def face_normals(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
     """Unit face normals [..., F, 3] for verts [..., V, 3]."""
     corners = verts[..., faces, :]

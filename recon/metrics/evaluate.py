@@ -6,10 +6,14 @@ metrics.json and renders/.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import matplotlib
 import numpy as np
 import torch
 
+from recon.effects.base import ModelEffect
+from recon.effects.forward import render_with_effects
 from recon.io.images import linear_to_srgb, srgb_to_linear
 from recon.mesh.mesh import Mesh
 from recon.metrics.geometry import geometry_metrics, mesh_stats
@@ -29,11 +33,13 @@ def render_scene(
     pbr: PbrTextureResult | None,
     cameras,
     device: torch.device,
+    effects: Sequence[ModelEffect] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Premultiplied colour [B, H, W, 3] and alpha [B, H, W, 1] of a fitted scene (on the CPU).
 
     A fit with fit.material 'pbr' (pbr given) renders with its material maps and environment;
-    otherwise the mesh's texture under lighting.
+    otherwise the mesh's texture under lighting, with the fit's effect modules (fit.effects:
+    a specular lobe, shadows) when it had any.
     """
     mesh = mesh.to(device)
     renderer = Renderer(texture_filter="linear-mipmap-linear", texture_boundary="clamp")
@@ -44,7 +50,9 @@ def render_scene(
             if pbr is not None:
                 output = pbr.render(renderer, batch)
             else:
-                output = renderer.render(mesh, batch, lighting)
+                # Held-out views have no per-view effect parameters (view_indices None: the
+                # training views' typical value).
+                output = render_with_effects(renderer, mesh, batch, lighting, effects)
             colors.append(output.color.cpu())
             alphas.append(output.alpha.cpu())
     return torch.cat(colors), torch.cat(alphas)
@@ -66,9 +74,14 @@ def heldout_metrics(
     return metrics
 
 
+# The error panels map |sRGB error| from 0 (black) to this (white) through magma.
+ERROR_PANEL_MAXIMUM = 0.25
+
+
 def error_image(prediction_srgb: torch.Tensor, target_srgb: torch.Tensor) -> torch.Tensor:
-    """Absolute sRGB error as a colour-mapped image [H, W, 3] (magma, 0 .. 0.25)."""
-    error = (prediction_srgb - target_srgb).abs().mean(-1).clamp(0, 0.25) / 0.25
+    """Absolute sRGB error as a colour-mapped image [H, W, 3] (magma, 0 .. ERROR_PANEL_MAXIMUM)."""
+    difference = (prediction_srgb - target_srgb).abs().mean(-1)
+    error = difference.clamp(0, ERROR_PANEL_MAXIMUM) / ERROR_PANEL_MAXIMUM
     colored = matplotlib.colormaps["magma"](error.numpy())[..., :3]
     return torch.from_numpy(colored.astype(np.float32))
 

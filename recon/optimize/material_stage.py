@@ -55,6 +55,10 @@ from recon.render.texture import build_mip_pyramid
 MINIMUM_ROUGHNESS = 0.04
 # The geometry stage's sun is spread over a lobe this many environment texels wide.
 SUN_LOBE_TEXELS = 1.5
+# Largest x or y of the tangent-space normal map.
+MAXIMUM_NORMAL_SLOPE = 0.8
+# A log-parameterised environment starts no texel below this radiance (log 0 is -inf).
+ENVIRONMENT_FLOOR = 1e-3
 
 
 @dataclass
@@ -62,10 +66,13 @@ class PbrTextureResult:
     """The `pbr` texture stage's result.
 
     mesh: the final mesh; mesh.texture is the base colour [h, w, 3].
-    material: [h, w, 2] roughness, metalness on the same UVs.
+    material: [h, w, 2] roughness, metalness on the same UVs, or [h, w, 5] with a
+    tangent-space normal map (x, y, z) after them (fit.pbr.normal_map).
     environment: [he, we, 3] lat-long radiance of the fitted light.
     light: an SH light equivalent to the environment (for Lambertian consumers).
     specular_level, prefilter_levels, diffuse_weighting: the shading settings the fit used.
+    light_frame: 'world', or 'camera' when the environment is fixed to the camera (turntable
+    captures, fit.light.frame): its directions are then OpenCV camera axes of each view.
     """
 
     mesh: Mesh
@@ -76,9 +83,11 @@ class PbrTextureResult:
     prefilter_levels: int
     effects: FitEffects | None = None
     diffuse_weighting: str = "none"
+    light_frame: str = "world"
 
     def material_texture(self) -> torch.Tensor:
-        """[h, w, 5] base colour, roughness, metalness: what Renderer.shade_pbr samples."""
+        """[h, w, 5] base colour, roughness, metalness (+ normal map: [h, w, 8]): what
+        Renderer.shade_pbr samples."""
         return torch.cat([self.mesh.texture, self.material], dim=-1)
 
     def render(self, renderer: Renderer, cameras, background: float = 0.0) -> RenderOutput:
@@ -94,6 +103,7 @@ class PbrTextureResult:
             background=background,
             mip_pyramid=build_mip_pyramid(texture),
             diffuse_weighting=self.diffuse_weighting,
+            light_frame=self.light_frame,
         )
 
 
@@ -115,9 +125,9 @@ def environment_from_light(light: LightModel, size: tuple[int, int]) -> torch.Te
     return radiance.reshape(*size, 3)
 
 
-def light_from_environment(environment: torch.Tensor) -> LightModel:
-    """An SH-only LightModel with the environment's order-2 projection."""
-    light = LightModel(with_sun=False).to(environment.device)
+def light_from_environment(environment: torch.Tensor, frame: str = "world") -> LightModel:
+    """An SH-only LightModel with the environment's order-2 projection, in the same frame."""
+    light = LightModel(with_sun=False, frame=frame).to(environment.device)
     with torch.no_grad():
         light.sh.copy_(project_to_sh(environment.detach()))
     return light
@@ -170,10 +180,11 @@ def read_pbr_result(
         mesh,
         maps.to(device),
         environment,
-        light_from_environment(environment),
+        light_from_environment(environment, record.get("frame", "world")),
         float(record["specular_level"]),
         int(record["prefilter_levels"]),
         diffuse_weighting=record.get("diffuse_weighting", "none"),
+        light_frame=record.get("frame", "world"),
     )
 
 
@@ -230,22 +241,63 @@ def run_pbr_texture_stage(
     base_color = torch.nn.Parameter(mesh.texture.clone())
     height, width = mesh.texture.shape[:2]
     initial = [max(pbr.initial_roughness, MINIMUM_ROUGHNESS), pbr.initial_metalness]
+    # Roughness and metalness are seen only where a highlight falls: optimised on a coarser
+    # grid (fit.pbr.material_texture_size) and upsampled, so every texel is constrained.
+    material_size = pbr.material_texture_size or height
+    material_shape = (material_size, round(material_size * width / height) or 1)
     material = torch.nn.Parameter(
-        torch.tensor(initial, device=device).expand(height, width, 2).clone()
+        torch.tensor(initial, device=device).expand(*material_shape, 2).clone()
     )
-    environment = torch.nn.Parameter(environment_from_light(geometry.light, size).to(device))
+
+    # The optional tangent-space normal map: its (x, y) on the base colour's grid, z >= 0 follows.
+    normal_slopes = torch.nn.Parameter(
+        torch.zeros(height, width, 2 if pbr.normal_map else 0, device=device)
+    )
+
+    def full_material() -> torch.Tensor:
+        """The material [h, w, 2] (or [h, w, 5] with the normal map) on the base colour's
+        texel grid."""
+        upsampled = material
+        if material.shape[:2] != (height, width):
+            upsampled = torch.nn.functional.interpolate(
+                material.permute(2, 0, 1)[None], size=(height, width), mode="bilinear"
+            )[0].permute(1, 2, 0)
+        if not pbr.normal_map:
+            return upsampled
+        z = (1 - normal_slopes.square().sum(-1, keepdim=True)).clamp_min(1e-4).sqrt()
+        return torch.cat([upsampled, normal_slopes, z], dim=-1)
+
+    # A camera-frame light (turntable captures) seeds, and stays, a camera-frame environment.
+    light_frame = config.light.frame
+    seed_environment = environment_from_light(geometry.light, size).to(device)
+    # 'log': Adam's steps are relative, so a softbox 100x brighter than the room is reached in
+    # as many steps as the room itself (linear steps of the learning rate would need hundreds).
+    log_environment = pbr.environment_parameterization == "log"
+    environment_parameter = torch.nn.Parameter(
+        seed_environment.clamp_min(ENVIRONMENT_FLOOR).log() if log_environment else seed_environment
+    )
+
+    def current_environment() -> torch.Tensor:
+        return environment_parameter.exp() if log_environment else environment_parameter
+
     position_optimizer = UniformAdam([latent], lr=settings.learning_rate)
     texture_optimizer = torch.optim.Adam(
         [
             {"params": [base_color], "lr": settings.texture_learning_rate},
             {"params": [material], "lr": pbr.material_learning_rate},
+            {"params": [normal_slopes], "lr": pbr.material_learning_rate},
         ]
     )
-    light_optimizer = torch.optim.Adam([environment], lr=pbr.environment_learning_rate)
+    light_optimizer = torch.optim.Adam([environment_parameter], lr=pbr.environment_learning_rate)
     if checkpoint is not None:
         latent.data.copy_(checkpoint["latent"].to(device))
         material.data.copy_(checkpoint["material"].to(device))
-        environment.data.copy_(checkpoint["environment"].to(device))
+        if "normal_slopes" in checkpoint:  # checkpoints from before the normal map lack it
+            normal_slopes.data.copy_(checkpoint["normal_slopes"].to(device))
+        saved = checkpoint["environment"].to(device)
+        if log_environment:
+            saved = saved.clamp_min(ENVIRONMENT_FLOOR).log()
+        environment_parameter.data.copy_(saved)
         effects.load_state_dict(checkpoint["effects"])
         position_optimizer.load_state_dict(checkpoint["position_optimizer"])
         texture_optimizer.load_state_dict(checkpoint["texture_optimizer"])
@@ -266,7 +318,8 @@ def run_pbr_texture_stage(
                 "uv_faces": mesh.uv_faces.cpu(),
                 "texture": base_color.detach().cpu(),
                 "material": material.detach().cpu(),
-                "environment": environment.detach().cpu(),
+                "normal_slopes": normal_slopes.detach().cpu(),
+                "environment": current_environment().detach().cpu(),
                 "coverage": coverage.cpu(),
                 "position_optimizer": position_optimizer.state_dict(),
                 "texture_optimizer": texture_optimizer.state_dict(),
@@ -290,7 +343,8 @@ def run_pbr_texture_stage(
         current = Mesh(verts, mesh.faces, uvs=mesh.uvs, uv_faces=mesh.uv_faces, texture=base_color)
         batch_cameras = apply_camera_effects(effects.modules, cameras[views], views)
         buffers = renderer.surface_buffers(current, batch_cameras, topology)
-        texture = torch.cat([base_color, material], dim=-1)
+        texture = torch.cat([base_color, full_material()], dim=-1)
+        environment = current_environment()
         output = renderer.shade_pbr(
             buffers,
             batch_cameras.centers(),
@@ -299,6 +353,7 @@ def run_pbr_texture_stage(
             specular_level=pbr.specular_level,
             mip_pyramid=build_mip_pyramid(texture),
             diffuse_weighting=pbr.diffuse_weighting,
+            light_frame=light_frame,
         )
         color, alpha = apply_image_effects(
             effects.modules, output.color, output.alpha, batch_cameras, views
@@ -312,6 +367,10 @@ def run_pbr_texture_stage(
             + pbr.environment_whiteness_weight
             * (environment - environment.mean(-1, keepdim=True)).abs().mean()
         )
+        if pbr.normal_map:
+            regulariser = regulariser + pbr.normal_map_smoothness_weight * (
+                texture_total_variation(normal_slopes)
+            )
         loss = color_loss + settings.mask_weight * mask_loss + regulariser
         position_optimizer.zero_grad()
         texture_optimizer.zero_grad()
@@ -319,6 +378,9 @@ def run_pbr_texture_stage(
         effects.zero_grad()
         loss.backward()
         position_optimizer.step()
+        if step < pbr.material_warmup_steps:
+            # The environment settles first around the starting roughness (docs/decisions/0180).
+            material.grad = None
         texture_optimizer.step()
         light_optimizer.step()
         effects.step(1.0)
@@ -326,7 +388,10 @@ def run_pbr_texture_stage(
             base_color.clamp_(0, 1)
             material[..., 0].clamp_(MINIMUM_ROUGHNESS, 1)
             material[..., 1].clamp_(0, 1)
-            environment.clamp_min_(0)
+            # Tilts up to about 55 degrees: a map that lays the normal flat explains nothing.
+            normal_slopes.clamp_(-MAXIMUM_NORMAL_SLOPE, MAXIMUM_NORMAL_SLOPE)
+            if not log_environment:
+                environment_parameter.clamp_min_(0)
         if step % LOG_EVERY == 0 or step == settings.steps - 1:
             record = step_record(
                 "texture",
@@ -345,8 +410,8 @@ def run_pbr_texture_stage(
     bar.close()
     with torch.no_grad():
         final_base = dilate(base_color.detach(), coverage)
-        final_material = dilate(material.detach(), coverage)
-        final_environment = environment.detach().clone()
+        final_material = dilate(full_material().detach(), coverage)
+        final_environment = current_environment().detach().clone()
     final = Mesh(
         preconditioner.from_latent(latent).detach(),
         mesh.faces,
@@ -359,9 +424,10 @@ def run_pbr_texture_stage(
         final,
         final_material,
         final_environment,
-        light_from_environment(final_environment),
+        light_from_environment(final_environment, light_frame),
         pbr.specular_level,
         pbr.prefilter_levels,
         effects,
         pbr.diffuse_weighting,
+        light_frame,
     )

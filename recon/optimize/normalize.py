@@ -57,6 +57,29 @@ class SceneTransform:
         centre = torch.tensor(self.centre, dtype=points.dtype, device=points.device)
         return points / self.scale + centre
 
+    def light_to_dataset(self, light: dict) -> dict:
+        """A light.json record of the normalised frame in the dataset's own frame.
+
+        Directional lights and the SH environment are unchanged (no rotation); point lights move
+        with the inverse transform and keep the irradiance they give the object (intensity over
+        scale squared: distances grow by 1 / scale). A camera-frame light is in camera axes,
+        which the transform does not touch except for positions' scale about the camera.
+        """
+        converted = dict(light)
+        camera_frame = light.get("frame", "world") == "camera"
+        points = []
+        for point in light.get("points", []):
+            position = torch.tensor(point["position"], dtype=torch.float64)
+            if camera_frame:
+                position = position / self.scale
+            else:
+                position = self.to_dataset(position)
+            intensity = [value / self.scale**2 for value in point["intensity"]]
+            points.append({**point, "position": position.tolist(), "intensity": intensity})
+        if "points" in light:
+            converted["points"] = points
+        return converted
+
     def cameras(self, cameras: Cameras) -> Cameras:
         """Dataset-frame cameras in the normalised frame."""
         return similarity_transformed(cameras, self.scale, torch.tensor(self.centre))
@@ -68,6 +91,11 @@ class SceneTransform:
             "centre": self.centre,
             "up": self.up,
             "warnings": self.warnings,
+            # What the fit wrote in each frame (the dataset's is what later stages read).
+            "exports": {
+                "dataset_frame": ["mesh/model.obj", "mesh/model.glb", "light/light.json"],
+                "normalised_frame": ["mesh/normalized/model.obj", "light/normalized/light.json"],
+            },
         }
 
     @staticmethod

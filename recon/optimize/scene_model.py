@@ -45,6 +45,40 @@ class FitEffects:
             "optimizer": None if self.optimizer is None else self.optimizer.state_dict(),
         }
 
+    def to_json(self) -> dict:
+        """The fitted effects for the run folder (effects.json): name, view count and each
+        parameter's values, enough for from_json to rebuild them for rendering."""
+        return {
+            "effects": [
+                {
+                    "name": module.name,
+                    "view_count": module.view_count,
+                    "parameters": {
+                        key: value.detach().cpu().tolist()
+                        for key, value in module.state_dict().items()
+                    },
+                    "summary": module.parameters_summary(),
+                }
+                for module in self.modules
+            ]
+        }
+
+    @staticmethod
+    def modules_from_json(data: dict, device: torch.device) -> list:
+        """The effect modules [ModelEffect] of a to_json record, on device, for rendering."""
+        from recon.effects.registry import make_effect
+
+        modules = []
+        for record in data.get("effects", []):
+            module = make_effect(record["name"], view_count=record.get("view_count"))
+            state = {
+                key: torch.as_tensor(value, dtype=torch.float32)
+                for key, value in record["parameters"].items()
+            }
+            module.load_state_dict(state)
+            modules.append(module.to(device))
+        return modules
+
     def load_state_dict(self, state: dict) -> None:
         for module, module_state in zip(self.modules, state["modules"], strict=True):
             module.load_state_dict(module_state)
@@ -149,10 +183,13 @@ class TrainingPyramid:
 
 def texture_total_variation(texture: torch.Tensor) -> torch.Tensor:
     """Mean absolute difference of neighbouring texels [h, w, C] (keeps texels that few views
-    see from speckling)."""
-    return (texture[1:] - texture[:-1]).abs().mean() + (
-        texture[:, 1:] - texture[:, :-1]
-    ).abs().mean()
+    see from speckling). A side of one texel adds 0 (not the NaN of an empty mean)."""
+    total = texture.new_zeros(())
+    if texture.shape[0] > 1:
+        total = total + (texture[1:] - texture[:-1]).abs().mean()
+    if texture.shape[1] > 1:
+        total = total + (texture[:, 1:] - texture[:, :-1]).abs().mean()
+    return total
 
 
 def image_loss(prediction: torch.Tensor, target: torch.Tensor, kind: str = "l1") -> torch.Tensor:

@@ -102,3 +102,26 @@ def pbr_shade(
         specular = specular_brdf(normals, to_light, to_viewer, roughness, f0)
         radiance = radiance + (diffuse_albedo / math.pi + specular) * cosine * light.irradiance
     return radiance
+
+
+def perturb_normals(
+    normals: torch.Tensor,
+    tangents: torch.Tensor,
+    bitangents: torch.Tensor,
+    tangent_normals: torch.Tensor,
+) -> torch.Tensor:
+    """Shading normals [N, 3] from a tangent-space normal map.
+
+    normals: [N, 3] unit interpolated normals; tangents, bitangents: [N, 3] interpolated UV
+    tangent frames (recon.mesh.mesh.uv_tangents), orthonormalised here against the normal
+    (Gram-Schmidt; the bitangent keeps only its handedness); tangent_normals: [N, 3] the map's
+    (x, y, z), z along the normal ((0, 0, 1) leaves the normal unchanged).
+    """
+    tangent = F.normalize(
+        tangents - (tangents * normals).sum(-1, keepdim=True) * normals, dim=-1, eps=1e-12
+    )
+    side = torch.linalg.cross(normals, tangent, dim=-1)
+    handedness = torch.where((side * bitangents).sum(-1, keepdim=True) < 0, -1.0, 1.0)
+    x, y, z = tangent_normals.unbind(-1)
+    perturbed = x[..., None] * tangent + y[..., None] * handedness * side + z[..., None] * normals
+    return F.normalize(perturbed, dim=-1, eps=1e-12)

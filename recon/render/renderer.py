@@ -8,11 +8,11 @@ import torch
 
 from recon.camera.cameras import Cameras
 from recon.errors import ReconError
-from recon.mesh.mesh import Mesh, validate_mesh_tensors, vertex_normals
+from recon.mesh.mesh import Mesh, uv_tangents, validate_mesh_tensors, vertex_normals
 from recon.render.antialias import EdgeTopology, antialias, build_topology
 from recon.render.environment import PrefilteredEnvironment
 from recon.render.interpolate import interpolate_packed
-from recon.render.pbr import PbrMaterial, pbr_shade
+from recon.render.pbr import PbrMaterial, pbr_shade, perturb_normals
 from recon.render.rasterize import Fragments, rasterize, scatter_to_image
 from recon.render.shading import DirectionalLight, Lighting, lambertian
 from recon.render.texture import texture as sample_texture
@@ -196,24 +196,32 @@ class Renderer:
         mip_pyramid: list[torch.Tensor] | None = None,
         antialias_edges: bool = True,
         diffuse_weighting: str = "none",
+        light_frame: str = "world",
     ) -> RenderOutput:
         """Texture, shade with the metallic-roughness model (recon.render.pbr), composite and
         antialias: the `pbr` material's counterpart of shade().
 
         camera_centers: [B, 3] world positions of the batch's cameras (the view directions).
-        material_texture: [h, w, 5] base colour (3), roughness, metalness on the buffers' UVs.
+        material_texture: [h, w, 5] base colour (3), roughness, metalness on the buffers' UVs,
+            or [h, w, 8] with a tangent-space normal map (x, y, z; tangents from the UVs,
+            recon.mesh.mesh.uv_tangents) that perturbs the shading normals.
         environment: the pre-filtered environment light (None: directional lights only).
         mip_pyramid: build_mip_pyramid(material_texture), to reuse across calls.
         diffuse_weighting: 'specular_albedo' or 'none' (PbrMaterial).
+        light_frame: 'world', or 'camera' for an environment (and directional lights) fixed to
+            the camera, as under studio lights on a turntable: normals and view directions are
+            rotated into each view's OpenCV camera axes before the look-ups (the same axes as
+            the Lambertian camera-frame light, Lighting.frame).
         RenderOutput.albedo holds the base colour.
         """
         mesh, fragments = buffers.mesh, buffers.fragments
         if buffers.uv is None:
             raise ReconError("shade_pbr: the mesh has no UVs to look the material texture up")
-        if material_texture.ndim != 3 or material_texture.shape[-1] != 5:
+        if material_texture.ndim != 3 or material_texture.shape[-1] not in (5, 8):
             raise ReconError(
                 "shade_pbr: material_texture: expected [h, w, 5] (base colour, roughness, "
-                f"metalness), got {tuple(material_texture.shape)}"
+                "metalness) or [h, w, 8] (+ a tangent-space normal map), got "
+                f"{tuple(material_texture.shape)}"
             )
         filter_mode = self.texture_filter
         if filter_mode == "linear-mipmap-linear" and buffers.uv_derivatives is None:
@@ -226,11 +234,28 @@ class Renderer:
             self.texture_boundary,
             mip_pyramid,
         )
-        material = PbrMaterial.from_channels(channels, specular_level, diffuse_weighting)
+        material = PbrMaterial.from_channels(channels[:, :5], specular_level, diffuse_weighting)
         positions = interpolate_packed(mesh.verts, fragments, mesh.faces)
         centers = camera_centers.to(positions.dtype)[fragments.covered_batch]
         to_viewer = torch.nn.functional.normalize(centers - positions, dim=-1, eps=1e-12)
-        radiance = pbr_shade(material, buffers.normals, to_viewer, environment, directional)
+        normals = buffers.normals
+        if channels.shape[-1] == 8:
+            tangents, bitangents = uv_tangents(mesh.verts, mesh.faces, mesh.uvs, mesh.uv_faces)
+            normals = perturb_normals(
+                normals,
+                interpolate_packed(tangents, fragments, mesh.uv_faces),
+                interpolate_packed(bitangents, fragments, mesh.uv_faces),
+                channels[:, 5:8],
+            )
+        if light_frame == "camera":
+            # Shading is invariant under a common rotation: rotating n and v into the camera
+            # axes looks the environment up at camera-frame reflection and normal directions.
+            normals, to_viewer = _to_camera_axes(buffers, normals, to_viewer, translate=False)
+        elif light_frame != "world":
+            raise ReconError(
+                f"shade_pbr: light_frame: expected 'world' or 'camera', got {light_frame!r}"
+            )
+        radiance = pbr_shade(material, normals, to_viewer, environment, directional)
         return self._composite(buffers, radiance, material.base_color, background, antialias_edges)
 
     def _composite(
@@ -298,9 +323,13 @@ class SurfaceBuffers:
 
 
 def _to_camera_axes(
-    buffers: SurfaceBuffers, normals: torch.Tensor, positions: torch.Tensor | None
+    buffers: SurfaceBuffers,
+    normals: torch.Tensor,
+    positions: torch.Tensor | None,
+    translate: bool = True,
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """Packed world normals [N, 3] (and positions) in their own view's OpenCV camera axes."""
+    """Packed world normals [N, 3] (and positions, or with translate=False another set of
+    directions [N, 3]) in their own view's OpenCV camera axes."""
     if buffers.world_to_cam is None:
         raise ReconError("a camera-frame light needs the buffers' world_to_cam (surface_buffers)")
     view = buffers.fragments.covered_batch
@@ -308,7 +337,9 @@ def _to_camera_axes(
     rotation = matrices[:, :3, :3]
     camera_normals = (rotation @ normals[..., None])[..., 0]
     if positions is not None:
-        positions = (rotation @ positions[..., None])[..., 0] + matrices[:, :3, 3]
+        positions = (rotation @ positions[..., None])[..., 0]
+        if translate:
+            positions = positions + matrices[:, :3, 3]
     return camera_normals, positions
 
 

@@ -12,10 +12,11 @@ import matplotlib
 import matplotlib.pyplot as plt
 import torch
 
-from recon.camera import Cameras, intrinsics_from_fov, look_at, orbit_cameras
+from recon.camera import Cameras, intrinsics_from_fov, look_at
 from recon.io.atomic import atomic_path
 from recon.io.images import save_contact_sheet
 from recon.mesh.mesh import Mesh
+from recon.metrics.evaluate import ERROR_PANEL_MAXIMUM
 from recon.render.renderer import Renderer
 from recon.render.shading import Lighting
 
@@ -101,15 +102,57 @@ def turntable(
     save_contact_sheet(list(output.color.cpu()), path, columns=4)
 
 
-def geometry_error_figure(mesh: Mesh, reference: Mesh, path: Path, device: torch.device) -> None:
-    """The fitted mesh coloured by its distance to the reference (viridis, 0 .. 1 % diagonal)."""
+# Held-out figures show each panel at least this many pixels wide, however small the photos.
+HELD_OUT_PANEL_PIXELS = 320
+
+
+def held_out_figure(panel_path: Path, path: Path) -> None:
+    """A held-out view (evaluate's target | render | error PNG [H, 3W, 3]) as a figure: the
+    three panels titled, about HELD_OUT_PANEL_PIXELS wide each at least, and the error panel
+    with its colour bar (|sRGB error|, magma, 0 .. ERROR_PANEL_MAXIMUM)."""
+    from PIL import Image
+
+    with Image.open(panel_path) as image:
+        pixels = image.convert("RGB")
+        width, height = pixels.size
+        panel_width = width // 3
+        panels = [
+            pixels.crop((k * panel_width, 0, (k + 1) * panel_width, height)) for k in range(3)
+        ]
+    dpi = 110
+    panel_inches = max(panel_width, HELD_OUT_PANEL_PIXELS) / dpi
+    figure, axes = plt.subplots(
+        1, 3, figsize=(3 * panel_inches + 1.0, panel_inches * height / panel_width + 0.5)
+    )
+    for axis, panel, title in zip(axes, panels, ("photo", "render", "error"), strict=True):
+        axis.imshow(panel, interpolation="nearest")
+        axis.set_title(title)
+        axis.set_axis_off()
+    # The error panel is already colour-mapped: a colour bar with the same map and range.
+    scale = matplotlib.cm.ScalarMappable(
+        norm=matplotlib.colors.Normalize(0.0, ERROR_PANEL_MAXIMUM), cmap="magma"
+    )
+    bar = figure.colorbar(scale, ax=axes[2], fraction=0.046, pad=0.04)
+    bar.set_label("|sRGB error| (mean over channels)")
+    _save_figure(figure, path)
+
+
+def geometry_error_figure(
+    mesh: Mesh,
+    reference: Mesh,
+    path: Path,
+    device: torch.device,
+    up: list[float] | None = None,
+) -> None:
+    """The fitted mesh coloured by its distance to the reference (viridis, 0 .. 1 % diagonal),
+    four views framed by its bounds about `up`."""
     from recon.metrics.geometry import per_vertex_error
 
     error = per_vertex_error(mesh, reference).cpu()
     scale = 0.01
     colors = matplotlib.colormaps["viridis"]((error / scale).clamp(0, 1).numpy())[:, :3]
     colored = Mesh(mesh.verts, mesh.faces, vertex_colors=torch.tensor(colors, dtype=torch.float32))
-    cameras = orbit_cameras(4, (200, 200), distance=3.0, device=device)
+    cameras = framing_cameras(mesh, 4, 200, up).to(device)
     with torch.no_grad():
         output = Renderer().render(
             colored.to(device), cameras, Lighting.constant(device=device), background=1.0

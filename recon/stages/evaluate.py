@@ -33,7 +33,9 @@ def evaluate_stage(config: RunConfig, paths: RunPaths, device: torch.device) -> 
         )
     captures = read_captures(paths.dataset, split, config.dataset)
     scene = load_fitted_scene(paths, device)
-    colors, alphas = render_scene(scene.mesh, scene.lighting, scene.pbr, captures.cameras, device)
+    colors, alphas = render_scene(
+        scene.mesh, scene.lighting, scene.pbr, captures.cameras, device, scene.effects
+    )
     background = torch.tensor(config.capture.background)
     prediction = colors + (1 - alphas) * background
     target = captures.images + (1 - captures.masks) * background

@@ -55,7 +55,5 @@ def fit_stage(
         captures, config.fit, device, config.seed, checkpoints, history, resume, hull_radius
     )
     if config.fit.material == "pbr":
-        # As before the move: the pbr writer takes no transform, so a pbr fit of a normalised
-        # dataset is written in the fit's frame (not the dataset's); left for the pbr work.
-        return write_pbr_fit(paths, result)
+        return write_pbr_fit(paths, result, transform)
     return write_fitted_scene(paths, result, transform)

@@ -13,9 +13,16 @@ from recon.config.run_config import RunConfig
 from recon.io.atomic import atomic_write_text
 from recon.io.meshes import load_mesh
 from recon.io.run_folder import RunPaths
+from recon.metrics.evaluate import ERROR_PANEL_MAXIMUM
 from recon.optimize.checkpoint import History
 from recon.report.material_figure import material_figure
-from recon.report.report import geometry_error_figure, loss_figure, render_report, turntable
+from recon.report.report import (
+    geometry_error_figure,
+    held_out_figure,
+    loss_figure,
+    render_report,
+    turntable,
+)
 from recon.stages.fitted_scene import load_fitted_light, load_pbr_fit
 
 # Held-out views shown in the report (the rest are in renders/).
@@ -27,11 +34,13 @@ def report_stage(config: RunConfig, paths: RunPaths, device: torch.device) -> di
     figures = _fit_figures(paths, device)
     if paths.renders.exists():
         for render in sorted(paths.renders.glob("*.png"))[:REPORT_VIEWS]:
+            figure = paths.figure(f"held_out_{render.stem}")
+            held_out_figure(render, figure)
             figures.append(
                 (
-                    f"Held-out view {render.stem}: target | render | absolute sRGB error "
-                    "(magma: black 0 to white 0.25)",
-                    render,
+                    f"Held-out view {render.stem}: photo | render | absolute sRGB error "
+                    f"(magma, 0 to {ERROR_PANEL_MAXIMUM})",
+                    figure,
                 )
             )
     metrics = json.loads(paths.metrics.read_text()) if paths.metrics.exists() else {}
@@ -72,7 +81,7 @@ def _fit_figures(paths: RunPaths, device: torch.device) -> list[tuple[str, Path]
         figures.append(("Fitted material and environment (pbr)", paths.figure("material")))
     if paths.reference_mesh.exists():
         reference = load_mesh(paths.reference_mesh)
-        geometry_error_figure(mesh, reference, paths.figure("geometry_error"), device)
+        geometry_error_figure(mesh, reference, paths.figure("geometry_error"), device, up)
         figures.append(
             (
                 "Distance to the reference (viridis: 0 to 1 % of the diagonal)",

@@ -141,6 +141,37 @@ def test_an_off_centre_capture_gives_the_same_fit_as_the_centred_one(tmp_path: P
     assert torch.allclose(torch.tensor(record["centre"]), OFFSET, atol=0.15 * SCALE)
     environment = json.loads((moved / "env.json").read_text())
     assert environment["peak_memory_mb"]["fit"] > 10
+    # The fitted light is the same in both runs, written in both frames (normalization.json
+    # lists what is where).
+    lights = [json.loads((root / "light" / "light.json").read_text()) for root in (centred, moved)]
+    first_sun, second_sun = (light["directional"][0]["direction_to_light"] for light in lights)
+    assert torch.allclose(torch.tensor(first_sun), torch.tensor(second_sun), atol=0.05)
+    assert (moved / "light" / "normalized" / "light.json").is_file()
+    assert "light/light.json" in record["exports"]["dataset_frame"]
+
+
+def test_point_lights_move_to_the_dataset_frame_with_the_same_irradiance() -> None:
+    transform = SceneTransform(scale=0.5, centre=[1.0, -2.0, 3.0], up=[0.0, 1.0, 0.0])
+    light = {
+        "sh_coefficients": [[0.1, 0.1, 0.1]] * 9,
+        "directional": [{"direction_to_light": [0.0, 1.0, 0.0], "irradiance": [1.0, 1.0, 1.0]}],
+        "points": [{"position": [0.5, 1.0, -0.5], "intensity": [2.0, 2.0, 2.0]}],
+        "frame": "world",
+    }
+    converted = transform.light_to_dataset(light)
+    assert converted["directional"] == light["directional"]
+    assert converted["sh_coefficients"] == light["sh_coefficients"]
+    # The irradiance at a surface point is the same in both frames.
+    surface = torch.tensor([0.1, -0.2, 0.3], dtype=torch.float64)  # fit frame
+    surface_dataset = transform.to_dataset(surface)
+    point, moved = light["points"][0], converted["points"][0]
+    near = point["intensity"][0] / float((torch.tensor(point["position"]) - surface).norm()) ** 2
+    position = torch.tensor(moved["position"], dtype=torch.float64)
+    far = moved["intensity"][0] / float((position - surface_dataset).norm()) ** 2
+    assert far == pytest.approx(near, rel=1e-9)
+    assert torch.allclose(
+        transform.to_normalised(position), torch.tensor(point["position"]).double()
+    )
 
 
 def test_a_hull_cut_off_by_its_grid_is_a_warning(capsys) -> None:

@@ -245,11 +245,6 @@ CASES = {
             "textured.yaml", **{"scene.shape": {"procedural": "torus", "texture_path": "x.png"}}
         ),
     ),
-    "pbr material with a camera-frame light": Case(
-        ["run", "tiny.yaml", "--out", "new", "--set", "fit.material=pbr"]
-        + ["--set", "fit.light.frame=camera"],
-        ["fit.material", "does not support light.frame 'camera'"],
-    ),
     "resume of a folder that is no run": Case(
         ["run", "--resume", "notrun"], ["notrun", "config.resolved.yaml"]
     ),

@@ -129,3 +129,207 @@ def test_silhouette_only_fit_moves_a_displaced_sphere_onto_its_target(device):
     assert float(offset.detach().norm()) < 0.03
     assert abs(float(log_scale)) < 0.03
     assert float(loss) < 0.2 * start_error
+
+
+def _glossy_scene(device="cpu", size: int = 32):
+    """A lumpy UV-mapped shape (not a sphere: shading depends on its orientation), a uniform
+    glossy material [4, 4, 5] and a directional studio environment [8, 16, 3]."""
+    from recon.render.environment import latlong_directions
+
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=0.7)
+    verts = torch.tensor(sphere.vertices, dtype=torch.float32) * torch.tensor([1.0, 0.7, 0.85])
+    faces = torch.tensor(sphere.faces, dtype=torch.int64)
+    uvs, uv_faces = torch.full((1, 2), 0.5), torch.zeros_like(faces)
+    mesh = Mesh(verts, faces, uvs=uvs, uv_faces=uv_faces, texture=torch.zeros(4, 4, 3)).to(device)
+    material = torch.tensor([0.6, 0.4, 0.3, 0.3, 0.2]).expand(4, 4, 5).contiguous().to(device)
+    directions, _ = latlong_directions(8, 16)
+    light = torch.nn.functional.normalize(torch.tensor([0.5, -0.6, -0.6]), dim=0)
+    environment = (
+        0.2
+        + 0.1 * directions[..., 1:2]
+        + 4 * torch.exp((directions @ light - 1) / 0.1)[..., None] * torch.tensor([1.0, 0.8, 0.6])
+    )
+    return mesh, material, environment.to(device)
+
+
+def _pbr_render(renderer, mesh, cameras, material, environment, frame, world_to_cam=None):
+    from recon.render.environment import prefilter_environment
+
+    buffers = renderer.surface_buffers(mesh, cameras)
+    if world_to_cam is not None:
+        buffers.world_to_cam = world_to_cam  # only the camera-frame look-up reads it
+    return renderer.shade_pbr(
+        buffers,
+        cameras.centers(),
+        material,
+        prefilter_environment(environment, 4),
+        antialias_edges=False,
+        light_frame=frame,
+    )
+
+
+def test_camera_frame_environment_equals_world_frame_for_an_unrotated_camera():
+    from recon.camera.cameras import Cameras, intrinsics_from_fov
+
+    mesh, material, environment = _glossy_scene()
+    world_to_cam = torch.eye(4)[None].repeat(2, 1, 1)
+    world_to_cam[:, :3, 3] = torch.tensor([[0.0, 0.0, 3.0], [0.4, -0.2, 2.5]])
+    cameras = Cameras(world_to_cam, intrinsics_from_fov(40.0, (32, 32)).expand(2, 3, 3), (32, 32))
+    renderer = Renderer(texture_filter="linear")
+    world = _pbr_render(renderer, mesh, cameras, material, environment, "world")
+    camera = _pbr_render(renderer, mesh, cameras, material, environment, "camera")
+    assert float(world.mask.sum()) > 300
+    torch.testing.assert_close(camera.color, world.color, atol=1e-5, rtol=0)
+
+
+def test_camera_frame_environment_turns_with_the_camera():
+    # Object and camera turned together (a turntable seen from the turning object's side):
+    # the camera-frame environment renders the same image, the world-frame one does not.
+    import math
+
+    from recon.camera.cameras import Cameras
+
+    mesh, material, environment = _glossy_scene()
+    cameras = orbit_cameras(1, (32, 32), distance=3.0)
+    angle = 1.1
+    axis = torch.nn.functional.normalize(torch.tensor([0.2, 1.0, 0.3]), dim=0)
+    cross = torch.tensor([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    rotation = torch.eye(3) + math.sin(angle) * cross + (1 - math.cos(angle)) * cross @ cross
+    rigid = torch.eye(4)
+    rigid[:3, :3] = rotation.T
+    moved = Mesh(
+        mesh.verts @ rotation.T,
+        mesh.faces,
+        uvs=mesh.uvs,
+        uv_faces=mesh.uv_faces,
+        texture=mesh.texture,
+    )
+    moved_cameras = Cameras(
+        cameras.world_to_cam @ rigid, cameras.intrinsics, cameras.image_size, cameras.near
+    )
+    renderer = Renderer(texture_filter="linear")
+    before, after = (
+        _pbr_render(renderer, shape, view, material, environment, "camera")
+        for shape, view in ((mesh, cameras), (moved, moved_cameras))
+    )
+    assert float((before.color - after.color).abs().max()) < 2e-3
+    world_before, world_after = (
+        _pbr_render(renderer, shape, view, material, environment, "world")
+        for shape, view in ((mesh, cameras), (moved, moved_cameras))
+    )
+    assert float((world_before.color - world_after.color).abs().max()) > 0.05
+
+
+def test_camera_frame_environment_gradients_match_finite_differences():
+    # Gradients reach the environment texels and the camera rotation through the look-up.
+    mesh, material, environment = _glossy_scene()
+    cameras = orbit_cameras(2, (24, 24), distance=3.0)
+    renderer = Renderer(texture_filter="linear")
+    weights = torch.rand(2, 24, 24, 3, generator=torch.Generator().manual_seed(0))
+
+    def loss(light: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
+        # A turn of the cameras' axes about their own y: only the shading's frame moves.
+        cosine, sine = torch.cos(angle), torch.sin(angle)
+        zero, one = torch.zeros_like(angle), torch.ones_like(angle)
+        turn = torch.stack(
+            [
+                torch.stack([cosine, zero, sine, zero]),
+                torch.stack([zero, one, zero, zero]),
+                torch.stack([-sine, zero, cosine, zero]),
+                torch.stack([zero, zero, zero, one]),
+            ]
+        )
+        world_to_cam = turn @ cameras.world_to_cam
+        output = _pbr_render(renderer, mesh, cameras, material, light, "camera", world_to_cam)
+        return (output.color * weights).sum()
+
+    light = environment.clone().requires_grad_(True)
+    angle = torch.tensor(0.3, requires_grad=True)
+    loss(light, angle).backward()
+    assert float(light.grad.abs().sum()) > 0 and float(angle.grad.abs()) > 0
+    step = 1e-2
+    with torch.no_grad():
+        numeric_angle = (loss(light, angle + step) - loss(light, angle - step)) / (2 * step)
+        torch.testing.assert_close(angle.grad, numeric_angle, rtol=0.03, atol=1e-3)
+        # The render is linear in the environment: a finite difference on texels is exact.
+        for texel in [(1, 3, 0), (5, 10, 2), (3, 7, 1)]:
+            bumped = environment.clone()
+            bumped[texel] += 0.5
+            numeric = (loss(bumped, angle) - loss(environment, angle)) / 0.5
+            torch.testing.assert_close(light.grad[texel], numeric, rtol=0.01, atol=1e-3)
+
+
+def _lit_plane(size: int = 24):
+    """A unit quad in z = 0 facing a camera on +z (u along +x, v downwards along -y), a glossy
+    uniform material and the studio environment of _glossy_scene."""
+    from recon.camera.cameras import Cameras, intrinsics_from_fov, look_at
+
+    _, material, environment = _glossy_scene()
+    verts = torch.tensor([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], dtype=torch.float32)
+    faces = torch.tensor([[0, 1, 2], [0, 2, 3]])
+    uvs = torch.tensor([[0, 1], [1, 1], [1, 0], [0, 0]], dtype=torch.float32)
+    mesh = Mesh(verts, faces, uvs=uvs, uv_faces=faces.clone(), texture=torch.zeros(4, 4, 3))
+    eyes = torch.tensor([[0.3, 0.2, 3.0], [-0.8, 0.4, 2.8]])
+    cameras = Cameras(
+        look_at(eyes), intrinsics_from_fov(40.0, (size, size)).expand(2, 3, 3), (size, size)
+    )
+    return mesh, cameras, material, environment
+
+
+def _with_normal_map(material: torch.Tensor, tangent_normal: torch.Tensor) -> torch.Tensor:
+    return torch.cat([material, tangent_normal.expand(*material.shape[:2], 3)], dim=-1)
+
+
+def test_flat_normal_map_changes_nothing_and_a_tilt_equals_tilted_normals():
+    from recon.render.environment import prefilter_environment
+
+    mesh, cameras, material, environment = _lit_plane()
+    renderer = Renderer(texture_filter="linear")
+    prefiltered = prefilter_environment(environment, 4)
+    buffers = renderer.surface_buffers(mesh, cameras)
+
+    def shade(texture, shading_buffers=buffers):
+        return renderer.shade_pbr(
+            shading_buffers, cameras.centers(), texture, prefiltered, antialias_edges=False
+        ).color
+
+    plain = shade(material)
+    flat = shade(_with_normal_map(material, torch.tensor([0.0, 0.0, 1.0])))
+    torch.testing.assert_close(flat, plain, atol=1e-6, rtol=0)
+    # Tilt toward +u (world +x) and +v_up (world +y): the same as normals turned that way.
+    tilt = torch.nn.functional.normalize(torch.tensor([0.4, -0.3, 0.85]), dim=0)
+    mapped = shade(_with_normal_map(material, tilt))
+    turned = renderer.surface_buffers(mesh, cameras, vertex_normals_world=tilt.expand(4, 3))
+    torch.testing.assert_close(mapped, shade(material, turned), atol=1e-5, rtol=0)
+    assert float((mapped - plain).abs().max()) > 0.05
+
+
+def test_normal_map_gradients_match_finite_differences():
+    from recon.render.environment import prefilter_environment
+
+    mesh, cameras, material, environment = _lit_plane(16)
+    renderer = Renderer(texture_filter="linear")
+    prefiltered = prefilter_environment(environment, 4)
+    buffers = renderer.surface_buffers(mesh, cameras)
+    weights = torch.rand(2, 16, 16, 3, generator=torch.Generator().manual_seed(2))
+
+    def loss(slopes: torch.Tensor) -> torch.Tensor:
+        normal = torch.cat([slopes, (1 - slopes.square().sum()).sqrt()[None]])
+        color = renderer.shade_pbr(
+            buffers,
+            cameras.centers(),
+            _with_normal_map(material, normal),
+            prefiltered,
+            antialias_edges=False,
+        ).color
+        return (color * weights).sum()
+
+    slopes = torch.tensor([0.2, -0.1], requires_grad=True)
+    loss(slopes).backward()
+    step = 1e-2
+    with torch.no_grad():
+        for axis in range(2):
+            offset = torch.zeros(2)
+            offset[axis] = step
+            numeric = (loss(slopes + offset) - loss(slopes - offset)) / (2 * step)
+            torch.testing.assert_close(slopes.grad[axis], numeric, rtol=0.03, atol=1e-2)

@@ -1,5 +1,5 @@
 """The fitted scene's files in a run folder: a `pbr` fit's mesh, maps, environment and light
-written and read back (recon.stages.fitted_scene)."""
+written and read back (recon.stages.fitted_scene); the fitted effects record read back."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from recon.io.meshes import load_material_maps
 from recon.io.run_folder import RunPaths
 from recon.mesh.mesh import Mesh
 from recon.optimize.material_stage import PbrTextureResult, light_from_environment
-from recon.stages.fitted_scene import load_pbr_fit, write_pbr_fit
+from recon.stages.fitted_scene import load_fitted_effects, load_pbr_fit, write_pbr_fit
 
 
 def _textured_quad() -> tuple[Mesh, torch.Tensor]:
@@ -56,3 +56,51 @@ def test_a_pbr_run_with_its_environment_missing_is_named(tmp_path):
     (paths.fitted_environment).unlink()
     with pytest.raises(ReconError, match=r"light.json: names the pbr material, but .*environment"):
         load_pbr_fit(paths)
+
+
+def test_a_camera_frame_environment_keeps_its_frame(tmp_path):
+    mesh, maps = _textured_quad()
+    environment = torch.rand(4, 8, 3, generator=torch.Generator().manual_seed(2))
+    light = light_from_environment(environment, "camera")
+    result = PbrTextureResult(mesh, maps, environment, light, 0.5, 4, light_frame="camera")
+    paths = RunPaths(tmp_path)
+    write_pbr_fit(paths, result)
+    assert json.loads(paths.fitted_light.read_text())["frame"] == "camera"
+    loaded = load_pbr_fit(paths)
+    assert loaded.light_frame == "camera" and loaded.light.frame == "camera"
+
+
+def test_a_normal_map_is_written_and_read_back(tmp_path):
+    mesh, maps = _textured_quad()
+    normal = torch.nn.functional.normalize(torch.tensor([0.2, -0.1, 1.0]), dim=0)
+    maps = torch.cat([maps, normal.expand(8, 8, 3)], dim=-1)
+    environment = torch.ones(4, 8, 3)
+    result = PbrTextureResult(mesh, maps, environment, light_from_environment(environment), 0.5, 4)
+    paths = RunPaths(tmp_path)
+    write_pbr_fit(paths, result)
+    loaded = load_pbr_fit(paths)
+    assert loaded.material.shape == (8, 8, 5)
+    torch.testing.assert_close(loaded.material[..., 2:], maps[..., 2:], atol=1 / 255, rtol=0)
+    assert loaded.material_texture().shape[-1] == 8
+
+
+def test_a_normalised_fit_is_written_in_the_dataset_frame(tmp_path):
+    from recon.optimize.normalize import SceneTransform
+
+    mesh, maps = _textured_quad()
+    environment = torch.ones(4, 8, 3)
+    result = PbrTextureResult(mesh, maps, environment, light_from_environment(environment), 0.5, 4)
+    transform = SceneTransform(scale=2.0, centre=[1.0, -2.0, 0.5], up=[0.0, 1.0, 0.0])
+    paths = RunPaths(tmp_path)
+    write_pbr_fit(paths, result, transform)
+    loaded = load_pbr_fit(paths)
+    torch.testing.assert_close(loaded.mesh.verts, transform.to_dataset(mesh.verts))
+    assert load_material_maps(paths.normalized_mesh) is not None
+
+
+def test_no_effects_file_means_no_effects_and_a_broken_one_is_named(tmp_path) -> None:
+    paths = RunPaths(tmp_path)
+    assert load_fitted_effects(paths, torch.device("cpu")) == []
+    paths.fitted_effects.write_text("{not json")
+    with pytest.raises(ReconError, match="effects.json"):
+        load_fitted_effects(paths, torch.device("cpu"))

@@ -437,3 +437,28 @@ def test_all_three_effects_render_together(mitsuba_module) -> None:
     images, alpha = render_mitsuba(mesh, cameras, Lighting.constant(0.5), options)
     assert images.shape == (1, 24, 24, 3) and alpha.shape == (1, 24, 24, 1)
     assert bool(torch.isfinite(images).all()) and float(images.max()) > 0
+
+
+# Glossy variants of the specular effect (GGX conductor, roughplastic).
+def test_specular_metalness_and_plastic_select_the_bsdf() -> None:
+    conductor = mitsuba_options_for([("specular", {"roughness": 0.2, "metalness": 1.0})])
+    assert conductor.material == "specular" and conductor.metalness == 1.0
+    assert conductor.roughness == pytest.approx(0.2)
+    plastic = mitsuba_options_for([("specular", {"roughness": 0.35, "plastic": True})])
+    assert plastic.material == "roughplastic" and plastic.metalness == 0.0
+    assert plastic.roughness == pytest.approx(0.35)
+    # The default stays the principled dielectric.
+    assert mitsuba_options_for(["specular"]).material == "specular"
+
+
+def test_run_config_effect_carries_the_new_parameters() -> None:
+    effect = EffectConfig(name="specular", parameters={"metalness": 0.5, "plastic": 0})
+    options = mitsuba_options_for([effect])
+    assert options.material == "specular" and options.metalness == 0.5
+
+
+def test_plastic_conductor_and_out_of_range_metalness_are_rejected() -> None:
+    with pytest.raises(ReconError, match="metalness"):
+        make_light_transport_effect("specular", {"metalness": 1.5})
+    with pytest.raises(ReconError, match="roughplastic.*dielectric"):
+        mitsuba_options_for([("specular", {"metalness": 1.0, "plastic": True})])
