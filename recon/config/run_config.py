@@ -856,6 +856,10 @@ class MetadataConfig:
         0.05, "The correlation's level (one-sided, positive): the conventional 5 %."
     )
     seed: int = setting(0, "Random seed of the permutations.")
+    minimum_views: int = setting(
+        3,
+        "Held-out views with EXIF exposure needed for the check (a correlation across views needs at least 3); with fewer the run has no metadata evidence.",
+    )
     equal_tolerance: float = setting(
         0.01,
         "When the known exposure is the same in every view (fixed exposure, or images already divided by their EXIF exposure): the median ratio error up to which the recovered exposure agrees (1 %, about an 8-bit photo's mid-tone step).",
@@ -863,6 +867,7 @@ class MetadataConfig:
 
     def __post_init__(self) -> None:
         check_range(self.permutations, "permutations", low=1)
+        check_range(self.minimum_views, "minimum_views", low=3)
         check_range(self.alpha, "alpha", low=0.0, high=1.0)
         check_range(self.equal_tolerance, "equal_tolerance", low=0.0, high=1.0)
 

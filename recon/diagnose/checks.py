@@ -166,6 +166,10 @@ def metadata_producer(
     ratios = (probe.details.get("parameters") or {}).get("ratios") if probe else None
     if known is None or ratios is None or len(ratios) != len(known):
         return []
+    if len(known) < settings.metadata.minimum_views:
+        # A correlation across views needs several views; a run with one or two held-out views
+        # (a small capture) has no metadata evidence, which is not an error.
+        return []
     # With dataset.exposure 'exif' the held-out images were already divided by these gains:
     # the exposure left to recover is none, so equal gains are the truth to compare with.
     divided = inputs.heldout.known_gains is not None

@@ -76,9 +76,11 @@ def metadata_evidence(
             f"metadata check: recovered gains for {recovered.numel()} views, known (EXIF) "
             f"gains for {known.numel()}"
         )
-    if recovered.numel() < 3 or bool((recovered <= 0).any()) or bool((known <= 0).any()):
+    too_few = recovered.numel() < options.minimum_views
+    if too_few or bool((recovered <= 0).any()) or bool((known <= 0).any()):
         raise ReconError(
-            "metadata check: expected at least 3 positive gains per side, got recovered "
+            f"metadata check: expected at least {options.minimum_views} positive gains per "
+            "side (diagnose.metadata.minimum_views), got recovered "
             f"{recovered.tolist()} and known {known.tolist()}"
         )
     error = float(ratio_error(recovered, known).median())

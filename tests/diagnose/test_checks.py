@@ -28,6 +28,7 @@ from recon.diagnose.pixel_table import dominant_light_direction, view_directions
 from recon.diagnose.producers import PRODUCERS
 from recon.diagnose.records import Candidate, Evidence
 from recon.diagnose.which import rank_candidates
+from recon.errors import ReconError
 from recon.io.datasets import read_captures, write_nerf_synthetic
 from recon.io.meshes import load_mesh
 from recon.io.run_folder import RunPaths
@@ -175,3 +176,16 @@ def test_vignetting_short_of_the_corners_and_distortion_against_pose_are_registe
     assert not reference.passed and reference.details["corner_shift_pixels"] < 2.5
     assert reference.details["confused_with"] == ["pose_error"]
     assert not reference.details["capture"].endswith(",")
+
+
+def test_metadata_with_fewer_held_out_views_than_the_minimum_is_no_evidence(tmp_path):
+    # A small capture's held-out split can be one or two views: no correlation across views is
+    # possible, so there is no metadata evidence, and the diagnosis goes on (not an error).
+    exif_photo_folder(tmp_path, [0.01, 0.02])
+    heldout = read_captures(tmp_path, "train", DatasetConfig(background_key=[1.0, 1.0, 1.0]))
+    data, _ = glossy_torus_views(views=len(heldout), size=32, specular=0.0)
+    candidates = rank_candidates(data, ["exposure"])
+    inputs = SimpleNamespace(data=data, heldout=heldout)
+    assert metadata_producer(inputs, candidates, DiagnoseConfig()) == []
+    with pytest.raises(ReconError, match="minimum_views"):
+        metadata_evidence([1.1, 0.9], [1.0, 1.0], options=DiagnoseConfig().metadata)
