@@ -25,11 +25,12 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
-import subprocess
 import sys
 from pathlib import Path
 
 import yaml
+
+from benchmarks.record import commit as record_commit
 
 # An allowance is this many times the largest statistic seen on the clean calibration fits.
 CALIBRATION_MARGIN = 2.0
@@ -116,26 +117,6 @@ def calibrate_thresholds(
     return thresholds
 
 
-def git_commit(folder: Path) -> str:
-    """HEAD of the repository at folder ('+dirty' when tracked files changed), or 'unknown'."""
-    try:
-        head = subprocess.run(
-            ["git", "-C", str(folder), "rev-parse", "--short=12", "HEAD"],
-            capture_output=True,
-            text=True,
-            check=True,
-        ).stdout.strip()
-        dirty = subprocess.run(
-            ["git", "-C", str(folder), "status", "--porcelain", "--untracked-files=no"],
-            capture_output=True,
-            text=True,
-            check=True,
-        ).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-    return head + ("+dirty" if dirty else "")
-
-
 def calibration_record(
     thresholds: dict[str, float], calibrated_on: list[dict], base_config: dict
 ) -> dict:
@@ -149,7 +130,7 @@ def calibration_record(
         # The same values as a run config's `diagnose:` section.
         "diagnose": diagnose_section(thresholds) if thresholds else {},
         "provenance": {
-            "commit": git_commit(Path(__file__).resolve().parents[1]),
+            "commit": record_commit(),
             "base_config_sha256": hashlib.sha256(canonical.encode()).hexdigest()[:12],
             "rule": f"max(floor, {CALIBRATION_MARGIN:g} x largest clean statistic)",
             "calibrated_on": calibrated_on,
@@ -239,13 +220,12 @@ def main(argv: list[str] | None = None) -> int:
     }
     print(json.dumps(record, indent=2))
     if arguments.write:
-        from benchmarks.sweep import commit as git_commit
         from recon.io.atomic import atomic_write_text
 
         header = [
             "# diagnose.decision allowances written by `recon-bench calibrate` (twice the largest",
             "# clean reduction, floored). Provenance:",
-            f"# commit: {git_commit()}",
+            f"# commit: {record_commit()}",
         ] + [
             f"# run: {item['run']} config_hash {item['config_hash']} seed {item['seed']}"
             for item in provenance

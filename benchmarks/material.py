@@ -25,6 +25,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from benchmarks import common
+from benchmarks.record import commit as record_commit
 from recon.io.run_folder import RunPaths
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -173,7 +174,7 @@ def main(argv: list[str] | None = None) -> int:
             overrides.append(f"{key}={value}")
     overrides += arguments.overrides
     started = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-    commit = _commit()  # HEAD may move while the runs go on
+    commit = record_commit()  # HEAD may move while the runs go on
     environment = common.environment("cpu")
     scenes = []
     for name in arguments.configs:
@@ -195,19 +196,6 @@ def main(argv: list[str] | None = None) -> int:
     }
     print(json.dumps(result, indent=2))
     return 0
-
-
-def _commit() -> str:
-    try:
-        return subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"],
-            cwd=REPO_ROOT,
-            capture_output=True,
-            text=True,
-            check=True,
-        ).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
 
 
 if __name__ == "__main__":

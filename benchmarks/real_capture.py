@@ -22,6 +22,7 @@ import time
 from datetime import datetime, timezone
 from pathlib import Path
 
+from benchmarks.record import commit as record_commit
 from recon.io.run_folder import RunPaths
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -38,19 +39,6 @@ def _meets(value: float | None, rule: tuple[str, float]) -> bool | None:
         return None
     comparison, bound = rule
     return value <= bound if comparison == "<=" else value >= bound
-
-
-def _commit() -> str:
-    try:
-        return subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"],
-            cwd=REPO_ROOT,
-            capture_output=True,
-            text=True,
-            check=True,
-        ).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -84,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
     for override in arguments.set:
         command += ["--set", override]
     # The commit the run starts from (HEAD may move while it runs).
-    commit = _commit()
+    commit = record_commit()
     started_at = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     started = time.perf_counter()
     completed = subprocess.run(command, env=environment, capture_output=True, text=True)

@@ -24,7 +24,6 @@ import json
 import os
 import platform
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -32,6 +31,8 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 import yaml
+
+from benchmarks.record import commit
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
@@ -73,15 +74,6 @@ def timed_sweep(path: Path, backend: str, **options) -> tuple[float, list[float]
         raise SystemExit(f"bench_sweep: trials failed: {result['failed']}")
     records = read_records(Path(result["out"]) / "results.jsonl")
     return seconds, [record["seconds"] for record in records]
-
-
-def commit() -> str:
-    try:
-        return subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], cwd=REPO_ROOT, capture_output=True, text=True
-        ).stdout.strip()
-    except OSError:
-        return "unknown"
 
 
 def main(argv: list[str] | None = None) -> None:
