@@ -18,7 +18,7 @@ built-in evidence; the decision table (recon.diagnose.decision) says what each k
   cleared candidate confusable with a named effect ambiguous.
 - metadata (recon.diagnose.metadata_check): the recovered exposure against EXIF exposure when
   every held-out view has it, or against equal gains when the images were already divided by
-  it (dataset.exposure 'exif'); informs the verdict, never decides it.
+  it (dataset.exposure 'exif'); a disagreement vetoes exposure (the camera's own record says it was not the exposure).
 """
 
 from __future__ import annotations

@@ -28,7 +28,10 @@ identifiability  qualify    a failed check on a candidate that did not clear: "n
                             (details["confused_with"]): significant but ambiguous, "A or B:
                             not separable from this data, because ..."; otherwise the
                             condition qualifies its why
-metadata      inform        recorded (e.g. EXIF agreement), no effect on the decision
+metadata      veto          the capture's own record (EXIF exposure) disagrees with what the
+                            candidate recovered: the camera did not do it, so it is not named
+                            (the gains are some other per-view change, e.g. the model's
+                            mismatch); an agreeing record changes nothing
 ============  ============  =================================================================
 
 Evidence of a kind without a row is recorded and informs nothing.
@@ -162,7 +165,7 @@ DECISION_TABLE: tuple[Rule, ...] = (
     Rule("null", "null"),
     Rule("specificity", "veto", measured=True, parameters_from=("specificity", "probe")),
     Rule("identifiability", "qualify"),
-    Rule("metadata", "inform"),
+    Rule("metadata", "veto"),
 )
 RULES: dict[str, Rule] = {rule.kind: rule for rule in DECISION_TABLE}
 # Whose parameters a candidate that nothing decided reports: the relight split's estimate when

@@ -7,7 +7,7 @@ probes) and before the final decision; each returned Evidence is added to the ca
 (a base-model mismatch candidate is created when first named). The decision table
 (recon.diagnose.decision) says what each kind does: 'specificity' vetoes (and can name a
 mismatch through details['instead']), 'null' raises the bar, 'identifiability' qualifies,
-'metadata' informs. Adding a producer is appending it here; no other module changes.
+'metadata' vetoes a candidate the capture's record contradicts. Adding a producer is appending it here; no other module changes.
 """
 
 from __future__ import annotations

@@ -254,11 +254,22 @@ def test_a_cleared_candidate_whose_condition_names_no_effect_stays_significant_a
     assert verdict_of([falloff]) == "significant unmodelled effects: vignetting"
 
 
-def test_metadata_and_unknown_kinds_inform_only():
+def test_agreeing_metadata_and_unknown_kinds_change_nothing():
     exposure = candidate("exposure", probe=(0.1, 0.2))
-    exposure.add(Evidence("metadata", "exposure", 0.9, math.nan, False, "EXIF agrees r = 0.9"))
+    exposure.add(Evidence("metadata", "exposure", 0.9, math.nan, True, "EXIF agrees r = 0.9"))
     exposure.add(Evidence("something_new", "exposure", 1.0, 0.0, False, "a future check"))
     assert decide(exposure, CONFIG).significant and exposure.decided_by == "probe"
+
+
+def test_metadata_that_disagrees_vetoes_the_candidate():
+    # A fixed-exposure capture (EXIF the same in every view) whose fit leaves per-view gains:
+    # the camera's own record says it was not the exposure.
+    exposure = candidate("exposure", probe=(0.1, 0.2))
+    reason = "recovered exposure does not agree: EXIF exposure is the same in all 9 views"
+    exposure.add(Evidence("metadata", "exposure", 0.027, 0.0, False, reason))
+    decided = decide(exposure, CONFIG)
+    assert decided.status == "vetoed" and not decided.significant and "EXIF" in decided.why
+    assert verdict_of([decided]) == "no significant unmodelled effect"
 
 
 def test_every_row_has_a_known_role():
