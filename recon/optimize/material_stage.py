@@ -28,24 +28,21 @@ from recon.mesh.mesh import Mesh
 from recon.mesh.uv import dilate
 from recon.optimize.checkpoint import (
     History,
-    load_checkpoint,
     random_states,
     restore_random_states,
     save_checkpoint,
 )
 from recon.optimize.geometry_stage import GeometryResult
-from recon.optimize.large_steps import LaplacianPreconditioner, UniformAdam
+from recon.optimize.large_steps import UniformAdam
 from recon.optimize.scene_model import (
     FitEffects,
     LightModel,
-    TrainingPyramid,
     image_loss,
     sample_views,
     step_record,
     texture_total_variation,
 )
-from recon.optimize.texture_stage import LOG_EVERY, simplify_and_unwrap
-from recon.render.antialias import build_topology
+from recon.optimize.texture_stage import LOG_EVERY, start_texture_stage
 from recon.render.environment import latlong_directions, prefilter_environment, project_to_sh
 from recon.render.renderer import Renderer, RenderOutput
 from recon.render.shading import sh_basis
@@ -214,30 +211,19 @@ def run_pbr_texture_stage(
             "fit.material 'pbr' models specular reflection itself (drop them or use 'lambert')"
         )
     generator = torch.Generator().manual_seed(seed + 1)
-    checkpoint = load_checkpoint(checkpoint_path) if resume else None
-    if checkpoint is not None:
-        mesh = Mesh(
-            checkpoint["verts"].to(device),
-            checkpoint["faces"].to(device),
-            uvs=checkpoint["uvs"].to(device),
-            uv_faces=checkpoint["uv_faces"].to(device),
-            texture=checkpoint["texture"].to(device),
-        )
-        coverage = checkpoint["coverage"].to(device)
-        start_step = checkpoint["step"]
-    else:
-        mesh, coverage = simplify_and_unwrap(geometry, config)
-        start_step = 0
-    size = tuple(pbr.environment_size)
-    resolution = resolution or max(captures.cameras.image_size)
-    pyramid = TrainingPyramid.build(captures, [resolution], device)
-    cameras, images, masks = pyramid.levels[-1]
-    renderer = Renderer(texture_filter="linear-mipmap-linear", texture_boundary="clamp")
-    topology = build_topology(mesh.faces, mesh.verts.shape[0])
-    preconditioner = LaplacianPreconditioner(
-        mesh.faces, mesh.verts.shape[0], settings.large_steps_lambda
+    start = start_texture_stage(
+        captures, geometry, config, device, checkpoint_path, resume, resolution
     )
-    latent = torch.nn.Parameter(preconditioner.to_latent(mesh.verts))
+    mesh, coverage, start_step, checkpoint = (
+        start.mesh,
+        start.coverage,
+        start.start_step,
+        start.checkpoint,
+    )
+    cameras, images, masks = start.cameras, start.images, start.masks
+    renderer, topology = start.renderer, start.topology
+    preconditioner, latent = start.preconditioner, start.latent
+    size = tuple(pbr.environment_size)
     base_color = torch.nn.Parameter(mesh.texture.clone())
     height, width = mesh.texture.shape[:2]
     initial = [max(pbr.initial_roughness, MINIMUM_ROUGHNESS), pbr.initial_metalness]
@@ -290,7 +276,6 @@ def run_pbr_texture_stage(
     )
     light_optimizer = torch.optim.Adam([environment_parameter], lr=pbr.environment_learning_rate)
     if checkpoint is not None:
-        latent.data.copy_(checkpoint["latent"].to(device))
         material.data.copy_(checkpoint["material"].to(device))
         if "normal_slopes" in checkpoint:  # checkpoints from before the normal map lack it
             normal_slopes.data.copy_(checkpoint["normal_slopes"].to(device))

@@ -83,6 +83,80 @@ def simplify_and_unwrap(geometry: GeometryResult, config: FitConfig) -> tuple[Me
     return mesh, coverage.to(device)
 
 
+@dataclass
+class TextureStart:
+    """What a texture-stage loop (Lambertian or pbr) starts from: the mesh and texel coverage
+    (from the checkpoint when resuming, else the given textured mesh, else simplified and
+    unwrapped), the training views at one resolution, and the vertex latent.
+
+    cameras [B], images [B, H, W, 3], masks [B, H, W, 1]; latent [V, 3]."""
+
+    mesh: Mesh
+    coverage: torch.Tensor
+    start_step: int
+    checkpoint: dict | None
+    cameras: object
+    images: torch.Tensor
+    masks: torch.Tensor
+    renderer: Renderer
+    topology: object
+    preconditioner: LaplacianPreconditioner
+    latent: torch.nn.Parameter
+
+
+def start_texture_stage(
+    captures: CaptureSet,
+    geometry: GeometryResult,
+    config: FitConfig,
+    device: torch.device,
+    checkpoint_path: Path,
+    resume: bool,
+    resolution: int | None,
+    initial: Mesh | None = None,
+) -> TextureStart:
+    """The start shared by run_texture_stage and the pbr material stage."""
+    checkpoint = load_checkpoint(checkpoint_path) if resume else None
+    if checkpoint is not None:
+        mesh = Mesh(
+            checkpoint["verts"].to(device),
+            checkpoint["faces"].to(device),
+            uvs=checkpoint["uvs"].to(device),
+            uv_faces=checkpoint["uv_faces"].to(device),
+            texture=checkpoint["texture"].to(device),
+        )
+        coverage = checkpoint["coverage"].to(device)
+        start_step = checkpoint["step"]
+    elif initial is not None:
+        mesh = initial
+        coverage = torch.ones(mesh.texture.shape[:2], dtype=torch.bool, device=device)
+        start_step = 0
+    else:
+        mesh, coverage = simplify_and_unwrap(geometry, config)
+        start_step = 0
+    resolution = resolution or max(captures.cameras.image_size)
+    pyramid = TrainingPyramid.build(captures, [resolution], device)
+    cameras, images, masks = pyramid.levels[-1]
+    preconditioner = LaplacianPreconditioner(
+        mesh.faces, mesh.verts.shape[0], config.texture.large_steps_lambda
+    )
+    latent = torch.nn.Parameter(preconditioner.to_latent(mesh.verts))
+    if checkpoint is not None:
+        latent.data.copy_(checkpoint["latent"].to(device))
+    return TextureStart(
+        mesh,
+        coverage,
+        start_step,
+        checkpoint,
+        cameras,
+        images,
+        masks,
+        Renderer(texture_filter="linear-mipmap-linear", texture_boundary="clamp"),
+        build_topology(mesh.faces, mesh.verts.shape[0]),
+        preconditioner,
+        latent,
+    )
+
+
 def run_texture_stage(
     captures: CaptureSet,
     geometry: GeometryResult,
@@ -102,42 +176,26 @@ def run_texture_stage(
     captures' own)."""
     settings = config.texture
     generator = torch.Generator().manual_seed(seed + 1)
-    checkpoint = load_checkpoint(checkpoint_path) if resume else None
-    if checkpoint is not None:
-        mesh = Mesh(
-            checkpoint["verts"].to(device),
-            checkpoint["faces"].to(device),
-            uvs=checkpoint["uvs"].to(device),
-            uv_faces=checkpoint["uv_faces"].to(device),
-            texture=checkpoint["texture"].to(device),
-        )
-        coverage = checkpoint["coverage"].to(device)
-        start_step = checkpoint["step"]
-    elif initial is not None:
-        mesh = initial
-        coverage = torch.ones(mesh.texture.shape[:2], dtype=torch.bool, device=device)
-        start_step = 0
-    else:
-        mesh, coverage = simplify_and_unwrap(geometry, config)
-        start_step = 0
+    start = start_texture_stage(
+        captures, geometry, config, device, checkpoint_path, resume, resolution, initial
+    )
+    mesh, coverage, start_step, checkpoint = (
+        start.mesh,
+        start.coverage,
+        start.start_step,
+        start.checkpoint,
+    )
+    cameras, images, masks = start.cameras, start.images, start.masks
+    renderer, topology = start.renderer, start.topology
+    preconditioner, latent = start.preconditioner, start.latent
     if effects is None:
         effects = geometry.effects or FitEffects(config.effects, len(captures.cameras), device)
     light = geometry.light
-    resolution = resolution or max(captures.cameras.image_size)
-    pyramid = TrainingPyramid.build(captures, [resolution], device)
-    cameras, images, masks = pyramid.levels[-1]
-    renderer = Renderer(texture_filter="linear-mipmap-linear", texture_boundary="clamp")
-    topology = build_topology(mesh.faces, mesh.verts.shape[0])
-    preconditioner = LaplacianPreconditioner(
-        mesh.faces, mesh.verts.shape[0], settings.large_steps_lambda
-    )
-    latent = torch.nn.Parameter(preconditioner.to_latent(mesh.verts))
     texture = torch.nn.Parameter(mesh.texture.clone())
     position_optimizer = UniformAdam([latent], lr=settings.learning_rate)
     texture_optimizer = torch.optim.Adam([texture], lr=settings.texture_learning_rate)
     light_optimizer = torch.optim.Adam(light.parameters(), lr=settings.light_learning_rate)
     if checkpoint is not None:
-        latent.data.copy_(checkpoint["latent"].to(device))
         effects.load_state_dict(checkpoint["effects"])
         light.load_state_dict(checkpoint["light"])
         position_optimizer.load_state_dict(checkpoint["position_optimizer"])
