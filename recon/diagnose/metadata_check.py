@@ -19,6 +19,7 @@ from typing import Any
 import torch
 
 from recon.config.run_config import MetadataConfig
+from recon.diagnose.nulls import permuted_correlations
 from recon.diagnose.records import Evidence
 from recon.errors import ReconError
 from recon.io.exif import exposure_value
@@ -86,12 +87,11 @@ def metadata_evidence(
     error = float(ratio_error(recovered, known).median())
     baseline = float(ratio_error(torch.ones_like(known), known).median())
     correlation = log_correlation(recovered, known)
-    generator = torch.Generator().manual_seed(options.seed)
-    permuted = [
-        log_correlation(recovered[torch.randperm(recovered.numel(), generator=generator)], known)
-        for _ in range(options.permutations)
-    ]
-    p_value = (1 + sum(value >= correlation for value in permuted)) / (1 + len(permuted))
+    centred = [values.log() - values.log().mean() for values in (recovered, known)]
+    permuted = permuted_correlations(
+        centred[0][:, None], centred[1][:, None], options.permutations, options.seed
+    )
+    p_value = float((1 + (permuted >= correlation).sum()) / (1 + permuted.numel()))
     spread = float(known.max() / known.min())
     if divided:
         agreement = (

@@ -36,6 +36,17 @@ KIND = "null"
 GEOMETRIC_EFFECTS = ("lens_distortion", "defocus_blur", "motion_blur", "pose_error")
 
 
+def permuted_correlations(
+    one: torch.Tensor, other: torch.Tensor, count: int, seed: int
+) -> torch.Tensor:
+    """Correlations [count] of one [B, K] with other [B, K] under random permutations of other's
+    views (rows), both centred over views already: the null of a per-view agreement."""
+    generator = torch.Generator().manual_seed(seed)
+    orders = torch.rand(count, other.shape[0], generator=generator).argsort(dim=1)
+    numerator = (one[None] * other[orders]).sum(dim=(1, 2))
+    return numerator / ((one * one).sum() * (other * other).sum()).sqrt().clamp_min(1e-30)
+
+
 def parameter_layout(name: str, view_count: int) -> tuple[int, int]:
     """(parameters per view, global parameters) of the candidate's probe (the pose probe fits
     rotations only, recon.diagnose.which.probe_effect)."""
@@ -302,14 +313,14 @@ def split_half_evidence(
         return float((a * b).sum() / ((a * a).sum() * (b * b).sum()).sqrt().clamp_min(1e-30))
 
     observed = correlation(one, other)
-    generator = torch.Generator().manual_seed(settings.nulls.seed)
-    permuted = []
-    for _ in range(settings.nulls.permutations):
-        order = torch.randperm(batch, generator=generator)
-        permuted.append(correlation(one, halves[1][order].flatten()))
-    null = torch.tensor(permuted, dtype=torch.float64)
+    null = permuted_correlations(
+        halves[0].reshape(batch, -1).double(),
+        halves[1].reshape(batch, -1).double(),
+        settings.nulls.permutations,
+        settings.nulls.seed,
+    )
     threshold = float(torch.quantile(null, settings.nulls.quantile))
-    p_value = float((1 + (null >= observed).sum()) / (1 + len(permuted)))
+    p_value = float((1 + (null >= observed).sum()) / (1 + null.numel()))
     passed = observed > threshold
     reason = (
         f"{name}'s per-view parameters from the two halves of the held-out blocks agree "
