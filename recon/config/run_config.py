@@ -778,6 +778,25 @@ class SpecificityConfig:
 
 
 @dataclass
+class GeometricSpecificityConfig:
+    """The specificity checks of the geometric and blur candidates (recon.diagnose.
+    geometric_specificity): does the candidate keep a reduction on top of the effect it is
+    most often confused with, or does that effect take its place? The allowances are the
+    decision's probe allowances; bootstrap resamples are the section's."""
+
+    enabled: bool = setting(
+        True, "Run the checks (each costs one joint probe fit per confuser of a cleared candidate)."
+    )
+    margin: float = setting(
+        0.0,
+        "How far the confuser's reduction on top of the candidate (its lower bound) must exceed the candidate's on top of the confuser (its upper bound) to take its place.",
+    )
+
+    def __post_init__(self) -> None:
+        check_range(self.margin, "margin", low=0.0, high=1.0)
+
+
+@dataclass
 class NullConfig:
     """The run-derived nulls (recon.diagnose.nulls): placebo effects of a candidate's size and
     split-half agreement of per-view gains against permuted views."""
@@ -973,6 +992,10 @@ class DiagnoseConfig:
     )
     specificity: SpecificityConfig = setting(
         factory=SpecificityConfig, doc="Specificity checks of the gain-like candidates."
+    )
+    geometric_specificity: GeometricSpecificityConfig = setting(
+        factory=GeometricSpecificityConfig,
+        doc="Specificity checks of the geometric and blur candidates.",
     )
     nulls: NullConfig = setting(
         factory=NullConfig, doc="Nulls from the run: placebo effects and split-half agreement."
