@@ -134,3 +134,29 @@ def albedo_error_views(seed: int, views: int = 12, size: int = 32, error: float 
     render = renderer.render(fitted, cameras, lighting)
     noisy = observed.color + 0.002 * torch.randn(observed.color.shape, generator=generator)
     return build_diagnosis_data(noisy, observed.alpha, render, cameras, lighting, fitted)
+
+
+def camera_effect_torus_views(
+    effect: str | None, parameters: dict, size: int = 36, views: int = 8, seed: int = 0
+):
+    """Held-out views of a textured torus with one data_synth image effect (name, parameters)
+    applied to the captured views, beside the exact model's render (DiagnosisData): whatever
+    the diagnosis finds beyond noise is that effect."""
+    from data_synth.effects.base import Capture
+    from data_synth.effects.registry import apply_effects
+    from recon.camera import orbit_cameras
+    from recon.diagnose.data import build_diagnosis_data
+    from recon.render.renderer import Renderer
+    from recon.render.shading import DirectionalLight, Lighting
+
+    mesh = patterned_torus((3, 2), 0.3, lambda p: [p, 0.8 * p + 0.1, 0.6 * (1 - p) + 0.2])
+    cameras = orbit_cameras(views, (size, size), distance=2.4, fov_x_deg=45, elevation_deg=30)
+    light = Lighting.constant(0.4)
+    light.directional.append(DirectionalLight(torch.tensor([0.3, 0.8, 0.5]), torch.full((3,), 1.5)))
+    output = Renderer(texture_filter="linear").render(mesh, cameras, light)
+    capture = Capture(output.color.clone(), output.alpha.clone(), cameras)
+    generator = torch.Generator().manual_seed(seed)
+    if effect:
+        apply_effects(capture, [(effect, parameters)], generator)
+    noisy = capture.images + 0.002 * torch.randn(capture.images.shape, generator=generator)
+    return build_diagnosis_data(noisy, capture.alpha, output, cameras, light, mesh)
