@@ -103,6 +103,7 @@ def pair_record(
     joint = fit_on_halves(modules, probe)[0]
     own, other = _alone(probe, name), _alone(probe, confuser)
     return {
+        "candidate": name,
         "confuser": confuser,
         "alone": _reduction(base, own, settings),
         "confuser_alone": _reduction(base, other, settings),
@@ -117,10 +118,27 @@ def _excess(entry: dict, allowance: float) -> float:
     return entry["interval"][0] - allowance
 
 
-def redundant(record: dict) -> bool:
+def swapped(record: dict) -> dict:
+    """The pair record seen from the confuser's side."""
+    return {
+        **record,
+        "confuser": record.get("candidate"),
+        "alone": record["confuser_alone"],
+        "confuser_alone": record["alone"],
+        "on_top_of_confuser": record["confuser_on_top"],
+        "confuser_on_top": record["on_top_of_confuser"],
+        "allowance": record["confuser_allowance"],
+        "confuser_allowance": record["allowance"],
+    }
+
+
+def redundant(record: dict, margin: float) -> bool:
     """Whether the pair cannot be told apart and the confuser explains more: both clear alone,
-    neither clears its allowance on top of the other, and the confuser alone clears its
-    allowance by more than the candidate alone (one cause suffices; the stronger is named)."""
+    neither clears its allowance on top of the other, neither takes the other's place
+    (``dominated``), and the confuser alone clears its allowance by more than the candidate
+    alone (one cause suffices; the stronger is named)."""
+    if dominated(swapped(record), margin):
+        return False
     confuser_excess = _excess(record["confuser_alone"], record["confuser_allowance"])
     own_excess = _excess(record["alone"], record["allowance"])
     neither_adds = (
@@ -157,7 +175,9 @@ def geometric_evidence(
     records = [pair_record(name, confuser, probe, base, settings) for confuser in confusers]
     details = {"pairs": records}
     losing = [record for record in records if dominated(record, options.margin)]
-    tied = [record for record in records if record not in losing and redundant(record)]
+    tied = [
+        record for record in records if record not in losing and redundant(record, options.margin)
+    ]
     if not losing and tied:
         stronger = max(
             tied, key=lambda record: _excess(record["confuser_alone"], record["confuser_allowance"])
