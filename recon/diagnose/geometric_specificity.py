@@ -97,10 +97,13 @@ def pair_record(
     """What the candidate and a confuser each remove alone and on top of the other (held-out
     reductions with bootstrap intervals over views) and their probe allowances."""
     data = probe.data
-    modules = [
-        probe_effect(item, data.view_count, data.observed.device) for item in (name, confuser)
-    ]
-    joint = fit_on_halves(modules, probe)[0]
+    # Cached on the probe under the pair's joined names: the pair's other member checks it too.
+    pair = sorted((name, confuser))
+    key = "+".join(pair)
+    joint = probe.heldout_errors.get(key)
+    if joint is None:
+        modules = [probe_effect(item, data.view_count, data.observed.device) for item in pair]
+        joint = probe.heldout_errors[key] = fit_on_halves(modules, probe)[0]
     own, other = _alone(probe, name), _alone(probe, confuser)
     return {
         "candidate": name,
