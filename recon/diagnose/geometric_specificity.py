@@ -169,6 +169,28 @@ def _percent(entry: dict) -> str:
     return f"{100 * entry['reduction']:.1f} % ({100 * low:.1f} to {100 * high:.1f})"
 
 
+def _kept_because(name: str, record: dict) -> str:
+    """Why the confuser of the least clear pair does not take the candidate's place."""
+    confuser, on_top = record["confuser"], record["on_top_of_confuser"]
+    if _excess(on_top, record["allowance"]) > 0:
+        return (
+            f"on top of every confuser it still clears its allowance (least: on top of "
+            f"{confuser}, {_percent(on_top)} of the held-out error)"
+        )
+    if _excess(record["confuser_alone"], record["confuser_allowance"]) <= 0:
+        return (
+            f"on top of {confuser} it removes {_percent(on_top)}, but {confuser} alone "
+            f"({_percent(record['confuser_alone'])}) does not clear its own allowance "
+            f"{100 * record['confuser_allowance']:.1f} %, so it cannot take its place"
+        )
+    return (
+        f"on top of {confuser} it removes {_percent(on_top)}, {confuser} on top of it "
+        f"{_percent(record['confuser_on_top'])}: not separable, and {name} alone explains "
+        f"as much or more ({_percent(record['alone'])} against "
+        f"{_percent(record['confuser_alone'])})"
+    )
+
+
 def geometric_evidence(
     name: str, probe: EffectProbe, settings: DiagnoseConfig, confusers: list[str]
 ) -> Evidence:
@@ -199,13 +221,9 @@ def geometric_evidence(
     if not losing:
         closest = min(
             records,
-            key=lambda record: record["on_top_of_confuser"]["interval"][0] - record["allowance"],
+            key=lambda record: _excess(record["on_top_of_confuser"], record["allowance"]),
         )
-        reason = (
-            f"{name} is specific: on top of {closest['confuser']} it still removes "
-            f"{_percent(closest['on_top_of_confuser'])} of the held-out error, or "
-            f"{closest['confuser']} does not take its place"
-        )
+        reason = f"{name} is specific: " + _kept_because(name, closest)
         statistic = closest["on_top_of_confuser"]["interval"][0]
         return Evidence(KIND, name, statistic, closest["allowance"], True, reason, details)
     # The confuser that leaves the candidate least.
