@@ -1,7 +1,9 @@
 """The second render backend: Mitsuba 3 path tracing of the same scene description.
 
 recon's own Renderer (the default backend) shades Lambertian albedo under an SH environment and
-directional lights with no visibility at all: no cast shadows, no interreflection, no specular.
+directional lights with no visibility at all: no cast shadows, no interreflection (with
+``capture.backend: own`` it shades the specular effect with its split-sum model,
+data_synth/material.py).
 The light-transport effects of the world (``data_synth/effects/light_transport.py``) need those,
 so they render the same mesh, cameras and lighting with Mitsuba instead. Without any
 light-transport effect the reference render is recon's own Renderer; on a convex, diffuse scene

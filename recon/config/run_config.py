@@ -384,7 +384,7 @@ class CaptureConfig:
     )
     backend: Literal["auto", "own", "mitsuba"] = setting(
         "auto",
-        "Renderer of the captures: own (recon's rasterizer), mitsuba (the path tracer), or auto (mitsuba only when a light-transport effect, specular, shadows or interreflection, is requested).",
+        "Renderer of the captures: own (recon's rasterizer; the specular effect with its split-sum shading, no shadows or interreflection), mitsuba (the path tracer), or auto (mitsuba only when a light-transport effect, specular, shadows or interreflection, is requested).",
     )
     mitsuba_spp: int = setting(64, "Samples per pixel of the Mitsuba path tracer.")
     own_specular: OwnSpecularConfig = setting(
