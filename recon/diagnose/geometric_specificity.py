@@ -247,13 +247,19 @@ def geometric_specificity(
     names: set[str] | None = None,
 ) -> list[Evidence]:
     """Specificity Evidence for every significant geometric candidate (CONFUSERS; only those
-    in names when given) against the confusers among the probed candidates."""
+    in names when given) whose probe cleared, against the confusers among the probed
+    candidates."""
     if not settings.geometric_specificity.enabled or probe.data.view_count < 2:
         return []
     probed = {candidate.name for candidate in candidates if candidate.evidence_of("probe")}
     evidence = []
     for candidate in candidates:
         if candidate.name not in CONFUSERS or not candidate.significant:
+            continue
+        probe_evidence = candidate.evidence_of("probe")
+        if probe_evidence is None or not (probe_evidence.counts and probe_evidence.passed):
+            # Cleared by other evidence (an absorption refit sees a distortion the fit bent into
+            # the geometry, which the probes cannot): the probes' comparison does not speak to it.
             continue
         if names is not None and candidate.name not in names:
             continue
