@@ -9,7 +9,9 @@ curve must not pass a lens-distortion check.
 
 from __future__ import annotations
 
+import copy
 import json
+from dataclasses import replace
 
 import pytest
 from diagnose_scenes import camera_effect_torus_views as torus_with
@@ -104,3 +106,14 @@ def test_clean_data_and_disabled_checks_give_no_evidence():
     options = DiagnoseConfig(bootstrap_samples=200)
     options.geometric_specificity.enabled = False
     assert geometric_specificity(probe, ranked, options) == []
+
+
+def test_a_candidate_its_probe_did_not_clear_is_not_judged_by_the_probes(motion_blurred):
+    probe, ranked = motion_blurred
+    lens = copy.deepcopy(next(item for item in ranked if item.name == "lens_distortion"))
+    # Significant through other evidence (an absorption refit), its probe short of clearing.
+    lens.add(replace(lens.evidence_of("probe"), passed=False))
+    assert lens.significant
+    others = [item for item in ranked if item.name != "lens_distortion"]
+    judged = by_candidate(geometric_specificity(probe, [lens, *others], SETTINGS))
+    assert "lens_distortion" not in judged and "motion_blur" in judged
