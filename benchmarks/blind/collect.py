@@ -22,7 +22,7 @@ import torch
 import yaml
 
 from benchmarks.blind.cases import SHARED, BlindCase, case_config
-from recon.config import config_hash, dump_resolved, load_config
+from recon.config import config_hash, dump_resolved, load_config, to_dict
 from recon.config.run_config import RunConfig
 from recon.io.atomic import atomic_write_json, atomic_write_text
 from recon.io.run_folder import RunPaths, open_run_folder, prepare_run_folder
@@ -51,21 +51,64 @@ def _stored(
     config: RunConfig,
     device,
     candidates: list[str] | None = None,
+    ignore: tuple[str, ...] = (),
+    rediagnose: bool = False,
 ) -> dict | None:
     """The case's stored record when its fit was made under the same config (digest): as it is
-    when its diagnosis ran with the same refit mode, else diagnosed again on the same fit."""
+    when its diagnosis ran with the same refit mode, else (or with rediagnose: the diagnosis
+    code changed) diagnosed again on the same fit."""
     if not record_path.exists():
         return None
     record = json.loads(record_path.read_text())
-    if record.get("config_hash") != digest or not paths.fitted_mesh.exists():
+    if not paths.fitted_mesh.exists():
         return None
+    if record.get("config_hash") != digest:
+        if not same_fit_config(paths.resolved_config, config, ignore):
+            return None
+        # Fields added to the schema since, all at their defaults: the same fit. The record
+        # takes the new hash so the next run finds it at once.
+        record["config_hash"] = digest
     same = record.get("refit") == refit and record.get("candidates") == candidates
-    if same and paths.diagnosis.exists():
+    if same and paths.diagnosis.exists() and not rediagnose:
         return record
     record["diagnose_seconds"] = round(_diagnose(paths, config, device, refit, candidates), 2)
     record["refit"], record["candidates"] = refit, candidates
     atomic_write_json(record_path, record)
     return record
+
+
+def same_fit_config(stored_path: Path, config: RunConfig, ignore: tuple[str, ...] = ()) -> bool:
+    """Whether a fit made under the resolved config at stored_path is the fit config would make.
+
+    The config hash changes whenever the schema gains a field (e.g. a new fit option), which
+    would refit every stored case although nothing it reads changed. A fit is the same when every
+    key the stored config holds has the same value now (the diagnose section aside) and every key
+    it lacks is at the schema's default: a field added with a default keeps the old behaviour.
+    ignore: top-level keys left out besides diagnose (the real world's `data`, a path under the
+    benchmark folder that changes when the folder is copied; its content is the case's own).
+    """
+    if not stored_path.exists():
+        return False
+    stored = yaml.safe_load(stored_path.read_text()) or {}
+    current, defaults = to_dict(config), to_dict(RunConfig())
+    for key in ("diagnose", *ignore):
+        stored.pop(key, None)
+        current.pop(key, None)
+    return _agrees(stored, current, defaults)
+
+
+def _agrees(stored, current, defaults) -> bool:
+    """stored == current on stored's keys; current's extra keys equal defaults (recursively)."""
+    if not (isinstance(stored, dict) and isinstance(current, dict)):
+        return stored == current
+    for key, value in current.items():
+        default = defaults.get(key) if isinstance(defaults, dict) else None
+        if key not in stored:
+            if value != default:
+                return False
+        elif not _agrees(stored[key], value, default):
+            return False
+    return set(stored) <= set(current)
 
 
 def finished_case(case: BlindCase, out: Path) -> dict | None:
@@ -98,6 +141,7 @@ def collect_synthetic(
     device: torch.device,
     refit: str,
     candidates: list[str] | None = None,
+    rediagnose: bool = False,
 ) -> dict:
     """Synth (effects withheld) -> fit -> diagnose one case of the own or Mitsuba world."""
     from recon.pipeline import run_stages
@@ -114,7 +158,14 @@ def collect_synthetic(
     record_path = folder / "bench_case.json"
     if record_path.exists():
         stored = _stored(
-            record_path, digest, refit, open_run_folder(folder), config, device, candidates
+            record_path,
+            digest,
+            refit,
+            open_run_folder(folder),
+            config,
+            device,
+            candidates,
+            rediagnose=rediagnose,
         )
         if stored is not None:
             return stored
@@ -149,6 +200,7 @@ def collect_real(
     device: torch.device,
     refit: str,
     candidates: list[str] | None = None,
+    rediagnose: bool = False,
 ) -> dict:
     """Derive the photos with the case's effects injected -> fit (LLFF, the real-capture
     settings) -> diagnose."""
@@ -170,7 +222,15 @@ def collect_real(
     record_path = folder / "bench_case.json"
     if dataset.is_dir() and record_path.exists():
         stored = _stored(
-            record_path, digest, refit, open_run_folder(folder, dataset), config, device, candidates
+            record_path,
+            digest,
+            refit,
+            open_run_folder(folder, dataset),
+            config,
+            device,
+            candidates,
+            ignore=("data",),
+            rediagnose=rediagnose,
         )
         if stored is not None:
             return stored
