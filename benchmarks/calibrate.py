@@ -39,8 +39,9 @@ CALIBRATION_MARGIN = 2.0
 def clean_statistics(diagnosis: dict, present: tuple[str, ...] = ()) -> dict[str, float]:
     """The statistics of one clean diagnosis (diagnosis.json, either schema) that its thresholds
     are compared with, by threshold name (benchmarks.blind.decide): each probe's, absorption
-    refit's and relight probe's reduction, the flat field's deviation and the visibility
-    fingerprint's lower bound. present: effects the data holds although nothing was injected (a
+    refit's and relight probe's reduction, the agreement's shared colour spread, the flat
+    field's deviation and the visibility fingerprint's lower bound. present: effects the data
+    holds although nothing was injected (a
     path tracer's cast shadows): their statistics measure the effect, not the null, and are left
     out (the visibility fingerprint with shadows or interreflection)."""
     from recon.diagnose.records import Diagnosis
@@ -63,6 +64,9 @@ def clean_statistics(diagnosis: dict, present: tuple[str, ...] = ()) -> dict[str
             evidence = candidate.evidence_of(kind)
             if evidence is not None:
                 keep(name, evidence.details.get("reduction"))
+        agreement = candidate.evidence_of("agreement")
+        if agreement is not None:
+            keep(f"agreement.{candidate.name}", agreement.statistic)
         flat_field = candidate.evidence_of("flat_field")
         if flat_field is not None:
             keep("flat_field", flat_field.statistic)
@@ -84,6 +88,7 @@ def threshold_floors() -> dict[str, float]:
         DecisionConfig(
             probe_allowance={},
             absorption_allowance={},
+            agreement_allowance={},
             relight_allowance=defaults.minimum_share,
         )
     )

@@ -24,6 +24,7 @@ import yaml
 from benchmarks.blind.cases import SHARED, BlindCase, case_config
 from recon.config import config_hash, dump_resolved, load_config, to_dict
 from recon.config.run_config import RunConfig
+from recon.errors import ReconError
 from recon.io.atomic import atomic_write_json, atomic_write_text
 from recon.io.run_folder import RunPaths, open_run_folder, prepare_run_folder
 
@@ -61,9 +62,19 @@ def _stored(
         return None
     record = json.loads(record_path.read_text())
     if not paths.fitted_mesh.exists():
+        if rediagnose:
+            raise ReconError(f"--rediagnose: no stored fit in {paths.root}")
         return None
     if record.get("config_hash") != digest:
-        if not same_fit_config(paths.resolved_config, config, ignore):
+        difference = fit_config_difference(paths.resolved_config, config, ignore)
+        if difference is not None:
+            if rediagnose:
+                # --rediagnose never fits: a stored fit that no longer matches is an error to
+                # see (e.g. a mesh path that moved with the checkout), not a silent refit.
+                raise ReconError(
+                    f"--rediagnose: the stored fit in {paths.root} was made under another "
+                    f"config ({difference}); run without --rediagnose to fit it again"
+                )
             return None
         # Fields added to the schema since, all at their defaults: the same fit. The record
         # takes the new hash so the next run finds it at once.
@@ -77,8 +88,11 @@ def _stored(
     return record
 
 
-def same_fit_config(stored_path: Path, config: RunConfig, ignore: tuple[str, ...] = ()) -> bool:
-    """Whether a fit made under the resolved config at stored_path is the fit config would make.
+def fit_config_difference(
+    stored_path: Path, config: RunConfig, ignore: tuple[str, ...] = ()
+) -> str | None:
+    """How a fit made under the resolved config at stored_path differs from the fit config
+    would make (the first differing key, with both values), or None when it is the same fit.
 
     The config hash changes whenever the schema gains a field (e.g. a new fit option), which
     would refit every stored case although nothing it reads changed. A fit is the same when every
@@ -88,27 +102,37 @@ def same_fit_config(stored_path: Path, config: RunConfig, ignore: tuple[str, ...
     benchmark folder that changes when the folder is copied; its content is the case's own).
     """
     if not stored_path.exists():
-        return False
+        return f"{stored_path} not found"
     stored = yaml.safe_load(stored_path.read_text()) or {}
     current, defaults = to_dict(config), to_dict(RunConfig())
     for key in ("diagnose", *ignore):
         stored.pop(key, None)
         current.pop(key, None)
-    return _agrees(stored, current, defaults)
+    return _difference(stored, current, defaults, "")
 
 
-def _agrees(stored, current, defaults) -> bool:
-    """stored == current on stored's keys; current's extra keys equal defaults (recursively)."""
+def same_fit_config(stored_path: Path, config: RunConfig, ignore: tuple[str, ...] = ()) -> bool:
+    """Whether the stored fit is the fit config would make (fit_config_difference is None)."""
+    return fit_config_difference(stored_path, config, ignore) is None
+
+
+def _difference(stored, current, defaults, path: str) -> str | None:
+    """The first key where stored and current differ (current's keys absent from stored must
+    equal defaults), recursively; None when they agree."""
     if not (isinstance(stored, dict) and isinstance(current, dict)):
-        return stored == current
+        return None if stored == current else f"{path}: stored {stored!r}, now {current!r}"
     for key, value in current.items():
+        where = f"{path}.{key}" if path else key
         default = defaults.get(key) if isinstance(defaults, dict) else None
         if key not in stored:
             if value != default:
-                return False
-        elif not _agrees(stored[key], value, default):
-            return False
-    return set(stored) <= set(current)
+                return f"{where}: absent from the stored config, now {value!r}"
+            continue
+        found = _difference(stored[key], value, default, where)
+        if found:
+            return found
+    extra = sorted(set(stored) - set(current))
+    return f"{path}.{extra[0]}: stored, no longer in the schema" if extra else None
 
 
 def finished_case(case: BlindCase, out: Path) -> dict | None:
@@ -169,6 +193,8 @@ def collect_synthetic(
         )
         if stored is not None:
             return stored
+    if rediagnose:
+        raise ReconError(f"--rediagnose: no stored case in {folder}")
     truth = truth_path(out, case)
     paths = prepare_run_folder(folder, force=True)
     dump_resolved(config, paths.resolved_config)
@@ -234,6 +260,8 @@ def collect_real(
         )
         if stored is not None:
             return stored
+    if rediagnose:
+        raise ReconError(f"--rediagnose: no stored case in {folder}")
     truth = truth_path(out, case)
     derive_real_dataset(
         options.source,

@@ -15,6 +15,8 @@ flat_field    overrule      measures the falloff itself: decides alone, either w
 probe         clear         held-out reduction's lower bound above its allowance: significant
 absorption    clear         the same for the absorption refit (unless voided)
 relight       clear         the same for the relight split's probe
+agreement     clear         a per-view colour gain shared by separate halves of each view
+                            above its allowance, beyond permuted views (recon.diagnose.agreement)
 fingerprint   name          the visibility fingerprint names the effect (ranks after the above)
 null          raise bar     a failed null from the run (placebo, permutation, split half)
                             keeps the clearing rows from making the candidate significant
@@ -78,6 +80,17 @@ def absorption_threshold(effect: str, config: DecisionConfig) -> float:
     closed_form = facts is not None and facts.absorption == "closed_form"
     floor = config.regression_minimum_share if closed_form else config.absorption_minimum_share
     return max(floor, config.absorption_allowance.get(effect, config.minimum_share))
+
+
+def agreement_threshold(effect: str, config: DecisionConfig) -> float:
+    """The per-view colour spread an agreement evidence must clear (floored)."""
+    return max(config.agreement_minimum, config.agreement_allowance.get(effect, 0.0))
+
+
+def _agrees(evidence: Evidence, threshold: float, config: DecisionConfig) -> bool:
+    """The halves share a spread above the allowance, and more than permuted views do."""
+    p_value = evidence.details.get("p_value", 1.0)
+    return evidence.statistic > threshold and p_value < config.agreement_alpha
 
 
 def _lower_bound_clears(evidence: Evidence, threshold: float, config: DecisionConfig) -> bool:
@@ -154,6 +167,14 @@ DECISION_TABLE: tuple[Rule, ...] = (
         threshold=lambda effect, config: config.relight_allowance,
         passes=_lower_bound_clears,
         parameters_from=("relight", "probe"),
+    ),
+    Rule(
+        "agreement",
+        "clear",
+        measured=True,
+        threshold=agreement_threshold,
+        passes=_agrees,
+        parameters_from=("probe",),
     ),
     Rule(
         "fingerprint",
