@@ -135,12 +135,26 @@ def _difference(stored, current, defaults, path: str) -> str | None:
     return f"{path}.{extra[0]}: stored, no longer in the schema" if extra else None
 
 
+def located(record: dict, case: BlindCase, out: Path) -> dict:
+    """record with its paths where the case lives now, under out: a benchmark folder copied
+    elsewhere keeps the old paths in its records, and scoring must read this folder's
+    diagnosis (a copy of b48v8 once scored b48v8's)."""
+    record = {
+        **record,
+        "run_folder": str(out / "cases" / case.folder_name),
+        "truth_file": str(truth_path(out, case)),
+    }
+    if "dataset" in record:
+        record["dataset"] = str(out / "real_datasets" / f"{case.label}_seed{case.seed}")
+    return record
+
+
 def finished_case(case: BlindCase, out: Path) -> dict | None:
     """The stored record of a case collected earlier (whatever its config), or None."""
     record_path = out / "cases" / case.folder_name / "bench_case.json"
     if not record_path.exists() or not RunPaths(record_path.parent).diagnosis.exists():
         return None
-    return json.loads(record_path.read_text())
+    return located(json.loads(record_path.read_text()), case, out)
 
 
 def _diagnose(
@@ -192,7 +206,7 @@ def collect_synthetic(
             rediagnose=rediagnose,
         )
         if stored is not None:
-            return stored
+            return located(stored, case, out)
     if rediagnose:
         raise ReconError(f"--rediagnose: no stored case in {folder}")
     truth = truth_path(out, case)
@@ -259,7 +273,7 @@ def collect_real(
             rediagnose=rediagnose,
         )
         if stored is not None:
-            return stored
+            return located(stored, case, out)
     if rediagnose:
         raise ReconError(f"--rediagnose: no stored case in {folder}")
     truth = truth_path(out, case)

@@ -3,12 +3,20 @@ config, and --rediagnose never fits."""
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 
 import pytest
 import yaml
 
-from benchmarks.blind.collect import _stored, fit_config_difference, same_fit_config
+from benchmarks.blind.cases import BlindCase
+from benchmarks.blind.collect import (
+    _stored,
+    finished_case,
+    fit_config_difference,
+    same_fit_config,
+    truth_path,
+)
 from recon.config import dump_resolved
 from recon.config.run_config import RunConfig
 from recon.errors import ReconError
@@ -55,3 +63,16 @@ def test_rediagnose_refuses_to_refit(tmp_path):
     assert _stored(record, "new", "none", paths, config, "cpu") is None  # refit
     with pytest.raises(ReconError, match=r"--rediagnose: .*\(seed: stored 4, now 3\)"):
         _stored(record, "new", "none", paths, config, "cpu", rediagnose=True)
+
+
+def test_a_copied_benchmark_folder_is_scored_from_itself(tmp_path):
+    # The records of a copied folder still name the original: scoring must read the copy.
+    case = BlindCase("own", "torus", ("exposure",), 0)
+    folder = tmp_path / "copy" / "cases" / case.folder_name
+    folder.mkdir(parents=True)
+    (folder / "diagnosis.json").write_text("{}")
+    stale = {"run_folder": "/original/cases/x", "truth_file": "/original/truth/x.json"}
+    (folder / "bench_case.json").write_text(json.dumps(stale))
+    record = finished_case(case, tmp_path / "copy")
+    assert record["run_folder"] == str(folder)
+    assert record["truth_file"] == str(truth_path(tmp_path / "copy", case))
