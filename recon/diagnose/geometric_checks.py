@@ -33,13 +33,14 @@ def geometric_specificity_producer(
     return geometric_specificity(inputs.probe, candidates, settings)
 
 
-def _vetoed(candidate: Candidate) -> bool:
-    """A candidate that cleared and that a counting veto (a failed specificity or metadata
-    check) now rules out."""
-    return candidate.significant and any(
-        item.counts and not item.passed and RULES.get(item.kind) and RULES[item.kind].role == "veto"
-        for item in candidate.evidence
-    )
+def _vetoed(candidate: Candidate, settings: DiagnoseConfig) -> bool:
+    """Whether the decision, with the evidence gathered so far, vetoes the candidate (decided
+    on a copy: the decision table says which evidence a veto overturns)."""
+    if not any(
+        RULES.get(item.kind) and RULES[item.kind].role == "veto" for item in candidate.evidence
+    ):
+        return False
+    return decide(deepcopy(candidate), settings.decision).status == "vetoed"
 
 
 def restore_unconditioned_producer(
@@ -49,7 +50,7 @@ def restore_unconditioned_producer(
     placebo null of those that clear alone."""
     from recon.diagnose.checks import null_producer
 
-    vetoed = {candidate.name for candidate in candidates if _vetoed(candidate)}
+    vetoed = {candidate.name for candidate in candidates if _vetoed(candidate, settings)}
     if not vetoed:
         return []
     evidence: list[Evidence] = []
