@@ -73,11 +73,32 @@ class MaterialConfig:
         0.5,
         "Specular reflectance level; used only where light transport renders the 'specular' effect.",
     )
+    roughness_texture: Literal["none", "checker", "stripes", "noise", "patches"] = setting(
+        "none",
+        "A spatially varying roughness: this procedural pattern over the texture's UVs, scaled into roughness_range (seeded with seed + 1); replaces roughness where the 'specular' effect is rendered (principled BSDF), and the ground truth's reference mesh carries it (map_Pr). Needs a textured mesh.",
+    )
+    roughness_range: list[float] = setting(
+        factory=lambda: [0.1, 0.4],
+        doc="Lowest and highest roughness of roughness_texture's pattern.",
+    )
 
     def __post_init__(self) -> None:
         check_range(self.texture_size, "texture_size", low=4, high=8192)
         check_range(self.roughness, "roughness", low=0.01, high=1.0)
         check_range(self.specular_level, "specular_level", low=0.0, high=1.0)
+        if len(self.roughness_range) != 2 or not (
+            0.01 <= self.roughness_range[0] <= self.roughness_range[1] <= 1.0
+        ):
+            raise ConfigFieldError(
+                "roughness_range",
+                f"expected [low, high] with 0.01 <= low <= high <= 1, got {self.roughness_range}",
+            )
+        if self.roughness_texture != "none" and self.albedo == "vertex_noise":
+            raise ConfigFieldError(
+                "roughness_texture",
+                f"{self.roughness_texture!r} is a texture over UVs, but albedo 'vertex_noise' "
+                "gives the mesh vertex colours and no texture; use a textured albedo",
+            )
 
 
 @dataclass
@@ -314,6 +335,30 @@ class FlatFieldConfig:
 
 
 @dataclass
+class OwnSpecularConfig:
+    """The 'specular' effect rendered by backend 'own': recon's split-sum GGX shading
+    (recon.render.pbr) under the world's environment (map and SH, resampled to one lat-long
+    map) and directional lights, with no shadows or interreflection; the Mitsuba backend path
+    traces the same material."""
+
+    environment_size: list[int] = setting(
+        factory=lambda: [32, 64],
+        doc="Lat-long size [h, w] the world's environment is resampled to before pre-filtering (the brute-force pre-filter's cost grows with the square of its texel count).",
+    )
+    prefilter_levels: int = setting(
+        8, "Pre-filtered roughness levels besides the map itself (roughness linspace(0, 1, n + 1))."
+    )
+
+    def __post_init__(self) -> None:
+        if len(self.environment_size) != 2:
+            raise ConfigFieldError(
+                "environment_size", f"expected [h, w], got {self.environment_size}"
+            )
+        check_range(self.environment_size, "environment_size", low=4, high=256)
+        check_range(self.prefilter_levels, "prefilter_levels", low=1, high=32)
+
+
+@dataclass
 class CaptureConfig:
     """Views per split; the train/val/test cameras are drawn from one rig, disjoint."""
 
@@ -339,9 +384,13 @@ class CaptureConfig:
     )
     backend: Literal["auto", "own", "mitsuba"] = setting(
         "auto",
-        "Renderer of the captures: own (recon's rasterizer), mitsuba (the path tracer), or auto (mitsuba only when a light-transport effect, specular, shadows or interreflection, is requested).",
+        "Renderer of the captures: own (recon's rasterizer; the specular effect with its split-sum shading, no shadows or interreflection), mitsuba (the path tracer), or auto (mitsuba only when a light-transport effect, specular, shadows or interreflection, is requested).",
     )
     mitsuba_spp: int = setting(64, "Samples per pixel of the Mitsuba path tracer.")
+    own_specular: OwnSpecularConfig = setting(
+        factory=OwnSpecularConfig,
+        doc="How backend 'own' renders the 'specular' effect (recon's split-sum shading).",
+    )
     write_exr: bool = setting(True, "Also write each view as linear EXR beside the PNG.")
     write_depth_normals: bool = setting(False, "Also write depth and normal EXRs per view.")
     contact_sheet: bool = setting(True, "Write captures_contact_sheet.png into the run folder.")
@@ -353,9 +402,8 @@ class CaptureConfig:
         check_range(self.mitsuba_spp, "mitsuba_spp", low=1, high=65536)
         _check_vector(self.background, "background")
         names = [effect.name for effect in self.effects]
-        light_transport = [
-            name for name in names if name in ("specular", "shadows", "interreflection")
-        ]
+        # recon's own renderer shades 'specular' with its split-sum model; it traces no rays.
+        light_transport = [name for name in names if name in ("shadows", "interreflection")]
         if self.backend == "own" and light_transport:
             raise ConfigFieldError(
                 "backend",
