@@ -107,10 +107,21 @@ def glossy_torus_views(
     return data, gains
 
 
-def albedo_error_views(seed: int, views: int = 12, size: int = 32, error: float = 0.5):
+def albedo_error_views(
+    seed: int,
+    views: int = 12,
+    size: int = 32,
+    error: float = 0.5,
+    channel_gains: torch.Tensor | None = None,
+    cells: int = 4,
+    grey: bool = False,
+):
     """Held-out views of a torus whose fitted texture is wrong by smooth random patches
     (texture * (1 + error * a random 4 x 4 field per channel, upsampled)): a ~20 dB fit with
-    no camera or light-transport effect at all, only the base model's mismatch."""
+    no camera or light-transport effect at all, only the base model's mismatch. channel_gains
+    [views, 3] (a white balance per view) multiply the observed views when given; cells: the
+    random field's cells per side (more: a more local misfit); grey: one field for the three
+    channels (a shading-like misfit that leaves the colour alone)."""
     from recon.camera import orbit_cameras
     from recon.diagnose.data import build_diagnosis_data
     from recon.render.renderer import Renderer
@@ -122,7 +133,7 @@ def albedo_error_views(seed: int, views: int = 12, size: int = 32, error: float 
     true = patterned_torus((3, 2), 0.3, colours)
     fitted = patterned_torus((3, 2), 0.3, colours)
     generator = torch.Generator().manual_seed(seed)
-    field = torch.randn(1, 3, 4, 4, generator=generator)
+    field = torch.randn(1, 1 if grey else 3, cells, cells, generator=generator).expand(1, 3, -1, -1)
     field = torch.nn.functional.interpolate(
         field, size=(32, 32), mode="bilinear", align_corners=True
     )
@@ -132,7 +143,10 @@ def albedo_error_views(seed: int, views: int = 12, size: int = 32, error: float 
     renderer = Renderer(texture_filter="linear")
     observed = renderer.render(true, cameras, lighting)
     render = renderer.render(fitted, cameras, lighting)
-    noisy = observed.color + 0.002 * torch.randn(observed.color.shape, generator=generator)
+    colour = observed.color
+    if channel_gains is not None:
+        colour = colour * channel_gains[:, None, None, :]
+    noisy = colour + 0.002 * torch.randn(observed.color.shape, generator=generator)
     return build_diagnosis_data(noisy, observed.alpha, render, cameras, lighting, fitted)
 
 

@@ -730,6 +730,12 @@ class FitConfig:
         check_range(self.checkpoint_every, "checkpoint_every", low=1)
 
 
+# Twice the largest shared per-view colour spread of the blind check's clean synthetic fits
+# (2 x 0.0186, Mitsuba teapot; 10 clean cases of the own and Mitsuba worlds, /work/blind_runs/b48v9;
+# docs/decisions/0191-blind-misses.md).
+AGREEMENT_WHITE_BALANCE = 0.037
+
+
 @dataclass
 class DecisionConfig:
     """The significance decision's allowances (recon.diagnose.decision): what each kind of
@@ -781,8 +787,22 @@ class DecisionConfig:
         0.02,
         "Share of interior pixels the fitted mesh must shadow for the fingerprint to be testable at all.",
     )
+    agreement_allowance: dict[str, float] = setting(
+        factory=lambda: {"white_balance": AGREEMENT_WHITE_BALANCE},
+        doc="Per effect with agreement evidence (recon.diagnose.agreement): the per-view colour spread (RMS log gain) that separate halves of each view must share (twice the largest on the blind check's clean synthetic fits, docs/decisions/0191-blind-misses.md).",
+    )
+    agreement_minimum: float = setting(
+        0.01,
+        "Floor of every agreement allowance: a 1 % per-view colour change, about a just-noticeable colour difference.",
+    )
+    agreement_alpha: float = setting(
+        0.01,
+        "Level of the agreement's permutation test (views of one half permuted): conventional, not tuned.",
+    )
 
     def __post_init__(self) -> None:
+        check_range(self.agreement_minimum, "agreement_minimum", low=0.0, high=1.0)
+        check_range(self.agreement_alpha, "agreement_alpha", low=0.0, high=1.0)
         for name in ("minimum_share", "absorption_minimum_share", "regression_minimum_share"):
             check_range(getattr(self, name), name, low=0.0, high=1.0)
         for name in ("relight_allowance", "flat_field_allowance", "visibility_share_minimum"):
