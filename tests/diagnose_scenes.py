@@ -150,6 +150,70 @@ def albedo_error_views(
     return build_diagnosis_data(noisy, observed.alpha, render, cameras, lighting, fitted)
 
 
+def turntable_torus_views(
+    views: int = 6,
+    size: int = 32,
+    limb: float = 0.0,
+    vignetting: float = 0.0,
+    seed: int = 0,
+):
+    """Held-out views of a torus under a light fixed to the camera (a turntable capture, as the
+    shared real capture is fitted), beside its diffuse fit: DiagnosisData.
+
+    limb: the object's reflectance departs from the diffuse model at grazing angles: observed
+    *= 1 - limb + limb n.v (darker toward the silhouette, as a real object often is); the
+    object sits at the image centre, so the rim lies at the same radii in every view.
+    vignetting: a real falloff, observed *= 1 - vignetting r^2 (r over the half diagonal). The
+    "fit" is the diffuse model whose light absorbed the mean of both per channel."""
+    import math
+
+    from recon.camera import orbit_cameras
+    from recon.diagnose.data import build_diagnosis_data
+    from recon.render.renderer import Renderer
+    from recon.render.shading import DirectionalLight, Lighting
+
+    mesh = patterned_torus((3, 2), 0.3, lambda p: [p, 0.8 * p + 0.1, 0.6 * (1 - p) + 0.2])
+    cameras = orbit_cameras(views, (size, size), distance=2.4, fov_x_deg=45, elevation_deg=30)
+    direction = torch.tensor([0.3, -0.3, -1.0])  # toward the light, in camera axes
+    direction = direction / direction.norm()
+    light = Lighting(
+        sh_coefficients=Lighting.constant(0.2).sh_coefficients,
+        directional=[DirectionalLight(direction, torch.full((3,), 2.0))],
+        frame="camera",
+    )
+    renderer = Renderer(texture_filter="linear")
+    output = renderer.render(mesh, cameras, light)
+    batch, height, width, _ = output.color.shape
+    rotation = cameras.world_to_cam[:, :3, :3]
+    normals = (output.normals.view(batch, -1, 3) @ rotation.transpose(1, 2)).view(
+        output.normals.shape
+    )
+    rows, columns = torch.meshgrid(
+        torch.arange(height) + 0.5, torch.arange(width) + 0.5, indexing="ij"
+    )
+    intrinsics = cameras.intrinsics
+    x = (columns - intrinsics[:, 0, 2, None, None]) / intrinsics[:, 0, 0, None, None]
+    y = (rows - intrinsics[:, 1, 2, None, None]) / intrinsics[:, 1, 1, None, None]
+    rays = torch.stack([x, y, torch.ones_like(x)], -1)
+    n_dot_v = -(normals * rays / rays.norm(dim=-1, keepdim=True)).sum(-1).clamp(-1, 1)
+    observed = output.color * (1 - limb + limb * n_dot_v.clamp_min(0))[..., None]
+    radius = torch.sqrt(
+        (columns - intrinsics[:, 0, 2, None, None]) ** 2
+        + (rows - intrinsics[:, 1, 2, None, None]) ** 2
+    ) / (0.5 * math.hypot(height, width))
+    observed = observed * (1 - vignetting * radius**2)[..., None]
+    scale = (observed * output.color).sum((0, 1, 2)) / (output.color**2).sum((0, 1, 2))
+    fitted_light = Lighting(
+        sh_coefficients=light.sh_coefficients * scale,
+        directional=[DirectionalLight(direction, torch.full((3,), 2.0) * scale)],
+        frame="camera",
+    )
+    fitted = renderer.render(mesh, cameras, fitted_light)
+    generator = torch.Generator().manual_seed(seed)
+    observed = observed + 0.002 * torch.randn(observed.shape, generator=generator)
+    return build_diagnosis_data(observed, output.alpha, fitted, cameras, fitted_light, mesh)
+
+
 def camera_effect_torus_views(
     effect: str | None, parameters: dict, size: int = 36, views: int = 8, seed: int = 0
 ):

@@ -825,6 +825,10 @@ class SpecificityConfig:
         3, "Cells per axis of the grid over the fitted object's bounding box (surface regions)."
     )
     position_cells: int = setting(3, "Cells per axis of the image-position grid.")
+    normal_cells: int = setting(
+        4,
+        "Cells per axis of the grid over the x and y components of the normal in camera axes (the domain of everything a light fixed to the camera does).",
+    )
     alpha: float = setting(
         0.01,
         "The F-test's level: a candidate is specific when its own gain stands out above its scatter across every confusable domain's bins at this level (conventional, not tuned).",
@@ -839,7 +843,13 @@ class SpecificityConfig:
     seed: int = setting(0, "Random seed of the retained share's bootstrap over views.")
 
     def __post_init__(self) -> None:
-        for name in ("angle_bins", "intensity_bins", "surface_cells", "position_cells"):
+        for name in (
+            "angle_bins",
+            "intensity_bins",
+            "surface_cells",
+            "position_cells",
+            "normal_cells",
+        ):
             check_range(getattr(self, name), name, low=1)
         for name in ("alpha", "retained_share", "interval"):
             check_range(getattr(self, name), name, low=0.0, high=1.0)

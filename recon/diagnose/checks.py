@@ -34,6 +34,7 @@ import torch
 
 from recon.config.run_config import DiagnoseConfig
 from recon.diagnose.agreement import agreement_evidence
+from recon.diagnose.decision import DECISION_TABLE
 from recon.diagnose.identifiability import (
     CaptureConditions,
     lens_distortion_evidence,
@@ -98,10 +99,24 @@ def null_producer(
 def specificity_producer(
     inputs: EvidenceInputs, candidates: list[Candidate], settings: DiagnoseConfig
 ) -> list[Evidence]:
-    """Specificity of the gain-like candidates against their confusable domains."""
-    names = [candidate.name for candidate in candidates if candidate.name in SIGNATURES]
+    """Specificity of the gain-like candidates against their confusable domains. A candidate
+    that a direct measurement decides (flat-field frames measure a falloff itself) is not
+    checked: its residual signature is not what names it."""
+    names = [
+        candidate.name
+        for candidate in candidates
+        if candidate.name in SIGNATURES and not _measured_directly(candidate)
+    ]
+    if not names:  # (specificity_evidence reads an empty list as "every signature")
+        return []
     significant = {candidate.name for candidate in candidates if candidate.significant}
     return specificity_evidence(inputs.data, names, settings, significant)
+
+
+def _measured_directly(candidate: Candidate) -> bool:
+    """Whether the candidate has evidence of a kind that overrules the rest (decision table)."""
+    overruling = {rule.kind for rule in DECISION_TABLE if rule.role == "overrule"}
+    return any(item.kind in overruling for item in candidate.evidence)
 
 
 def _exposure_gains(inputs: EvidenceInputs):
