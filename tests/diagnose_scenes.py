@@ -156,6 +156,7 @@ def turntable_torus_views(
     limb: float = 0.0,
     vignetting: float = 0.0,
     seed: int = 0,
+    exposures: list[float] | None = None,
 ):
     """Held-out views of a torus under a light fixed to the camera (a turntable capture, as the
     shared real capture is fitted), beside its diffuse fit: DiagnosisData.
@@ -164,7 +165,8 @@ def turntable_torus_views(
     *= 1 - limb + limb n.v (darker toward the silhouette, as a real object often is); the
     object sits at the image centre, so the rim lies at the same radii in every view.
     vignetting: a real falloff, observed *= 1 - vignetting r^2 (r over the half diagonal). The
-    "fit" is the diffuse model whose light absorbed the mean of both per channel."""
+    "fit" is the diffuse model whose light absorbed the mean of both per channel.
+    exposures: one gain per view (a real exposure change), observed *= exposures[view]."""
     import math
 
     from recon.camera import orbit_cameras
@@ -202,6 +204,8 @@ def turntable_torus_views(
         + (rows - intrinsics[:, 1, 2, None, None]) ** 2
     ) / (0.5 * math.hypot(height, width))
     observed = observed * (1 - vignetting * radius**2)[..., None]
+    if exposures is not None:
+        observed = observed * torch.tensor(exposures)[:, None, None, None]
     scale = (observed * output.color).sum((0, 1, 2)) / (output.color**2).sum((0, 1, 2))
     fitted_light = Lighting(
         sh_coefficients=light.sh_coefficients * scale,

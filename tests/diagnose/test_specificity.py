@@ -189,3 +189,25 @@ def test_the_untouched_real_capture_gets_no_vignetting(tmp_path, shared_captures
     specificity = next(item for item in vignetting["evidence"] if item["kind"] == "specificity")
     assert not specificity["passed"]
     assert specificity["details"]["worst_domain"] in ("n_dot_v", "camera_normal")
+
+
+def test_a_turntable_mismatch_is_not_exposure_but_a_real_exposure_is():
+    # Under a light that turns with the camera, a rim darker than the diffuse model gives the
+    # per-view gain nothing of its own: not specific (a refit's gain absorbed the mismatch).
+    # A real per-view gain under the same light still is.
+    for limb in (0.0, 0.5):
+        data = turntable_torus_views(limb=limb)
+        mismatch = by_candidate(specificity_evidence(data, ["exposure"]))["exposure"]
+        assert not mismatch.passed, mismatch.reason
+    # Without a reduction of its own (limb 0), the camera-light rule itself fails it.
+    assert "light that turns with the camera" in mismatch_reason(0.0)
+    gains = [1.0, 0.7, 1.3, 0.85, 1.2, 0.75]
+    real = by_candidate(
+        specificity_evidence(turntable_torus_views(limb=0.5, exposures=gains), ["exposure"])
+    )
+    assert real["exposure"].passed, real["exposure"].reason
+
+
+def mismatch_reason(limb: float) -> str:
+    data = turntable_torus_views(limb=limb)
+    return by_candidate(specificity_evidence(data, ["exposure"]))["exposure"].reason
