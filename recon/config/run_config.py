@@ -498,6 +498,14 @@ class PbrFitConfig:
         0.03,
         "Adam learning rate of the environment texels (of their log with parameterization log).",
     )
+    environment_seed: Literal["light", "highlights"] = setting(
+        "light",
+        "Starting environment: light = the geometry stage's SH light (+ sun lobe); highlights = that light plus the training views' specular excess back-projected along mirror-reflection directions (recon/render/environment_seed.py: the light starts sharp).",
+    )
+    environment_seed_prior_weight: float = setting(
+        0.01,
+        "highlights seed: pull of each texel toward the geometry stage's light, in units of one voting pixel of specular weight 1 (a dielectric pixel weighs about 0.04^2).",
+    )
     environment_parameterization: Literal["linear", "log"] = setting(
         "linear",
         "log: the fit optimises the log radiance of each environment texel (relative steps: bright lights are reached as fast as dim ones); linear: the radiance itself.",
@@ -533,6 +541,7 @@ class PbrFitConfig:
         for key in (
             "material_learning_rate",
             "environment_learning_rate",
+            "environment_seed_prior_weight",
             "material_smoothness_weight",
             "normal_map_smoothness_weight",
             "environment_smoothness_weight",
