@@ -290,6 +290,7 @@ def diagnose_blind_worlds(
     score_only: bool = False,
     shard: tuple[int, int] = (0, 1),
     candidates: list[str] | None = None,
+    rediagnose: bool = False,
 ) -> dict:
     """The broadened blind check: collect every case's evidence (skipping finished ones), then
     score leave-one-scene-out per world. Cases whose inputs are absent (../shared) are skipped
@@ -297,7 +298,8 @@ def diagnose_blind_worlds(
     cases collected so far (an interrupted run), collecting nothing. shard (i, n): collect only
     every n-th case from the i-th (several processes on one folder), then stop; score the whole
     with a later score_only call. candidates: the effects each diagnosis considers (None: all;
-    the suite's tiny benchmark narrows it)."""
+    the suite's tiny benchmark narrows it). rediagnose: diagnose every stored fit again (the
+    diagnosis code changed; fits whose config is unchanged are kept)."""
     import platform
     import shutil
     import traceback
@@ -341,9 +343,11 @@ def diagnose_blind_worlds(
             continue
         try:
             if case.world == "real":
-                record = collect_real(case, real_options, out, device, refit, candidates)
+                record = collect_real(
+                    case, real_options, out, device, refit, candidates, rediagnose
+                )
             else:
-                record = collect_synthetic(case, base, out, device, refit, candidates)
+                record = collect_synthetic(case, base, out, device, refit, candidates, rediagnose)
         except Exception as error:  # noqa: BLE001 - one failed case must not end the run
             skipped.append({"case": case.to_json(), "reason": f"{type(error).__name__}: {error}"})
             print(traceback.format_exc(), file=sys.stderr)
@@ -411,7 +415,7 @@ def markdown(result: dict) -> str:
 
 def _reproducing_command(argv: list[str]) -> str:
     """The command that collects and scores what this call scores: --score-only and --shard
-    only split the same work (any split gives the same cases)."""
+    only split the same work (any split gives the same cases); --rediagnose only redoes it."""
     kept, skip = [], False
     for argument in argv:
         if skip:
@@ -420,7 +424,7 @@ def _reproducing_command(argv: list[str]) -> str:
         if argument == "--shard":
             skip = True
             continue
-        if argument == "--score-only" or argument.startswith("--shard="):
+        if argument in ("--score-only", "--rediagnose") or argument.startswith("--shard="):
             continue
         kept.append(argument)
     return "recon-bench diagnose-blind " + " ".join(kept)
@@ -488,6 +492,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     broad.add_argument("--collect-only", action="store_true", help="collect evidence, do not score")
     broad.add_argument(
+        "--rediagnose",
+        action="store_true",
+        help="diagnose stored fits again (the diagnosis changed); fits are kept",
+    )
+    broad.add_argument(
         "--score-only",
         action="store_true",
         help="score the cases collected so far (an interrupted run); collect nothing",
@@ -529,6 +538,7 @@ def main(argv: list[str] | None = None) -> int:
             collect_only=arguments.collect_only,
             score_only=arguments.score_only,
             shard=tuple(int(part) for part in arguments.shard.split("/")),
+            rediagnose=arguments.rediagnose,
         )
         print(json.dumps(summary, indent=2))
         return 0

@@ -1,7 +1,9 @@
 """The second render backend: Mitsuba 3 path tracing of the same scene description.
 
 recon's own Renderer (the default backend) shades Lambertian albedo under an SH environment and
-directional lights with no visibility at all: no cast shadows, no interreflection, no specular.
+directional lights with no visibility at all: no cast shadows, no interreflection (with
+``capture.backend: own`` it shades the specular effect with its split-sum model,
+data_synth/material.py).
 The light-transport effects of the world (``data_synth/effects/light_transport.py``) need those,
 so they render the same mesh, cameras and lighting with Mitsuba instead. Without any
 light-transport effect the reference render is recon's own Renderer; on a convex, diffuse scene
@@ -55,7 +57,7 @@ from __future__ import annotations
 import math
 import warnings
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from types import SimpleNamespace
 from typing import Any
 
@@ -128,6 +130,9 @@ class MitsubaOptions:
     specular_level: s in [0, 1]: normal-incidence reflectance 0.08 s (0.5 -> 4%, ior 1.5);
         roughplastic's interior ior is the one with that reflectance (s > 0).
     metalness: principled's metallic in [0, 1] ('specular' only).
+    roughness_map: a spatially varying perceptual roughness [h, w] in [0.01, 1] on the mesh's
+        UVs (bilinear, wrapped like the albedo), replacing roughness: principled's roughness
+        texture ('specular' only; roughplastic takes a single alpha). None: roughness.
     albedo_scale: multiplies the albedo (clipped to 1): stronger interreflection.
     area_lights: extra one-sided rectangle emitters (soft shadows): objects with center [3],
         normal [3] (the emitting side), edge_u [3], edge_v [3] (full edge vectors) and
@@ -151,6 +156,8 @@ class MitsubaOptions:
     roughness: float = 0.3
     specular_level: float = 0.5
     metalness: float = 0.0
+    # Not compared: options with maps compare by their scalars (tensors have no single truth).
+    roughness_map: torch.Tensor | None = field(default=None, compare=False)
     albedo_scale: float = 1.0
     area_lights: tuple[Any, ...] = ()
     suns: tuple[DiskSun, ...] = ()
@@ -196,6 +203,8 @@ class MitsubaOptions:
             raise ReconError(
                 f"mitsuba options: metalness: expected a value in [0, 1], got {self.metalness}"
             )
+        if self.roughness_map is not None:
+            _check_roughness_map(self.roughness_map, self.material)
         if self.material == "roughplastic" and float(self.metalness) != 0.0:
             raise ReconError(
                 "mitsuba options: metalness: material 'roughplastic' is a dielectric (metalness "
@@ -233,6 +242,27 @@ class MitsubaOptions:
                 raise ReconError(
                     f"mitsuba options: suns[{index}].direction_to_light: expected a nonzero vector"
                 )
+
+
+def _check_roughness_map(roughness_map: Any, material: str) -> None:
+    """ReconError unless roughness_map is a finite [h, w] tensor in [0.01, 1] for 'specular'."""
+    if not isinstance(roughness_map, torch.Tensor) or roughness_map.ndim != 2:
+        shape = tuple(roughness_map.shape) if isinstance(roughness_map, torch.Tensor) else None
+        raise ReconError(
+            f"mitsuba options: roughness_map: expected a tensor [h, w], got "
+            f"{shape or type(roughness_map).__name__}"
+        )
+    low, high = float(roughness_map.min()), float(roughness_map.max())
+    if not (0.01 <= low and high <= 1.0):
+        raise ReconError(
+            f"mitsuba options: roughness_map: expected values in [0.01, 1], got [{low}, {high}]"
+        )
+    if material != "specular":
+        raise ReconError(
+            "mitsuba options: roughness_map: needs material 'specular' (principled's roughness "
+            f"texture), got {material!r}"
+            + ("; roughplastic takes a single alpha" if material == "roughplastic" else "")
+        )
 
 
 def _check_choice(key: str, value: object, choices: Sequence[str]) -> None:
@@ -559,6 +589,22 @@ def plastic_ior(specular_level: float) -> float:
     return (1 + root) / (1 - root)
 
 
+def _roughness_texture(options: MitsubaOptions) -> float | dict:
+    """principled's roughness: the scalar, or a raw (linear) bitmap of the roughness map on the
+    mesh's UVs, filtered and wrapped as the albedo bitmap is."""
+    if options.roughness_map is None:
+        return float(options.roughness)
+    mitsuba = _import_mitsuba()
+    values = options.roughness_map.detach().float().cpu().numpy()[..., None]
+    return {
+        "type": "bitmap",
+        "bitmap": mitsuba.Bitmap(np.ascontiguousarray(values, np.float32)),
+        "raw": True,
+        "filter_type": "bilinear",
+        "wrap_mode": "repeat",
+    }
+
+
 def _bsdf_dict(albedo: dict, options: MitsubaOptions) -> dict:
     if options.material == "diffuse":
         inner = {"type": "diffuse", "reflectance": albedo}
@@ -581,7 +627,7 @@ def _bsdf_dict(albedo: dict, options: MitsubaOptions) -> dict:
             "type": "principled",
             "base_color": albedo,
             "metallic": float(options.metalness),
-            "roughness": float(options.roughness),
+            "roughness": _roughness_texture(options),
             "specular": float(options.specular_level),
         }
     # Two-sided: thin or open surfaces reflect on both sides, as recon shades every face.
@@ -600,6 +646,10 @@ def mesh_to_mitsuba(mesh: Mesh, options: MitsubaOptions, name: str = "mesh") -> 
     normals = vertex_normals(verts, mesh.faces.detach().cpu()).numpy()[source]
     positions = verts.numpy()[source]
     albedo, colors = _albedo_texture(mesh, float(options.albedo_scale))
+    if options.roughness_map is not None and (mesh.uvs is None or mesh.uv_faces is None):
+        raise ReconError(
+            "mitsuba options: roughness_map: the mesh has no UVs to look the roughness map up"
+        )
     if options.material == "roughplastic" and colors is not None:
         # roughplastic weighs its lobes by the albedo's mean, which a vertex attribute lacks.
         raise ReconError(

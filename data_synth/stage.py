@@ -19,6 +19,7 @@ import torch
 from tqdm import tqdm
 
 from data_synth.effects.base import LIGHT_TRANSPORT, AppliedEffect, Capture
+from data_synth.material import WorldMaterial, world_material
 from data_synth.rigs import make_cameras
 from data_synth.scene import WorldLighting, build_lighting, build_mesh, lighting_to_json
 from recon.camera import Cameras
@@ -62,6 +63,10 @@ class RenderedViews:
     alphas: torch.Tensor
     depth: torch.Tensor
     normals: torch.Tensor
+
+    def _clamped(self) -> RenderedViews:
+        """Radiance clamped at 0 and coverage into [0, 1] (antialiasing can overshoot)."""
+        return replace(self, colors=self.colors.clamp_min(0), alphas=self.alphas.clamp(0, 1))
 
 
 def render_views_own(
@@ -126,15 +131,41 @@ def render_split(
     effects: list[EffectConfig],
     description: str,
     device: torch.device,
+    material: WorldMaterial | None = None,
 ) -> RenderedViews:
-    """Render one split with the configured backend (Mitsuba for light-transport effects)."""
+    """Render one split with the configured backend (Mitsuba for light-transport effects;
+    'own' renders the 'specular' effect with recon's split-sum shading).
+
+    material: the specular effect's material (data_synth.material.world_material), whose
+    roughness map both backends render when it is textured."""
     backend = config.capture.backend
     light_transport = _light_transport_names(effects)
-    if backend == "own" and light_transport:
+    traced = [effect.name for effect in light_transport if effect.name != "specular"]
+    if backend == "own" and traced:
         raise ReconError(
-            "capture.backend: 'own' cannot render light-transport effects "
-            f"{[effect.name for effect in light_transport]}; use 'auto' or 'mitsuba'"
+            f"capture.backend: 'own' cannot render light-transport effects {traced}; use "
+            "'auto' or 'mitsuba'"
         )
+    if backend == "own" and light_transport:
+        from data_synth.material import render_views_pbr
+
+        if material is None:
+            raise ReconError("render_split: the 'specular' effect needs its world material")
+        outputs = render_views_pbr(
+            mesh,
+            material,
+            cameras.to(device),
+            world,
+            config.capture.own_specular,
+            VIEWS_PER_BATCH,
+            description,
+        )
+        return RenderedViews(
+            *(
+                torch.cat([getattr(output, name) for output in outputs]).cpu()
+                for name in ("color", "alpha", "depth", "normals")
+            )
+        )._clamped()
     if backend == "mitsuba" or light_transport:
         from data_synth.effects.light_transport import mitsuba_options_for
         from data_synth.mitsuba_backend import MitsubaOptions, render_mitsuba
@@ -144,6 +175,8 @@ def render_split(
             MitsubaOptions(spp=config.capture.mitsuba_spp, seed=config.seed),
             material=config.scene.material,
         )
+        if material is not None and material.textured:
+            options = replace(options, roughness_map=material.roughness)
         colors, alphas = render_mitsuba(mesh.to("cpu"), cameras, world, options)
         if not config.capture.write_depth_normals:
             return RenderedViews(colors, alphas, torch.zeros_like(alphas), torch.zeros_like(colors))
@@ -217,6 +250,8 @@ def synth_stage(
         )
     effects = list(capture_config.effects) + withheld
     image_effects = _image_effects(effects)
+    # The glossy material (and its roughness map) both backends render and the truth records.
+    material = world_material(effects, config.scene.material, mesh)
     counts = {
         "train": capture_config.train_views,
         "val": capture_config.val_views,
@@ -282,7 +317,14 @@ def synth_stage(
             else effects
         )
         rendered = render_split(
-            mesh, cameras, split_world, config, split_effects, f"synth {split}", device
+            mesh,
+            cameras,
+            split_world,
+            config,
+            split_effects,
+            f"synth {split}",
+            device,
+            material,
         )
         capture = Capture(rendered.colors, rendered.alphas, cameras)
         applied: list[AppliedEffect] = []
@@ -330,7 +372,9 @@ def synth_stage(
         summary["splits"][FLAT_FIELD_SPLIT] = capture_config.flat_field.views
     if capture_config.contact_sheet and sheet_images:
         save_contact_sheet(sheet_images, paths.contact_sheet, columns=4)
-    _write_ground_truth(paths, mesh, world, effects, realised, withheld, options)
+    # A withheld specular effect stays out of the run folder's truth, its material with it.
+    shown_material = material if not any(effect.name == "specular" for effect in withheld) else None
+    _write_ground_truth(paths, mesh, world, effects, realised, withheld, options, shown_material)
     summary["effects"] = [effect.name for effect in effects if effect not in withheld]
     # Finished: env.json's stage record says so from here on; the progress file has done its job.
     paths.synth_progress.unlink(missing_ok=True)
@@ -356,11 +400,15 @@ def _write_ground_truth(
     realised: dict[str, list[dict]],
     withheld: list[EffectConfig],
     options: SynthOptions,
+    material: WorldMaterial | None = None,
 ) -> None:
     """Reference mesh, lighting and effects beside the dataset; withheld effects only in
-    options.truth_out, so a diagnoser that reads the run folder learns nothing about them."""
+    options.truth_out, so a diagnoser that reads the run folder learns nothing about them. With
+    a specular material and a textured mesh the reference mesh carries its roughness and
+    metalness maps (map_Pr / map_Pm: recon.io.meshes.load_material_maps reads them)."""
     paths.ground_truth.mkdir(parents=True, exist_ok=True)
-    save_mesh(paths.reference_mesh, mesh.to("cpu"))
+    maps = material.maps() if material is not None and mesh.texture is not None else None
+    save_mesh(paths.reference_mesh, mesh.to("cpu"), material_maps=maps)
     atomic_write_json(paths.truth_lighting, lighting_to_json(world))
     if world.environment_map is not None:
         write_exr(paths.truth_environment, world.environment_map)

@@ -107,10 +107,21 @@ def glossy_torus_views(
     return data, gains
 
 
-def albedo_error_views(seed: int, views: int = 12, size: int = 32, error: float = 0.5):
+def albedo_error_views(
+    seed: int,
+    views: int = 12,
+    size: int = 32,
+    error: float = 0.5,
+    channel_gains: torch.Tensor | None = None,
+    cells: int = 4,
+    grey: bool = False,
+):
     """Held-out views of a torus whose fitted texture is wrong by smooth random patches
     (texture * (1 + error * a random 4 x 4 field per channel, upsampled)): a ~20 dB fit with
-    no camera or light-transport effect at all, only the base model's mismatch."""
+    no camera or light-transport effect at all, only the base model's mismatch. channel_gains
+    [views, 3] (a white balance per view) multiply the observed views when given; cells: the
+    random field's cells per side (more: a more local misfit); grey: one field for the three
+    channels (a shading-like misfit that leaves the colour alone)."""
     from recon.camera import orbit_cameras
     from recon.diagnose.data import build_diagnosis_data
     from recon.render.renderer import Renderer
@@ -122,7 +133,7 @@ def albedo_error_views(seed: int, views: int = 12, size: int = 32, error: float 
     true = patterned_torus((3, 2), 0.3, colours)
     fitted = patterned_torus((3, 2), 0.3, colours)
     generator = torch.Generator().manual_seed(seed)
-    field = torch.randn(1, 3, 4, 4, generator=generator)
+    field = torch.randn(1, 1 if grey else 3, cells, cells, generator=generator).expand(1, 3, -1, -1)
     field = torch.nn.functional.interpolate(
         field, size=(32, 32), mode="bilinear", align_corners=True
     )
@@ -132,5 +143,98 @@ def albedo_error_views(seed: int, views: int = 12, size: int = 32, error: float 
     renderer = Renderer(texture_filter="linear")
     observed = renderer.render(true, cameras, lighting)
     render = renderer.render(fitted, cameras, lighting)
-    noisy = observed.color + 0.002 * torch.randn(observed.color.shape, generator=generator)
+    colour = observed.color
+    if channel_gains is not None:
+        colour = colour * channel_gains[:, None, None, :]
+    noisy = colour + 0.002 * torch.randn(observed.color.shape, generator=generator)
     return build_diagnosis_data(noisy, observed.alpha, render, cameras, lighting, fitted)
+
+
+def turntable_torus_views(
+    views: int = 6,
+    size: int = 32,
+    limb: float = 0.0,
+    vignetting: float = 0.0,
+    seed: int = 0,
+):
+    """Held-out views of a torus under a light fixed to the camera (a turntable capture, as the
+    shared real capture is fitted), beside its diffuse fit: DiagnosisData.
+
+    limb: the object's reflectance departs from the diffuse model at grazing angles: observed
+    *= 1 - limb + limb n.v (darker toward the silhouette, as a real object often is); the
+    object sits at the image centre, so the rim lies at the same radii in every view.
+    vignetting: a real falloff, observed *= 1 - vignetting r^2 (r over the half diagonal). The
+    "fit" is the diffuse model whose light absorbed the mean of both per channel."""
+    import math
+
+    from recon.camera import orbit_cameras
+    from recon.diagnose.data import build_diagnosis_data
+    from recon.render.renderer import Renderer
+    from recon.render.shading import DirectionalLight, Lighting
+
+    mesh = patterned_torus((3, 2), 0.3, lambda p: [p, 0.8 * p + 0.1, 0.6 * (1 - p) + 0.2])
+    cameras = orbit_cameras(views, (size, size), distance=2.4, fov_x_deg=45, elevation_deg=30)
+    direction = torch.tensor([0.3, -0.3, -1.0])  # toward the light, in camera axes
+    direction = direction / direction.norm()
+    light = Lighting(
+        sh_coefficients=Lighting.constant(0.2).sh_coefficients,
+        directional=[DirectionalLight(direction, torch.full((3,), 2.0))],
+        frame="camera",
+    )
+    renderer = Renderer(texture_filter="linear")
+    output = renderer.render(mesh, cameras, light)
+    batch, height, width, _ = output.color.shape
+    rotation = cameras.world_to_cam[:, :3, :3]
+    normals = (output.normals.view(batch, -1, 3) @ rotation.transpose(1, 2)).view(
+        output.normals.shape
+    )
+    rows, columns = torch.meshgrid(
+        torch.arange(height) + 0.5, torch.arange(width) + 0.5, indexing="ij"
+    )
+    intrinsics = cameras.intrinsics
+    x = (columns - intrinsics[:, 0, 2, None, None]) / intrinsics[:, 0, 0, None, None]
+    y = (rows - intrinsics[:, 1, 2, None, None]) / intrinsics[:, 1, 1, None, None]
+    rays = torch.stack([x, y, torch.ones_like(x)], -1)
+    n_dot_v = -(normals * rays / rays.norm(dim=-1, keepdim=True)).sum(-1).clamp(-1, 1)
+    observed = output.color * (1 - limb + limb * n_dot_v.clamp_min(0))[..., None]
+    radius = torch.sqrt(
+        (columns - intrinsics[:, 0, 2, None, None]) ** 2
+        + (rows - intrinsics[:, 1, 2, None, None]) ** 2
+    ) / (0.5 * math.hypot(height, width))
+    observed = observed * (1 - vignetting * radius**2)[..., None]
+    scale = (observed * output.color).sum((0, 1, 2)) / (output.color**2).sum((0, 1, 2))
+    fitted_light = Lighting(
+        sh_coefficients=light.sh_coefficients * scale,
+        directional=[DirectionalLight(direction, torch.full((3,), 2.0) * scale)],
+        frame="camera",
+    )
+    fitted = renderer.render(mesh, cameras, fitted_light)
+    generator = torch.Generator().manual_seed(seed)
+    observed = observed + 0.002 * torch.randn(observed.shape, generator=generator)
+    return build_diagnosis_data(observed, output.alpha, fitted, cameras, fitted_light, mesh)
+
+
+def camera_effect_torus_views(
+    effect: str | None, parameters: dict, size: int = 36, views: int = 8, seed: int = 0
+):
+    """Held-out views of a textured torus with one data_synth image effect (name, parameters)
+    applied to the captured views, beside the exact model's render (DiagnosisData): whatever
+    the diagnosis finds beyond noise is that effect."""
+    from data_synth.effects.base import Capture
+    from data_synth.effects.registry import apply_effects
+    from recon.camera import orbit_cameras
+    from recon.diagnose.data import build_diagnosis_data
+    from recon.render.renderer import Renderer
+    from recon.render.shading import DirectionalLight, Lighting
+
+    mesh = patterned_torus((3, 2), 0.3, lambda p: [p, 0.8 * p + 0.1, 0.6 * (1 - p) + 0.2])
+    cameras = orbit_cameras(views, (size, size), distance=2.4, fov_x_deg=45, elevation_deg=30)
+    light = Lighting.constant(0.4)
+    light.directional.append(DirectionalLight(torch.tensor([0.3, 0.8, 0.5]), torch.full((3,), 1.5)))
+    output = Renderer(texture_filter="linear").render(mesh, cameras, light)
+    capture = Capture(output.color.clone(), output.alpha.clone(), cameras)
+    generator = torch.Generator().manual_seed(seed)
+    if effect:
+        apply_effects(capture, [(effect, parameters)], generator)
+    noisy = capture.images + 0.002 * torch.randn(capture.images.shape, generator=generator)
+    return build_diagnosis_data(noisy, capture.alpha, output, cameras, light, mesh)

@@ -22,8 +22,9 @@ import torch
 import yaml
 
 from benchmarks.blind.cases import SHARED, BlindCase, case_config
-from recon.config import config_hash, dump_resolved, load_config
+from recon.config import config_hash, dump_resolved, load_config, to_dict
 from recon.config.run_config import RunConfig
+from recon.errors import ReconError
 from recon.io.atomic import atomic_write_json, atomic_write_text
 from recon.io.run_folder import RunPaths, open_run_folder, prepare_run_folder
 
@@ -51,20 +52,100 @@ def _stored(
     config: RunConfig,
     device,
     candidates: list[str] | None = None,
+    ignore: tuple[str, ...] = (),
+    rediagnose: bool = False,
 ) -> dict | None:
     """The case's stored record when its fit was made under the same config (digest): as it is
-    when its diagnosis ran with the same refit mode, else diagnosed again on the same fit."""
+    when its diagnosis ran with the same refit mode, else (or with rediagnose: the diagnosis
+    code changed) diagnosed again on the same fit."""
     if not record_path.exists():
         return None
     record = json.loads(record_path.read_text())
-    if record.get("config_hash") != digest or not paths.fitted_mesh.exists():
+    if not paths.fitted_mesh.exists():
+        if rediagnose:
+            raise ReconError(f"--rediagnose: no stored fit in {paths.root}")
         return None
+    if record.get("config_hash") != digest:
+        difference = fit_config_difference(paths.resolved_config, config, ignore)
+        if difference is not None:
+            if rediagnose:
+                # --rediagnose never fits: a stored fit that no longer matches is an error to
+                # see (e.g. a mesh path that moved with the checkout), not a silent refit.
+                raise ReconError(
+                    f"--rediagnose: the stored fit in {paths.root} was made under another "
+                    f"config ({difference}); run without --rediagnose to fit it again"
+                )
+            return None
+        # Fields added to the schema since, all at their defaults: the same fit. The record
+        # takes the new hash so the next run finds it at once.
+        record["config_hash"] = digest
     same = record.get("refit") == refit and record.get("candidates") == candidates
-    if same and paths.diagnosis.exists():
+    if same and paths.diagnosis.exists() and not rediagnose:
         return record
     record["diagnose_seconds"] = round(_diagnose(paths, config, device, refit, candidates), 2)
     record["refit"], record["candidates"] = refit, candidates
     atomic_write_json(record_path, record)
+    return record
+
+
+def fit_config_difference(
+    stored_path: Path, config: RunConfig, ignore: tuple[str, ...] = ()
+) -> str | None:
+    """How a fit made under the resolved config at stored_path differs from the fit config
+    would make (the first differing key, with both values), or None when it is the same fit.
+
+    The config hash changes whenever the schema gains a field (e.g. a new fit option), which
+    would refit every stored case although nothing it reads changed. A fit is the same when every
+    key the stored config holds has the same value now (the diagnose section aside) and every key
+    it lacks is at the schema's default: a field added with a default keeps the old behaviour.
+    ignore: top-level keys left out besides diagnose (the real world's `data`, a path under the
+    benchmark folder that changes when the folder is copied; its content is the case's own).
+    """
+    if not stored_path.exists():
+        return f"{stored_path} not found"
+    stored = yaml.safe_load(stored_path.read_text()) or {}
+    current, defaults = to_dict(config), to_dict(RunConfig())
+    for key in ("diagnose", *ignore):
+        stored.pop(key, None)
+        current.pop(key, None)
+    return _difference(stored, current, defaults, "")
+
+
+def same_fit_config(stored_path: Path, config: RunConfig, ignore: tuple[str, ...] = ()) -> bool:
+    """Whether the stored fit is the fit config would make (fit_config_difference is None)."""
+    return fit_config_difference(stored_path, config, ignore) is None
+
+
+def _difference(stored, current, defaults, path: str) -> str | None:
+    """The first key where stored and current differ (current's keys absent from stored must
+    equal defaults), recursively; None when they agree."""
+    if not (isinstance(stored, dict) and isinstance(current, dict)):
+        return None if stored == current else f"{path}: stored {stored!r}, now {current!r}"
+    for key, value in current.items():
+        where = f"{path}.{key}" if path else key
+        default = defaults.get(key) if isinstance(defaults, dict) else None
+        if key not in stored:
+            if value != default:
+                return f"{where}: absent from the stored config, now {value!r}"
+            continue
+        found = _difference(stored[key], value, default, where)
+        if found:
+            return found
+    extra = sorted(set(stored) - set(current))
+    return f"{path}.{extra[0]}: stored, no longer in the schema" if extra else None
+
+
+def located(record: dict, case: BlindCase, out: Path) -> dict:
+    """record with its paths where the case lives now, under out: a benchmark folder copied
+    elsewhere keeps the old paths in its records, and scoring must read this folder's
+    diagnosis (a copy of b48v8 once scored b48v8's)."""
+    record = {
+        **record,
+        "run_folder": str(out / "cases" / case.folder_name),
+        "truth_file": str(truth_path(out, case)),
+    }
+    if "dataset" in record:
+        record["dataset"] = str(out / "real_datasets" / f"{case.label}_seed{case.seed}")
     return record
 
 
@@ -73,7 +154,7 @@ def finished_case(case: BlindCase, out: Path) -> dict | None:
     record_path = out / "cases" / case.folder_name / "bench_case.json"
     if not record_path.exists() or not RunPaths(record_path.parent).diagnosis.exists():
         return None
-    return json.loads(record_path.read_text())
+    return located(json.loads(record_path.read_text()), case, out)
 
 
 def _diagnose(
@@ -98,6 +179,7 @@ def collect_synthetic(
     device: torch.device,
     refit: str,
     candidates: list[str] | None = None,
+    rediagnose: bool = False,
 ) -> dict:
     """Synth (effects withheld) -> fit -> diagnose one case of the own or Mitsuba world."""
     from recon.pipeline import run_stages
@@ -114,10 +196,19 @@ def collect_synthetic(
     record_path = folder / "bench_case.json"
     if record_path.exists():
         stored = _stored(
-            record_path, digest, refit, open_run_folder(folder), config, device, candidates
+            record_path,
+            digest,
+            refit,
+            open_run_folder(folder),
+            config,
+            device,
+            candidates,
+            rediagnose=rediagnose,
         )
         if stored is not None:
-            return stored
+            return located(stored, case, out)
+    if rediagnose:
+        raise ReconError(f"--rediagnose: no stored case in {folder}")
     truth = truth_path(out, case)
     paths = prepare_run_folder(folder, force=True)
     dump_resolved(config, paths.resolved_config)
@@ -149,6 +240,7 @@ def collect_real(
     device: torch.device,
     refit: str,
     candidates: list[str] | None = None,
+    rediagnose: bool = False,
 ) -> dict:
     """Derive the photos with the case's effects injected -> fit (LLFF, the real-capture
     settings) -> diagnose."""
@@ -170,10 +262,20 @@ def collect_real(
     record_path = folder / "bench_case.json"
     if dataset.is_dir() and record_path.exists():
         stored = _stored(
-            record_path, digest, refit, open_run_folder(folder, dataset), config, device, candidates
+            record_path,
+            digest,
+            refit,
+            open_run_folder(folder, dataset),
+            config,
+            device,
+            candidates,
+            ignore=("data",),
+            rediagnose=rediagnose,
         )
         if stored is not None:
-            return stored
+            return located(stored, case, out)
+    if rediagnose:
+        raise ReconError(f"--rediagnose: no stored case in {folder}")
     truth = truth_path(out, case)
     derive_real_dataset(
         options.source,

@@ -4,6 +4,7 @@ A threshold set maps names to values:
 
     probe.<effect>        the held-out reduction a probe's bootstrap lower bound must clear
     absorption.<effect>   the reduction over the control refit an absorption bound must clear
+    agreement.<effect>    the per-view colour spread separate halves of each view must share
     relight               the relight probe's allowance
     flat_field            the flat-field deviation that makes vignetting significant
     visibility_share      the visibility fingerprint's lower bound that makes it name an effect
@@ -23,13 +24,20 @@ from recon.effects.registry import MODEL_EFFECTS
 
 def code_thresholds(config: DecisionConfig | None = None) -> dict[str, float]:
     """The thresholds of a decision config (default: the diagnosis' defaults), per effect."""
-    from recon.diagnose.decision import absorption_threshold, probe_threshold
+    from recon.diagnose.decision import (
+        absorption_threshold,
+        agreement_threshold,
+        probe_threshold,
+    )
 
     config = config or DecisionConfig()
     thresholds: dict[str, float] = {}
     for effect in sorted(MODEL_EFFECTS):
         thresholds[f"probe.{effect}"] = probe_threshold(effect, config)
         thresholds[f"absorption.{effect}"] = absorption_threshold(effect, config)
+    # The effects with agreement evidence are the default config's (white_balance).
+    for effect in sorted(DecisionConfig().agreement_allowance):
+        thresholds[f"agreement.{effect}"] = agreement_threshold(effect, config)
     thresholds["relight"] = config.relight_allowance
     thresholds["flat_field"] = config.flat_field_allowance
     thresholds["visibility_share"] = config.visibility_share_minimum
@@ -53,6 +61,7 @@ def diagnose_section(thresholds: dict[str, float]) -> dict:
         "decision": {
             "probe_allowance": per_effect("probe"),
             "absorption_allowance": per_effect("absorption"),
+            "agreement_allowance": per_effect("agreement"),
             "relight_allowance": thresholds["relight"],
             "flat_field_allowance": thresholds["flat_field"],
             "visibility_share_minimum": thresholds["visibility_share"],
@@ -69,6 +78,7 @@ def diagnose_config(thresholds: dict[str, float]) -> DiagnoseConfig:
         minimum_share=0.0,
         absorption_minimum_share=0.0,
         regression_minimum_share=0.0,
+        agreement_minimum=0.0,
     )
     return DiagnoseConfig(decision=decision)
 

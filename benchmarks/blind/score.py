@@ -60,8 +60,35 @@ def case_of(record: dict) -> BlindCase:
     )
 
 
+def inert_effects(truth_record: dict) -> list[str]:
+    """The withheld effects whose realisation changed no pixel: a defocus disk smaller than the
+    centre pixel (at 48 px the sampler's 1-2.5 px at 128 px gives 0.47 px, whose antialiased
+    pillbox is the identity kernel). The data then holds no such effect: the case is scored
+    against what was realised, and the withheld name is kept as 'inert'."""
+    from data_synth.effects.optics import disk_kernel
+
+    inert = []
+    for entry in truth_record.get("withheld", []):
+        if entry["name"] == "defocus_blur":
+            kernel = disk_kernel(float(entry["parameters"]["radius_px"]))
+            if float(kernel.max()) >= 1.0 - 1e-9:
+                inert.append(entry["name"])
+    return inert
+
+
+def declared_unidentifiable(diagnosis: dict) -> list[str]:
+    """The candidates a (re-decided) diagnosis reports as not identifiable from its data."""
+    return [
+        item["name"] for item in diagnosis["candidates"] if item.get("status") == "not_identifiable"
+    ]
+
+
 def score_one(record: dict, thresholds: dict[str, float], calibrated_on: list[str]) -> dict:
-    """One case scored against its truth after re-deciding its evidence with thresholds."""
+    """One case scored against its truth after re-deciding its evidence with thresholds.
+
+    Besides the strict measures: 'answered' counts a truth effect the diagnosis reports as
+    not identifiable from this data (with why and what capture would settle it) as answered,
+    not as a silent miss; it is never counted as found."""
     case = case_of(record)
     diagnosis = redecide_with(record["diagnosis"], thresholds)
     named = significant_effects(diagnosis)
@@ -69,22 +96,35 @@ def score_one(record: dict, thresholds: dict[str, float], calibrated_on: list[st
     # Effects the world holds without injecting them are set aside (reported as present_named).
     significant = [name for name in named if name not in present]
     top = significant[0] if significant else NONE
-    truth = list(case.truth)
+    inert = inert_effects(record["truth_record"])
+    truth = [name for name in case.truth if name not in inert]
+    kind = {0: "clean", 1: "single"}.get(len(truth), "pair")
+    unidentifiable = declared_unidentifiable(diagnosis)
+    # Answered: every truth effect is named or declared not identifiable, nothing else named.
+    answered = set(truth) - set(significant) <= set(unidentifiable) and set(significant) <= set(
+        truth
+    )
     refits = diagnosis.get("refits") or []
     fit_seconds = max(float(record["fit_seconds"]), 1e-9)
     return {
         "world": case.world,
         "scene": case.scene,
         "case": case.label,
-        "kind": case.kind,
+        "kind": kind,
         "seed": case.seed,
         "truth": truth,
+        "inert": inert,
         "predicted_top": top,
         "significant": significant,
+        "not_identifiable": unidentifiable,
         "top1_correct": (top in truth) if truth else top == NONE,
+        "top1_answered": (top in truth or (top == NONE and truth[0] in unidentifiable))
+        if truth
+        else top == NONE,
         "exact_set": set(significant) == set(truth),
-        "both_found": set(truth) <= set(significant) if case.kind == "pair" else None,
-        "false_positive": bool(significant) if case.kind == "clean" else None,
+        "exact_set_answered": answered,
+        "both_found": set(truth) <= set(significant) if kind == "pair" else None,
+        "false_positive": bool(significant) if kind == "clean" else None,
         "exact_set_strict": set(named) == set(truth),
         "spurious": sorted(set(significant) - set(truth)),
         "present_named": sorted(set(named) & present),
@@ -168,7 +208,10 @@ def summarise_world(scored: list[dict]) -> dict:
     return {
         "cases": {"single": len(singles), "pair": len(pairs), "clean": len(clean)},
         "top1_accuracy": _share([record["top1_correct"] for record in singles]),
+        "top1_answered": _share([record.get("top1_answered") for record in singles]),
         "exact_set_accuracy": _share([record["exact_set"] for record in scored]),
+        "exact_set_answered": _share([record.get("exact_set_answered") for record in scored]),
+        "inert": dict(Counter(name for record in scored for name in record.get("inert", []))),
         "exact_set_singles": _share([record["exact_set"] for record in singles]),
         "exact_set_strict": _share([record["exact_set_strict"] for record in scored]),
         "present_named": dict(
@@ -254,7 +297,9 @@ def _matrix_markdown(scored: list[dict]) -> list[str]:
 
 SUMMARY_ROWS = (
     ("top-1 (singles)", "top1_accuracy"),
+    ("top-1 or declared not identifiable (singles)", "top1_answered"),
     ("exact set (all cases)", "exact_set_accuracy"),
+    ("exact set, a truth declared not identifiable answers (all cases)", "exact_set_answered"),
     ("exact set (singles)", "exact_set_singles"),
     ("exact set, strict (present effects count as errors)", "exact_set_strict"),
     ("false positives (clean)", "false_positive_rate"),
@@ -299,6 +344,13 @@ def markdown(result: dict, provenance: dict) -> str:
         "nor counted as an error; the rows 'exact set, strict' and 'named, present' show them,",
         "and their evidence on clean cases is left out of calibration.",
         "",
+        "An injected effect whose realisation changed no pixel is scored as not there (row",
+        "'injected but inert'): at 48 px the defocus sampler's radius, 1-2.5 px at 128 px, is",
+        "0.47 px, and a pillbox inside the centre pixel is the identity kernel (the images equal",
+        "the clean case's). The strict rows count a truth effect that the diagnosis reports as",
+        "'not identifiable from this data' as missed; the 'declared not identifiable' rows count",
+        "it as answered (never as found). See docs/decisions/0191-blind-misses.md.",
+        "",
     ]
     for label, key in (("leave-one-scene-out", "loso"), ("code thresholds", "code")):
         worlds = result[key]["summary"]
@@ -319,6 +371,8 @@ def markdown(result: dict, provenance: dict) -> str:
         lines.append("| spurious significant effects | " + " | ".join(spurious) + " |")
         present = [_counts(worlds[w]["present_named"]) for w in names]
         lines.append("| named, present in the world, not injected | " + " | ".join(present) + " |")
+        inert = [_counts(worlds[w].get("inert", {})) for w in names]
+        lines.append("| injected but inert (scored as not there) | " + " | ".join(inert) + " |")
         lines.append("")
     lines += ["## Confusion matrices (leave-one-scene-out; singles and clean)", ""]
     for world, records in by_world(result["loso"]["cases"]).items():
@@ -327,13 +381,14 @@ def markdown(result: dict, provenance: dict) -> str:
     lines += [
         "## Cases (leave-one-scene-out)",
         "",
-        "| world | scene | case | truth | significant | exact | calibrated on |",
-        "|---|---|---|---|---|---|---|",
+        "| world | scene | case | truth | significant | not identifiable | exact | calibrated on |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for record in result["loso"]["cases"]:
         lines.append(
             f"| {record['world']} | {record['scene']} | {record['case']} | "
             f"{', '.join(record['truth']) or 'none'} | {', '.join(record['significant']) or 'none'}"
+            f" | {', '.join(record.get('not_identifiable', []))}"
             f" | {'yes' if record['exact_set'] else 'no'} | {', '.join(record['calibrated_on'])} |"
         )
     lines += ["", "## Calibrated thresholds per held-out scene group", ""]

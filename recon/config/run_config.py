@@ -73,11 +73,32 @@ class MaterialConfig:
         0.5,
         "Specular reflectance level; used only where light transport renders the 'specular' effect.",
     )
+    roughness_texture: Literal["none", "checker", "stripes", "noise", "patches"] = setting(
+        "none",
+        "A spatially varying roughness: this procedural pattern over the texture's UVs, scaled into roughness_range (seeded with seed + 1); replaces roughness where the 'specular' effect is rendered (principled BSDF), and the ground truth's reference mesh carries it (map_Pr). Needs a textured mesh.",
+    )
+    roughness_range: list[float] = setting(
+        factory=lambda: [0.1, 0.4],
+        doc="Lowest and highest roughness of roughness_texture's pattern.",
+    )
 
     def __post_init__(self) -> None:
         check_range(self.texture_size, "texture_size", low=4, high=8192)
         check_range(self.roughness, "roughness", low=0.01, high=1.0)
         check_range(self.specular_level, "specular_level", low=0.0, high=1.0)
+        if len(self.roughness_range) != 2 or not (
+            0.01 <= self.roughness_range[0] <= self.roughness_range[1] <= 1.0
+        ):
+            raise ConfigFieldError(
+                "roughness_range",
+                f"expected [low, high] with 0.01 <= low <= high <= 1, got {self.roughness_range}",
+            )
+        if self.roughness_texture != "none" and self.albedo == "vertex_noise":
+            raise ConfigFieldError(
+                "roughness_texture",
+                f"{self.roughness_texture!r} is a texture over UVs, but albedo 'vertex_noise' "
+                "gives the mesh vertex colours and no texture; use a textured albedo",
+            )
 
 
 @dataclass
@@ -314,6 +335,30 @@ class FlatFieldConfig:
 
 
 @dataclass
+class OwnSpecularConfig:
+    """The 'specular' effect rendered by backend 'own': recon's split-sum GGX shading
+    (recon.render.pbr) under the world's environment (map and SH, resampled to one lat-long
+    map) and directional lights, with no shadows or interreflection; the Mitsuba backend path
+    traces the same material."""
+
+    environment_size: list[int] = setting(
+        factory=lambda: [32, 64],
+        doc="Lat-long size [h, w] the world's environment is resampled to before pre-filtering (the brute-force pre-filter's cost grows with the square of its texel count).",
+    )
+    prefilter_levels: int = setting(
+        8, "Pre-filtered roughness levels besides the map itself (roughness linspace(0, 1, n + 1))."
+    )
+
+    def __post_init__(self) -> None:
+        if len(self.environment_size) != 2:
+            raise ConfigFieldError(
+                "environment_size", f"expected [h, w], got {self.environment_size}"
+            )
+        check_range(self.environment_size, "environment_size", low=4, high=256)
+        check_range(self.prefilter_levels, "prefilter_levels", low=1, high=32)
+
+
+@dataclass
 class CaptureConfig:
     """Views per split; the train/val/test cameras are drawn from one rig, disjoint."""
 
@@ -339,9 +384,13 @@ class CaptureConfig:
     )
     backend: Literal["auto", "own", "mitsuba"] = setting(
         "auto",
-        "Renderer of the captures: own (recon's rasterizer), mitsuba (the path tracer), or auto (mitsuba only when a light-transport effect, specular, shadows or interreflection, is requested).",
+        "Renderer of the captures: own (recon's rasterizer; the specular effect with its split-sum shading, no shadows or interreflection), mitsuba (the path tracer), or auto (mitsuba only when a light-transport effect, specular, shadows or interreflection, is requested).",
     )
     mitsuba_spp: int = setting(64, "Samples per pixel of the Mitsuba path tracer.")
+    own_specular: OwnSpecularConfig = setting(
+        factory=OwnSpecularConfig,
+        doc="How backend 'own' renders the 'specular' effect (recon's split-sum shading).",
+    )
     write_exr: bool = setting(True, "Also write each view as linear EXR beside the PNG.")
     write_depth_normals: bool = setting(False, "Also write depth and normal EXRs per view.")
     contact_sheet: bool = setting(True, "Write captures_contact_sheet.png into the run folder.")
@@ -353,9 +402,8 @@ class CaptureConfig:
         check_range(self.mitsuba_spp, "mitsuba_spp", low=1, high=65536)
         _check_vector(self.background, "background")
         names = [effect.name for effect in self.effects]
-        light_transport = [
-            name for name in names if name in ("specular", "shadows", "interreflection")
-        ]
+        # recon's own renderer shades 'specular' with its split-sum model; it traces no rays.
+        light_transport = [name for name in names if name in ("shadows", "interreflection")]
         if self.backend == "own" and light_transport:
             raise ConfigFieldError(
                 "backend",
@@ -691,6 +739,12 @@ class FitConfig:
         check_range(self.checkpoint_every, "checkpoint_every", low=1)
 
 
+# Twice the largest shared per-view colour spread of the blind check's clean synthetic fits
+# (2 x 0.0186, Mitsuba teapot; 10 clean cases of the own and Mitsuba worlds, /work/blind_runs/b48v9;
+# docs/decisions/0191-blind-misses.md).
+AGREEMENT_WHITE_BALANCE = 0.037
+
+
 @dataclass
 class DecisionConfig:
     """The significance decision's allowances (recon.diagnose.decision): what each kind of
@@ -742,8 +796,22 @@ class DecisionConfig:
         0.02,
         "Share of interior pixels the fitted mesh must shadow for the fingerprint to be testable at all.",
     )
+    agreement_allowance: dict[str, float] = setting(
+        factory=lambda: {"white_balance": AGREEMENT_WHITE_BALANCE},
+        doc="Per effect with agreement evidence (recon.diagnose.agreement): the per-view colour spread (RMS log gain) that separate halves of each view must share (twice the largest on the blind check's clean synthetic fits, docs/decisions/0191-blind-misses.md).",
+    )
+    agreement_minimum: float = setting(
+        0.01,
+        "Floor of every agreement allowance: a 1 % per-view colour change, about a just-noticeable colour difference.",
+    )
+    agreement_alpha: float = setting(
+        0.01,
+        "Level of the agreement's permutation test (views of one half permuted): conventional, not tuned.",
+    )
 
     def __post_init__(self) -> None:
+        check_range(self.agreement_minimum, "agreement_minimum", low=0.0, high=1.0)
+        check_range(self.agreement_alpha, "agreement_alpha", low=0.0, high=1.0)
         for name in ("minimum_share", "absorption_minimum_share", "regression_minimum_share"):
             check_range(getattr(self, name), name, low=0.0, high=1.0)
         for name in ("relight_allowance", "flat_field_allowance", "visibility_share_minimum"):
@@ -766,6 +834,10 @@ class SpecificityConfig:
         3, "Cells per axis of the grid over the fitted object's bounding box (surface regions)."
     )
     position_cells: int = setting(3, "Cells per axis of the image-position grid.")
+    normal_cells: int = setting(
+        4,
+        "Cells per axis of the grid over the x and y components of the normal in camera axes (the domain of everything a light fixed to the camera does).",
+    )
     alpha: float = setting(
         0.01,
         "The F-test's level: a candidate is specific when its own gain stands out above its scatter across every confusable domain's bins at this level (conventional, not tuned).",
@@ -780,10 +852,35 @@ class SpecificityConfig:
     seed: int = setting(0, "Random seed of the retained share's bootstrap over views.")
 
     def __post_init__(self) -> None:
-        for name in ("angle_bins", "intensity_bins", "surface_cells", "position_cells"):
+        for name in (
+            "angle_bins",
+            "intensity_bins",
+            "surface_cells",
+            "position_cells",
+            "normal_cells",
+        ):
             check_range(getattr(self, name), name, low=1)
         for name in ("alpha", "retained_share", "interval"):
             check_range(getattr(self, name), name, low=0.0, high=1.0)
+
+
+@dataclass
+class GeometricSpecificityConfig:
+    """The specificity checks of the geometric and blur candidates (recon.diagnose.
+    geometric_specificity): does the candidate keep a reduction on top of the effect it is
+    most often confused with, or does that effect take its place? The allowances are the
+    decision's probe allowances; bootstrap resamples are the section's."""
+
+    enabled: bool = setting(
+        True, "Run the checks (each costs one joint probe fit per confuser of a cleared candidate)."
+    )
+    margin: float = setting(
+        0.0,
+        "How far the confuser's reduction on top of the candidate (its lower bound) must exceed the candidate's on top of the confuser (its upper bound) to take its place.",
+    )
+
+    def __post_init__(self) -> None:
+        check_range(self.margin, "margin", low=0.0, high=1.0)
 
 
 @dataclass
@@ -982,6 +1079,10 @@ class DiagnoseConfig:
     )
     specificity: SpecificityConfig = setting(
         factory=SpecificityConfig, doc="Specificity checks of the gain-like candidates."
+    )
+    geometric_specificity: GeometricSpecificityConfig = setting(
+        factory=GeometricSpecificityConfig,
+        doc="Specificity checks of the geometric and blur candidates.",
     )
     nulls: NullConfig = setting(
         factory=NullConfig, doc="Nulls from the run: placebo effects and split-half agreement."

@@ -4,6 +4,10 @@ specificity, identifiability and capture metadata.
 Each producer is ``producer(inputs, candidates, settings) -> list[Evidence]`` and runs after the
 built-in evidence; the decision table (recon.diagnose.decision) says what each kind does:
 
+- agreement (recon.diagnose.agreement): a per-view colour gain (white_balance) shared by
+  separate halves of each view clears the candidate even where it is a small share of a large
+  misfit (a local colour misfit differs between the halves).
+
 - null (recon.diagnose.nulls): for a candidate that only its probe made significant, the
   probe's held-out reduction against placebo effects of its size on this run (and, for the
   per-view gains, split-half agreement); a failed one keeps the probe from clearing.
@@ -13,7 +17,8 @@ built-in evidence; the decision table (recon.diagnose.decision) says what each k
 - identifiability (recon.diagnose.identifiability): a tone curve with no second intensity of any
   surface point, a falloff measured short of the corners or absorbable by the albedo, a lens
   distortion a per-view pose correction reproduces (judged at its recovered size when it
-  cleared), a directional blur with edges one way only: details["capture"] says what would
+  cleared), a directional blur with edges one way only, a white balance whose views share no
+  colour change (a cast common to every view is the albedo's): details["capture"] says what would
   settle it; the decision makes a miss "not identifiable from this data, because ..." and a
   cleared candidate confusable with a named effect ambiguous.
 - metadata (recon.diagnose.metadata_check): the recovered exposure against EXIF exposure when
@@ -28,12 +33,15 @@ from typing import TYPE_CHECKING
 import torch
 
 from recon.config.run_config import DiagnoseConfig
+from recon.diagnose.agreement import agreement_evidence
+from recon.diagnose.decision import DECISION_TABLE
 from recon.diagnose.identifiability import (
     CaptureConditions,
     lens_distortion_evidence,
     motion_blur_evidence,
     response_curve_evidence,
     vignetting_evidence,
+    white_balance_evidence,
 )
 from recon.diagnose.metadata_check import exif_exposure_gains, metadata_evidence
 from recon.diagnose.nulls import null_evidence, split_half_evidence
@@ -46,12 +54,25 @@ if TYPE_CHECKING:  # producers imports this module to register the checks
 
 # Clearing evidence besides the probe: a candidate they made significant is not the probe's
 # claim, so the probe's null does not apply to it.
-OTHER_CLEARING = ("absorption", "relight", "flat_field", "fingerprint")
+OTHER_CLEARING = ("absorption", "relight", "flat_field", "fingerprint", "agreement")
 
 
 def _cleared(candidate: Candidate, kind: str) -> bool:
     evidence = candidate.evidence_of(kind)
     return evidence is not None and evidence.counts and evidence.passed
+
+
+def agreement_producer(
+    inputs: EvidenceInputs, candidates: list[Candidate], settings: DiagnoseConfig
+) -> list[Evidence]:
+    """Agreement of the per-view colour gain between separate halves of each view, for the
+    candidates with an agreement allowance (white_balance)."""
+    names = {candidate.name for candidate in candidates}
+    return [
+        agreement_evidence(inputs.data, name, settings)
+        for name in settings.decision.agreement_allowance
+        if name in names
+    ]
 
 
 def null_producer(
@@ -78,10 +99,24 @@ def null_producer(
 def specificity_producer(
     inputs: EvidenceInputs, candidates: list[Candidate], settings: DiagnoseConfig
 ) -> list[Evidence]:
-    """Specificity of the gain-like candidates against their confusable domains."""
-    names = [candidate.name for candidate in candidates if candidate.name in SIGNATURES]
+    """Specificity of the gain-like candidates against their confusable domains. A candidate
+    that a direct measurement decides (flat-field frames measure a falloff itself) is not
+    checked: its residual signature is not what names it."""
+    names = [
+        candidate.name
+        for candidate in candidates
+        if candidate.name in SIGNATURES and not _measured_directly(candidate)
+    ]
+    if not names:  # (specificity_evidence reads an empty list as "every signature")
+        return []
     significant = {candidate.name for candidate in candidates if candidate.significant}
     return specificity_evidence(inputs.data, names, settings, significant)
+
+
+def _measured_directly(candidate: Candidate) -> bool:
+    """Whether the candidate has evidence of a kind that overrules the rest (decision table)."""
+    overruling = {rule.kind for rule in DECISION_TABLE if rule.role == "overrule"}
+    return any(item.kind in overruling for item in candidate.evidence)
 
 
 def _exposure_gains(inputs: EvidenceInputs):
@@ -113,6 +148,15 @@ def identifiability_producer(
         evidence.append(_as_condition(lens_distortion_evidence(inputs.data, options, shift)))
     if "motion_blur" in names:
         evidence.append(_as_condition(motion_blur_evidence(inputs.data, options)))
+    agreement = (
+        by_name["white_balance"].evidence_of("agreement") if "white_balance" in names else None
+    )
+    if agreement is not None:
+        # Judged by the agreement's shared colour spread (a cast common to every view is none).
+        condition = white_balance_evidence(
+            agreement.statistic, agreement.threshold, int(agreement.details.get("views", 0))
+        )
+        evidence.append(_as_condition(condition))
     return evidence
 
 
@@ -178,4 +222,10 @@ def metadata_producer(
     return [metadata_evidence(ratios, known, "exposure", settings.metadata, divided=divided)]
 
 
-CHECK_PRODUCERS = [null_producer, specificity_producer, identifiability_producer, metadata_producer]
+CHECK_PRODUCERS = [
+    agreement_producer,
+    null_producer,
+    specificity_producer,
+    identifiability_producer,
+    metadata_producer,
+]

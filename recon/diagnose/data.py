@@ -124,6 +124,25 @@ class DiagnosisData:
         return self.triangle_id >= 0
 
 
+def box_dilate(mask: torch.Tensor, radius: int) -> torch.Tensor:
+    """Binary dilation of masks [B, 1, H, W] (float 0/1) by a (2 radius + 1)^2 square, as
+    max_pool2d with that window, stride 1 and padding radius gives it, at a fraction of its
+    cost on the CPU: two one-dimensional box sums (a 384 px diagnosis dilates dozens of such
+    masks)."""
+    if radius <= 0:
+        return mask
+    size = 2 * radius + 1
+    rows = torch.nn.functional.avg_pool2d(mask, (1, size), stride=1, padding=(0, radius))
+    both = torch.nn.functional.avg_pool2d(rows, (size, 1), stride=1, padding=(radius, 0))
+    return (both > 0).to(mask.dtype)
+
+
+def box_erode(mask: torch.Tensor, radius: int) -> torch.Tensor:
+    """Binary erosion of masks [B, 1, H, W] (float 0/1) by a (2 radius + 1)^2 square; pixels
+    beyond the image border do not erode (as -max_pool2d(-mask) gives it)."""
+    return 1 - box_dilate(1 - mask, radius)
+
+
 def region_mask(
     observed_alpha: torch.Tensor,
     rendered_alpha: torch.Tensor,
@@ -137,9 +156,7 @@ def region_mask(
     """
     covered = (observed_alpha > COVERAGE_THRESHOLD) | (rendered_alpha > COVERAGE_THRESHOLD)
     covered = covered.float().permute(0, 3, 1, 2)  # [B, 1, H, W]
-    if band_pixels > 0:
-        size = 2 * band_pixels + 1
-        covered = torch.nn.functional.max_pool2d(covered, size, stride=1, padding=band_pixels)
+    covered = box_dilate(covered, band_pixels)
     return covered.permute(0, 2, 3, 1).contiguous()
 
 

@@ -15,13 +15,17 @@ flat_field    overrule      measures the falloff itself: decides alone, either w
 probe         clear         held-out reduction's lower bound above its allowance: significant
 absorption    clear         the same for the absorption refit (unless voided)
 relight       clear         the same for the relight split's probe
+agreement     clear         a per-view colour gain shared by separate halves of each view
+                            above its allowance, beyond permuted views (recon.diagnose.agreement)
 fingerprint   name          the visibility fingerprint names the effect (ranks after the above)
 null          raise bar     a failed null from the run (placebo, permutation, split half)
                             keeps the clearing rows from making the candidate significant
 specificity   veto          a failed check says the signature is not the candidate's: it is not
                             significant, and ``details["instead"]`` (a base-model mismatch
                             such as view_dependent_reflectance) is named in its place, with the
-                            vetoed candidate's rank, when the vetoed one had cleared
+                            vetoed candidate's rank, when the vetoed one had cleared; a
+                            candidate decided on other data than the held-out residual
+                            (flat_field, relight: ``Rule.independent``) is not vetoed by it
 identifiability  qualify    a failed check on a candidate that did not clear: "not
                             identifiable from this data, because ..." (not a silent miss); on
                             one that cleared and whose condition names a confusable effect
@@ -80,6 +84,17 @@ def absorption_threshold(effect: str, config: DecisionConfig) -> float:
     return max(floor, config.absorption_allowance.get(effect, config.minimum_share))
 
 
+def agreement_threshold(effect: str, config: DecisionConfig) -> float:
+    """The per-view colour spread an agreement evidence must clear (floored)."""
+    return max(config.agreement_minimum, config.agreement_allowance.get(effect, 0.0))
+
+
+def _agrees(evidence: Evidence, threshold: float, config: DecisionConfig) -> bool:
+    """The halves share a spread above the allowance, and more than permuted views do."""
+    p_value = evidence.details.get("p_value", 1.0)
+    return evidence.statistic > threshold and p_value < config.agreement_alpha
+
+
 def _lower_bound_clears(evidence: Evidence, threshold: float, config: DecisionConfig) -> bool:
     return evidence.statistic > threshold
 
@@ -108,6 +123,9 @@ class Rule:
     passes: whether the evidence clears the allowance (None: keep the producer's passed).
     parameters_from: evidence kinds whose parameters are reported when this row decides, in
         order of preference.
+    independent: whether it measures the effect on other data than the held-out residual
+        (flat-field frames, the relight split under its own light): a specificity veto, a
+        pattern of the held-out residual, does not overturn it.
     """
 
     kind: str
@@ -117,6 +135,7 @@ class Rule:
     threshold: Callable[[str, DecisionConfig], float] | None = None
     passes: Callable[[Evidence, float, DecisionConfig], bool] | None = None
     parameters_from: tuple[str, ...] = ()
+    independent: bool = False
 
 
 DECISION_TABLE: tuple[Rule, ...] = (
@@ -127,6 +146,7 @@ DECISION_TABLE: tuple[Rule, ...] = (
         threshold=lambda effect, config: config.flat_field_allowance,
         passes=_lower_bound_clears,
         parameters_from=("absorption", "probe"),
+        independent=True,
     ),
     Rule(
         "probe",
@@ -154,6 +174,15 @@ DECISION_TABLE: tuple[Rule, ...] = (
         threshold=lambda effect, config: config.relight_allowance,
         passes=_lower_bound_clears,
         parameters_from=("relight", "probe"),
+        independent=True,
+    ),
+    Rule(
+        "agreement",
+        "clear",
+        measured=True,
+        threshold=agreement_threshold,
+        passes=_agrees,
+        parameters_from=("probe",),
     ),
     Rule(
         "fingerprint",
@@ -229,6 +258,10 @@ def decide(candidate: Candidate, config: DecisionConfig) -> Candidate:
         why = explain(deciding)
     status = "significant" if deciding is not None else "not_significant"
     vetoes = [item for item in _role_evidence(candidate, "veto") if not item.passed]
+    if deciding is not None and RULES[deciding.kind].independent:
+        # Measured on other data (flat-field frames, the relight split): the held-out
+        # residual's pattern (specificity) does not overturn it; the capture's record does.
+        vetoes = [item for item in vetoes if item.kind != "specificity"]
     if vetoes and status == "significant":
         status, why = "vetoed", vetoes[0].reason
     unidentifiable = [item for item in _role_evidence(candidate, "qualify") if not item.passed]

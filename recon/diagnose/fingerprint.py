@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import torch
 
 from recon.config.run_config import DecisionConfig, DiagnoseConfig
-from recon.diagnose.data import DiagnosisData
+from recon.diagnose.data import DiagnosisData, box_erode
 from recon.diagnose.records import Evidence
 from recon.effects.light_transport import dominant_light, vertex_light_visibility
 from recon.effects.registry import effects_with_evidence
@@ -119,8 +119,9 @@ def _signatures(data: DiagnosisData, output: RenderOutput) -> dict[str, torch.Te
 def _interior(output: RenderOutput) -> torch.Tensor:
     """[B, H, W] bool: fully covered pixels with a real albedo (silhouettes left out)."""
     alpha = output.alpha[..., 0]
-    eroded = -torch.nn.functional.max_pool2d(-alpha[:, None], 3, stride=1, padding=1)[:, 0]
-    return (eroded > 0.999) & (output.albedo.sum(-1) > 1e-4)
+    # (the 3 x 3 minimum of alpha above 0.999: every pixel of the box above it)
+    eroded = box_erode((alpha[:, None] > 0.999).float(), 1)[:, 0]
+    return (eroded > 0.5) & (output.albedo.sum(-1) > 1e-4)
 
 
 def _solve(grams: torch.Tensor, moments: torch.Tensor) -> torch.Tensor:

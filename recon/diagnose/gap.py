@@ -20,7 +20,7 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from recon.diagnose.data import COVERAGE_THRESHOLD, DiagnosisData
+from recon.diagnose.data import COVERAGE_THRESHOLD, DiagnosisData, box_erode
 from recon.diagnose.residuals import quantile_edges
 
 # A 3 x 3 box mean removes 1/9 of a white pixel's own value and adds 1/81 of eight neighbours':
@@ -122,7 +122,7 @@ def noise_floor(data: DiagnosisData, bins: int = NOISE_BINS) -> dict:
     residual = data.residual.permute(0, 3, 1, 2)  # [B, 3, H, W]
     interior = (data.rendered_mask & (data.observed_alpha[..., 0] > COVERAGE_THRESHOLD)).float()
     # Erode by two pixels: the 3 x 3 box must not reach the silhouette, nor its antialiasing.
-    interior = -torch.nn.functional.max_pool2d(-interior[:, None], 5, stride=1, padding=2)
+    interior = box_erode(interior[:, None], 2)
     interior = interior[:, 0] > 0.5  # [B, H, W]
     box = torch.nn.functional.avg_pool2d(residual, 3, stride=1, padding=1)
     highpass = (residual - box).permute(0, 2, 3, 1)[interior].reshape(-1)  # [N x 3]

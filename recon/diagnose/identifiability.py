@@ -5,7 +5,8 @@ some data, whatever the diagnosis does: a tone curve under one light with no exp
 texel is seen at one intensity, so the albedo absorbs the curve), a vignetting falloff where the
 object never reaches the corners, a lens distortion where the object covers the centre only (it
 then moves pixels like a per-view zoom and shift, which a pose correction also makes), a
-motion blur in views whose edges all run one way (a blur along them looks like a defocus).
+motion blur in views whose edges all run one way (a blur along them looks like a defocus), a
+white balance that is the same in every view (the albedo's colour absorbs it).
 Saying so is part of the answer: "not identifiable from this data, because ...", and what
 capture would settle it.
 
@@ -314,6 +315,34 @@ def motion_blur_evidence(data: DiagnosisData, options: IdentifiabilityConfig) ->
     return Evidence(
         KIND, "motion_blur", coherence, options.maximum_edge_coherence, passed, reason, details
     )
+
+
+def white_balance_evidence(spread: float, allowance: float, views: int) -> Evidence:
+    """A white balance is identified by how the views' colours change from view to view (the
+    shared spread of recon.diagnose.agreement); a colour cast common to every view is the
+    albedo's colour to a fit without a reference of known colour. When the views share no
+    colour change above the allowance, a white balance, if there is one, is such a cast."""
+    details = {
+        "shared_spread": spread,
+        "allowance": allowance,
+        "views": views,
+        "confused_with": ["albedo"],
+    }
+    if spread > allowance:
+        reason = (
+            f"white_balance is identifiable: the views' colours change from view to view by "
+            f"{100 * spread:.1f} % (RMS, shared by separate halves of each view over {views} "
+            "views); only a cast common to every view would be absorbed by the albedo"
+        )
+        return Evidence(KIND, "white_balance", spread, allowance, True, reason, details)
+    reason = (
+        "white_balance is not identifiable from this data, because a colour cast common to "
+        "every view is absorbed by the albedo's colour, and the views' colours change from "
+        f"view to view by only {100 * spread:.1f} % (RMS, shared by separate halves of each "
+        f"view; allowance {100 * allowance:.1f} %); a grey card or another target of known "
+        "colour in the views would settle it"
+    )
+    return Evidence(KIND, "white_balance", spread, allowance, False, reason, details)
 
 
 def identifiability_evidence(

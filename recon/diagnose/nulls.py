@@ -70,12 +70,22 @@ def checkerboard(batch: int, height: int, width: int, block_pixels: int) -> torc
     return first[None, :, :, None].expand(batch, height, width, 1)
 
 
-def smooth_fields(count: int, height: int, width: int, cells: int, generator) -> torch.Tensor:
-    """count random smooth fields [count, H, W] (unit variance grid, bilinear upsampled)."""
+def smooth_fields(
+    count: int, height: int, width: int, cells: int, generator, keep: torch.Tensor | None = None
+) -> torch.Tensor:
+    """count random smooth fields [count, H, W] (unit variance grid, bilinear upsampled).
+    keep: [count] bool, the fields to upsample (the others are drawn, so the random stream
+    stays the same, and returned as zeros without the cost of upsampling them)."""
     grid = torch.randn(count, 1, cells, cells, generator=generator)
-    return torch.nn.functional.interpolate(
-        grid, size=(height, width), mode="bilinear", align_corners=True
+    if keep is None:
+        return torch.nn.functional.interpolate(
+            grid, size=(height, width), mode="bilinear", align_corners=True
+        )[:, 0]
+    fields = torch.zeros(count, height, width, dtype=grid.dtype)
+    fields[keep] = torch.nn.functional.interpolate(
+        grid[keep], size=(height, width), mode="bilinear", align_corners=True
     )[:, 0]
+    return fields
 
 
 def image_gradients(image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -136,17 +146,24 @@ def placebo_bases(
     per view."""
     batch, height, width = size
     views = 1 if shared else batch
-    fields = smooth_fields(count * views * 2, height, width, settings.nulls.field_cells, generator)
-    fields = fields.view(count, views, 2, height, width)
+    # Two fields per parameter are drawn (a displacement's x and y); a gain uses the first only,
+    # so the second is drawn (the same random stream either way) but not upsampled.
+    components = 2 if geometric else 1
+    keep = (torch.arange(count * views * 2) % 2) < components
+    fields = smooth_fields(
+        count * views * 2, height, width, settings.nulls.field_cells, generator, keep
+    )
+    fields = fields.view(count, views, 2, height, width)[:, :, :components]
     view = torch.zeros_like(pixels.view) if shared else pixels.view
-    values = fields.permute(1, 3, 4, 0, 2)[view, pixels.row, pixels.column]  # [N, count, 2]
-    values = values.permute(1, 0, 2).contiguous()  # [count, N, 2]
+    # [N, count, components]
+    values = fields.permute(1, 3, 4, 0, 2)[view, pixels.row, pixels.column]
+    values = values.permute(1, 0, 2).contiguous()  # [count, N, components]
     # A placebo must mean nothing: without its mean over the view's object (weighted by the
     # render's energy), a random gain field is partly a uniform gain (an exposure), and a
     # random displacement field partly a shift (a pose change).
     weight = (pixels.rendered**2).sum(-1)
     total = torch.zeros(batch).index_add_(0, pixels.view, weight).clamp_min(1e-30)
-    for component in range(2):
+    for component in range(components):
         sums = torch.zeros(count, batch).index_add_(1, pixels.view, values[..., component] * weight)
         values[..., component] -= (sums / total)[:, pixels.view]
     if not geometric:

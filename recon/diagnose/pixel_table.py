@@ -107,6 +107,7 @@ def pixel_table(
     surface_cells: int = 3,
     position_cells: int = 3,
     block_pixels: int = 4,
+    normal_cells: int = 4,
 ) -> PixelTable:
     """The table of data's rendered object pixels with the labels of every domain:
 
@@ -114,7 +115,9 @@ def pixel_table(
     bounding box: a region of the fitted mesh, whatever its UVs); n_dot_h (quantile bins of n.h
     against the fitted light's main direction, or of n.v without one); n_dot_v; intensity
     (quantile bins of the rendered luminance); image_position (a position_cells^2 grid of the
-    image); radius (quantile bins of the distance from the principal point).
+    image); radius (quantile bins of the distance from the principal point); camera_normal (a
+    normal_cells^2 grid over the x and y components of the shading normal in the view's camera
+    axes: under a light fixed to the camera, everything the light does at a pixel follows it).
     """
     batch, height, width, _ = data.observed.shape
     world, to_camera = view_directions(data)
@@ -137,6 +140,10 @@ def pixel_table(
     halfway = halfway / halfway.norm(dim=-1, keepdim=True).clamp_min(1e-9)
     n_dot_h = (normals * halfway).sum(-1)
     n_dot_v = (normals * to_camera).sum(-1)
+    camera_rotation = data.cameras.world_to_cam[:, :3, :3].to(normals)
+    camera_normals = (normals.reshape(batch, -1, 3) @ camera_rotation.transpose(1, 2)).view(
+        batch, height, width, 3
+    )
 
     rows = torch.arange(height)[:, None].expand(height, width)
     columns = torch.arange(width)[None, :].expand(height, width)
@@ -158,6 +165,9 @@ def pixel_table(
     surface = (cell[:, 0] * surface_cells + cell[:, 1]) * surface_cells + cell[:, 2]
 
     view = torch.arange(batch)[:, None, None].expand(batch, height, width)[keep]
+    facing = camera_normals[keep]
+    normal_column = ((facing[:, 0] + 1) / 2 * normal_cells).long().clamp(0, normal_cells - 1)
+    normal_row = ((facing[:, 1] + 1) / 2 * normal_cells).long().clamp(0, normal_cells - 1)
     values = {
         "n_dot_h": n_dot_h[keep],
         "n_dot_v": n_dot_v[keep],
@@ -172,6 +182,7 @@ def pixel_table(
         "intensity": quantile_labels(values["intensity"], intensity_bins),
         "image_position": position[keep],
         "radius": quantile_labels(values["radius"], angle_bins),
+        "camera_normal": normal_row * normal_cells + normal_column,
     }
     return PixelTable(
         view=view,

@@ -53,8 +53,10 @@ PRODUCERS: list[EvidenceProducer] = []
 def _register_checks() -> None:
     """Issue 20's checks (recon.diagnose.checks), imported late: they read EvidenceInputs."""
     from recon.diagnose.checks import CHECK_PRODUCERS
+    from recon.diagnose.geometric_checks import GEOMETRIC_PRODUCERS
 
     PRODUCERS.extend(CHECK_PRODUCERS)
+    PRODUCERS.extend(GEOMETRIC_PRODUCERS)
 
 
 _register_checks()

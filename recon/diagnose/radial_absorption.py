@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import torch
 
 from recon.config.run_config import DiagnoseConfig
-from recon.diagnose.data import DiagnosisData
+from recon.diagnose.data import DiagnosisData, box_dilate
 from recon.diagnose.which import block_halves
 from recon.effects.photometric import Vignetting, normalised_radius
 
@@ -72,8 +72,7 @@ class InteriorPixels:
         # margin pixels in from either silhouette: antialiasing, a sub-pixel edge
         # offset and grazing-angle shading are not a falloff.
         outside = (~covered).float().permute(0, 3, 1, 2)
-        window = 2 * margin + 1
-        interior = torch.nn.functional.max_pool2d(outside, window, stride=1, padding=margin) == 0
+        interior = box_dilate(outside, margin) == 0
         interior = interior.permute(0, 2, 3, 1).expand(batch, height, width, channels)
         bright = (data.rendered > settings.regression_minimum_rendered) & (data.observed > 0)
         keep = interior & bright

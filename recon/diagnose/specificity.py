@@ -48,6 +48,7 @@ DOMAIN_WORDS = {
     "intensity": "the rendered intensity",
     "image_position": "the image position",
     "radius": "the distance from the image centre",
+    "camera_normal": "the normal in camera axes",
 }
 
 
@@ -170,11 +171,28 @@ def view_covariate_slope(table: PixelTable, models: GainModels, domain: str) -> 
     return {"slope": slope, "slope_error": error, "correlation": correlation}
 
 
-def _confusers(signature: Signature, data: DiagnosisData) -> dict[str, str | None]:
+# Confusers of a gain tied to the image when the fit's light turns with the camera (a turntable
+# capture): such a light's shading and highlights follow the normal in camera axes, and with the
+# object held at the image centre they land at the same image radii in every view. A falloff is
+# one gain per radius whatever the normal there; the object's mismatch under that light is not.
+# (The fitted light's own direction cannot stand in for it: a diffuse fit of a glossy object puts
+# its light where the diffuse shading wants it; the untouched real capture's points up from
+# below while its highlights sit on the crown.)
+_CAMERA_LIGHT_CONFUSERS: dict[str, dict[str, str | None]] = {
+    "vignetting": {
+        "camera_normal": VIEW_DEPENDENT_REFLECTANCE,
+        "n_dot_v": VIEW_DEPENDENT_REFLECTANCE,
+    },
+}
+
+
+def _confusers(name: str, signature: Signature, data: DiagnosisData) -> dict[str, str | None]:
     confusers = dict(signature.confusers)
-    if data.lighting.frame == "camera" and confusers.get("n_dot_v") == CAMERA_FIXED_LIGHT:
-        # The fit already turns its light with the camera: n.v is then a highlight's angle.
-        confusers["n_dot_v"] = VIEW_DEPENDENT_REFLECTANCE
+    if data.lighting.frame == "camera":
+        if confusers.get("n_dot_v") == CAMERA_FIXED_LIGHT:
+            # The fit already turns its light with the camera: n.v is then a highlight's angle.
+            confusers["n_dot_v"] = VIEW_DEPENDENT_REFLECTANCE
+        confusers.update(_CAMERA_LIGHT_CONFUSERS.get(name, {}))
     return confusers
 
 
@@ -217,7 +235,7 @@ def signature_evidence(
     """The specificity Evidence of one gain-like candidate (details["instead"]: the mismatch
     that explains it, when one does and the candidate was significant)."""
     signature = SIGNATURES[name]
-    confusers = _confusers(signature, data)
+    confusers = _confusers(name, signature, data)
     base = list(signature.base)
     own = list(signature.own)
     factors = sorted({f for term in base + own for f in term if f != "channel"} | {"view"})
@@ -353,6 +371,7 @@ def specificity_evidence(
         surface_cells=settings.specificity.surface_cells,
         position_cells=settings.specificity.position_cells,
         block_pixels=settings.block_pixels,
+        normal_cells=settings.specificity.normal_cells,
     )
     evidence: list[Evidence] = []
     for name in names:

@@ -342,16 +342,18 @@ def conditional_probes(candidates: list[Candidate], probe: EffectProbe, given: s
         reduction, interval = bootstrap_reduction(alone, joint, settings.bootstrap_samples)
         earlier = candidate.evidence_of("probe")
         score = None if earlier is None else earlier.details.get("score")
-        candidate.add(
-            probe_evidence(
-                candidate.name,
-                reduction,
-                interval,
-                modules[1].parameters_summary(),
-                score,
-                conditional_on=given,
-            )
+        conditional = probe_evidence(
+            candidate.name,
+            reduction,
+            interval,
+            modules[1].parameters_summary(),
+            score,
+            conditional_on=given,
         )
+        if earlier is not None and not earlier.details.get("conditional_on"):
+            # Kept so the probe alone can be restored if `given` is vetoed later.
+            conditional.details["alone"] = earlier.to_json()
+        candidate.add(conditional)
         decide(candidate, settings.decision)
 
 

@@ -238,6 +238,10 @@ class ResponseCurve(ModelEffect):
             raise ReconError(f"effect {self.name}: knots must be >= 2, got {knots}")
         self.log_gamma = torch.nn.Parameter(torch.zeros(()))
         self.lut = torch.nn.Parameter(torch.zeros(int(knots)))
+        # (values, gamma, powered, index, fraction) of the last curve() without autograd: the
+        # diagnosis' Gauss-Newton Jacobian moves one LUT entry at a time over the same image,
+        # and x^gamma and its segments are most of a curve's cost.
+        self._segments: tuple | None = None
 
     def deviation_values(self) -> torch.Tensor:
         """D at the knots 0, 1/K, ..., 1 [K + 1] (zero at both ends)."""
@@ -251,20 +255,45 @@ class ResponseCurve(ModelEffect):
     def curve(self, values: torch.Tensor) -> torch.Tensor:
         """observed linear for true linear values [...] (negatives map to 0)."""
         gamma = self.log_gamma.exp().to(values)
-        positive = values > 0
-        safe = torch.where(positive, values, torch.ones_like(values))
-        # The double where keeps the gradient finite at 0 (0^gamma's slope and log 0).
-        powered = torch.where(positive, safe.pow(gamma), torch.zeros_like(values))
         deviation = self.deviation_values().to(values)
         count = deviation.shape[0] - 1
-        scaled = powered.clamp(0.0, 1.0) * count
-        index = scaled.detach().floor().clamp(max=count - 1).long()
-        fraction = scaled - index.to(values)
+        powered, index, fraction = self._segments_of(values, gamma, count)
         # The segment slopes at the knots, then one flat gather each per pixel (the same values
         # as indexing both ends per pixel, at half the cost: the diagnosis' probe renders this
         # curve about a hundred times).
         slopes = deviation[1:] - deviation[:-1]
         return powered + deviation.take(index) + slopes.take(index) * fraction
+
+    def _segments_of(
+        self, values: torch.Tensor, gamma: torch.Tensor, count: int
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """x^gamma of values [...], its LUT segment index and the fraction along it; reused
+        without autograd when values and gamma equal the last call's (an exact reuse: the same
+        inputs give the same numbers)."""
+        cached = self._segments
+        reuse = (
+            not torch.is_grad_enabled()
+            and cached is not None
+            and cached[0].shape == values.shape
+            and cached[0].dtype == values.dtype
+            and cached[0].device == values.device
+            and bool(cached[1] == gamma)
+            and torch.equal(cached[0], values)
+        )
+        if reuse:
+            return cached[2], cached[3], cached[4]
+        positive = values > 0
+        safe = torch.where(positive, values, torch.ones_like(values))
+        # The double where keeps the gradient finite at 0 (0^gamma's slope and log 0).
+        powered = torch.where(positive, safe.pow(gamma), torch.zeros_like(values))
+        scaled = powered.clamp(0.0, 1.0) * count
+        index = scaled.detach().floor().clamp(max=count - 1).long()
+        fraction = scaled - index.to(values)
+        if torch.is_grad_enabled():
+            self._segments = None
+        else:
+            self._segments = (values.clone(), gamma.clone(), powered, index, fraction)
+        return powered, index, fraction
 
     def forward(
         self,

@@ -17,6 +17,7 @@ from recon.io.atomic import atomic_path
 from recon.io.images import save_contact_sheet
 from recon.mesh.mesh import Mesh
 from recon.metrics.evaluate import ERROR_PANEL_MAXIMUM
+from recon.optimize.material_stage import PbrTextureResult
 from recon.render.renderer import Renderer
 from recon.render.shading import Lighting
 
@@ -94,11 +95,17 @@ def turntable(
     path: Path,
     device: torch.device,
     up: list[float] | None = None,
+    pbr: PbrTextureResult | None = None,
 ) -> None:
-    """Eight views around the fitted mesh in one sheet, framed by its bounds about `up`."""
+    """Eight views around the fitted mesh in one sheet, framed by its bounds about `up`: with
+    the Lambertian model under lighting, or, for a `pbr` fit (pbr given: its mesh, material maps
+    and environment), with the material the fit found, as the held-out renders are."""
     cameras = framing_cameras(mesh, 8, 192, up).to(device)
     with torch.no_grad():
-        output = Renderer().render(mesh.to(device), cameras, lighting, background=1.0)
+        if pbr is None:
+            output = Renderer().render(mesh.to(device), cameras, lighting, background=1.0)
+        else:
+            output = pbr.render(Renderer(), cameras, background=1.0)
     save_contact_sheet(list(output.color.cpu()), path, columns=4)
 
 

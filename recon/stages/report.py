@@ -73,9 +73,11 @@ def _fit_figures(paths: RunPaths, device: torch.device) -> list[tuple[str, Path]
         if paths.normalization.exists()
         else None
     )
-    turntable(mesh, load_fitted_light(paths, device), paths.figure("turntable"), device, up)
-    figures.append(("Fitted mesh, turntable", paths.figure("turntable")))
-    pbr = load_pbr_fit(paths)
+    # A pbr fit turns with its own material and environment, not the Lambertian stand-in.
+    pbr = load_pbr_fit(paths, device)
+    turntable(mesh, load_fitted_light(paths, device), paths.figure("turntable"), device, up, pbr)
+    title = "Fitted mesh, turntable" + (" (pbr material)" if pbr is not None else "")
+    figures.append((title, paths.figure("turntable")))
     if pbr is not None:
         material_figure(pbr, paths.figure("material"))
         figures.append(("Fitted material and environment (pbr)", paths.figure("material")))

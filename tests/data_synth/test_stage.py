@@ -468,3 +468,54 @@ def test_a_relight_split_moves_the_shadows_sun_to_its_own_light():
     expected = torch.nn.functional.normalize(torch.tensor([-0.7, 0.5, -0.3]), dim=0)
     torch.testing.assert_close(direction, expected, atol=1e-6, rtol=0)
     assert relit_effects([shadows], LightingConfig(suns=[]))[0] == shadows
+
+
+# ------------------------------------------------------------------------------------------------
+# (h) a glossy world with a spatially varying roughness
+
+
+def test_a_roughness_texture_is_rendered_by_both_backends_and_written_as_truth(tmp_path):
+    """scene.material.roughness_texture with the specular effect: recon's split-sum shading
+    ('own') and Mitsuba's principled BSDF render the same glossy sphere, and the reference mesh
+    carries the true roughness map (map_Pr) for a benchmark to compare a fit with."""
+    pytest.importorskip("mitsuba")
+    from data_synth.material import roughness_pattern
+    from recon.config.run_config import MaterialConfig
+    from recon.io.meshes import load_material_maps
+
+    material = {
+        "albedo": "checker",
+        "texture_size": 32,
+        "roughness_texture": "stripes",
+        "roughness_range": [0.1, 0.6],
+    }
+    sky = {
+        "ambient": [0.05, 0.05, 0.05],
+        "sky_gradient": 0.0,
+        "suns": [],
+        "environment": {"kind": "studio", "resolution": [32, 64]},
+    }
+    images = {}
+    for backend in ("own", "mitsuba"):
+        changes = {
+            "scene": {"material": material, "lighting": sky},
+            "capture": {
+                "backend": backend,
+                "mitsuba_spp": 128,
+                "effects": [{"name": "specular", "parameters": {"specular_level": 0.5}}],
+            },
+        }
+        out = synth(tmp_path, backend, changes)
+        maps = load_material_maps(out / "ground_truth" / "reference.obj")
+        expected = roughness_pattern(MaterialConfig(**material), (32, 32))
+        assert maps is not None and maps.shape == (32, 32, 2)
+        torch.testing.assert_close(maps[..., 0], expected, atol=0.5 / 255 + 1e-6, rtol=0)
+        assert float(maps[..., 1].abs().max()) == 0.0  # a dielectric
+        images[backend] = read_split(out)
+    own, traced = images["own"], images["mitsuba"]
+    inside = (own.masks[..., 0] > 0.99) & (traced.masks[..., 0] > 0.99)
+    assert inside.sum() > 200
+    # The same glossy world in both: the split-sum model against the path tracer (measured
+    # 8.8 % mean absolute difference relative to the mean at 128 spp; 14 % at 32 spp: noise).
+    difference = (own.images - traced.images).abs().mean(-1)[inside].mean()
+    assert float(difference / traced.images.mean(-1)[inside].mean()) < 0.13

@@ -189,3 +189,19 @@ def test_metadata_with_fewer_held_out_views_than_the_minimum_is_no_evidence(tmp_
     assert metadata_producer(inputs, candidates, DiagnoseConfig()) == []
     with pytest.raises(ReconError, match="minimum_views"):
         metadata_evidence([1.1, 0.9], [1.0, 1.0], options=DiagnoseConfig().metadata)
+
+
+def test_a_falloff_the_flat_field_measured_is_not_vetoed_by_its_residual_signature():
+    # Flat-field frames measure the falloff itself (the decision's overrule row): a residual
+    # signature check says nothing about it, so the specificity producer leaves it alone, and a
+    # candidate without such a measurement is still checked.
+    from recon.diagnose.checks import specificity_producer
+
+    data, _ = glossy_torus_views(size=32, views=8)
+    inputs = SimpleNamespace(data=data)
+    measured = Candidate("vignetting")
+    details = {"corner_falloff": 0.6, "half_radius_falloff": 0.9, "frames": 2}
+    measured.add(Evidence("flat_field", "vignetting", 0.4, 0.02, True, "flat field", details))
+    assert specificity_producer(inputs, [measured], DiagnoseConfig()) == []
+    (checked,) = specificity_producer(inputs, [Candidate("vignetting")], DiagnoseConfig())
+    assert checked.kind == "specificity" and checked.candidate == "vignetting"

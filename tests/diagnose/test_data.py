@@ -53,3 +53,18 @@ def test_diagnosis_data_checks_shapes(scene):
             lighting=data.lighting,
             mesh=data.mesh,
         )
+
+
+@pytest.mark.parametrize("radius", [0, 1, 3, 4])
+def test_box_dilation_and_erosion_equal_the_max_pool_they_replace(radius):
+    from recon.diagnose.data import box_dilate, box_erode
+
+    generator = torch.Generator().manual_seed(radius)
+    # sparse and dense masks, touching the border
+    for density in (0.05, 0.7):
+        mask = (torch.rand(3, 1, 21, 17, generator=generator) < density).float()
+        size = 2 * radius + 1
+        pooled = torch.nn.functional.max_pool2d(mask, size, stride=1, padding=radius)
+        eroded = -torch.nn.functional.max_pool2d(-mask, size, stride=1, padding=radius)
+        assert torch.equal(box_dilate(mask, radius), pooled)
+        assert torch.equal(box_erode(mask, radius), eroded)

@@ -181,6 +181,28 @@ def test_a_failed_specificity_check_vetoes_and_names_the_mismatch_in_its_place()
     assert [item.name for item in decide_all([quiet], CONFIG)] == ["exposure"]
 
 
+def test_a_specificity_veto_does_not_overturn_a_measurement_on_other_data():
+    # The held-out residual's pattern says "not vignetting" (a surface profile explains it),
+    # but flat-field frames measured the falloff; the relight split measured the tone curve.
+    def failed(name):
+        reason = f"a surface profile explains {name}'s gain"
+        return Evidence("specificity", name, 0.02, 0.01, False, reason, {})
+
+    vignetting = candidate("vignetting", flat_field=0.39)
+    vignetting.add(failed("vignetting"))
+    assert decide(vignetting, CONFIG).significant and vignetting.decided_by == "flat_field"
+    curve = candidate("response_curve", probe=(0.0, 0.01), relight=(0.1, 0.2))
+    curve.add(failed("response_curve"))
+    assert decide(curve, CONFIG).significant and curve.decided_by == "relight"
+    # The same veto on a candidate the held-out probe decided stands.
+    probed = candidate("vignetting", probe=(0.3, 0.5))
+    probed.add(failed("vignetting"))
+    assert decide(probed, CONFIG).status == "vetoed"
+    # The capture's own record still vetoes a relight-decided candidate.
+    curve.add(Evidence("metadata", "response_curve", 0.5, 0.0, False, "the record disagrees"))
+    assert decide(curve, CONFIG).status == "vetoed"
+
+
 def test_a_failed_null_from_the_run_raises_the_bar():
     exposure = candidate("exposure", probe=(0.1, 0.2))
     assert exposure.significant

@@ -109,3 +109,13 @@ def test_geometric_placebos_move_the_render():
     )
     assert all(torch.isfinite(torch.tensor(draws)))
     assert threshold < 0.05
+
+
+def test_smooth_fields_upsample_only_the_kept_ones_from_the_same_draws():
+    from recon.diagnose.nulls import smooth_fields
+
+    keep = torch.tensor([True, False, True, False])
+    full = smooth_fields(4, 12, 10, 3, torch.Generator().manual_seed(5))
+    some = smooth_fields(4, 12, 10, 3, torch.Generator().manual_seed(5), keep)
+    assert torch.equal(some[keep], full[keep])
+    assert not bool(some[~keep].any())

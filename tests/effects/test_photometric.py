@@ -223,3 +223,32 @@ def test_response_curve_holds_an_exponent_and_keeps_its_lut_free():
     assert curve.lut.grad is not None and curve.lut.grad.abs().sum() > 0
     with pytest.raises(ReconError, match="held exponent"):
         curve.hold_exponent(0.0)
+
+
+def test_response_curve_reuses_its_segments_exactly_without_autograd():
+    # The diagnosis' Jacobian moves one LUT entry at a time over the same image: x^gamma and
+    # the segments are reused then, and the result is the one a fresh module computes.
+    from recon.effects.photometric import ResponseCurve
+
+    torch.manual_seed(0)
+    cached, fresh = ResponseCurve(), ResponseCurve()
+    with torch.no_grad():
+        cached.lut.normal_(0, 0.3)
+        cached.log_gamma.fill_(0.2)
+    values = torch.rand(2, 8, 8, 3) * 1.2 - 0.1
+    changes = [
+        lambda: cached.lut.__setitem__(3, cached.lut[3] + 1e-3),  # reused
+        lambda: cached.log_gamma.add_(1e-3),  # gamma moved: computed again
+        lambda: values.mul_(0.9),  # other values (in place): computed again
+    ]
+    for change in [lambda: None, *changes]:
+        with torch.no_grad():
+            change()
+            result = cached.curve(values)
+            fresh.load_state_dict(cached.state_dict())
+            fresh._segments = None
+            assert torch.equal(result, fresh.curve(values))
+    # With autograd the curve is computed afresh and keeps its gradient.
+    cached.lut.grad = None
+    cached.curve(values).sum().backward()
+    assert cached.lut.grad is not None and torch.isfinite(cached.lut.grad).all()

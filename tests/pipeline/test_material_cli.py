@@ -51,5 +51,7 @@ def test_fit_with_the_pbr_material_writes_and_evaluates_it(tmp_path):
     # The report shows the material channels and the environment.
     report = (run / "report.md").read_text()
     assert "Fitted material and environment (pbr)" in report
+    # ... and turns the fitted material, not its Lambertian stand-in.
+    assert "Fitted mesh, turntable (pbr material)" in report
     link = report.split("Fitted material and environment (pbr)](")[1].split(")")[0]
     assert (run / link).stat().st_size > 0

@@ -150,7 +150,7 @@ def _analytic_environment(directions: torch.Tensor) -> torch.Tensor:
     return torch.stack([1 + 0.6 * y + 0.4 * x, 1 + 0.6 * y - 0.2 * z, 0.8 + 0.5 * y * y], -1)
 
 
-@pytest.mark.parametrize("roughness", [0.5, 0.75, 1.0])
+@pytest.mark.parametrize("roughness", [0.25, 0.5, 0.75, 1.0])
 def test_prefiltered_environment_matches_brute_force_convolution(roughness):
     """The pre-filtered level (a 16 x 32 map) against a dense quadrature of the continuous
     environment: integral L(l) D(h) (r.l) dl / integral D(h) (r.l) dl with n = v = r."""

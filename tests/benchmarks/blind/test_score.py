@@ -8,7 +8,15 @@ from pathlib import Path
 
 import pytest
 
-from benchmarks.blind.score import leave_one_scene_out, load_collected, summarise_world
+from benchmarks.blind.decide import code_thresholds
+from benchmarks.blind.score import (
+    inert_effects,
+    leave_one_scene_out,
+    load_collected,
+    score_one,
+    summarise_world,
+)
+from recon.diagnose.records import Candidate, Diagnosis, Evidence
 
 
 def _fake_record(
@@ -102,3 +110,62 @@ def test_leave_one_scene_out_never_scores_a_scene_it_calibrated_on(tmp_path):
     provenance = calibrations["blob"]["provenance"]
     assert provenance["scenes"] == ["torus"] and provenance["seeds"] == [0]
     assert provenance["commit"]
+
+
+def test_a_defocus_inside_the_centre_pixel_is_inert():
+    # At 48 px the sampler's radius is 0.47 px: the pillbox is the identity kernel.
+    inert = inert_effects(
+        {"withheld": [{"name": "defocus_blur", "parameters": {"radius_px": 0.47}}]}
+    )
+    assert inert == ["defocus_blur"]
+    seen = {"withheld": [{"name": "defocus_blur", "parameters": {"radius_px": 0.95}}]}
+    assert inert_effects(seen) == []
+
+
+def _stored_case(tmp_path: Path, withheld: tuple, radius: float = 0.47) -> dict:
+    """A collected case whose diagnosis names nothing and reports white_balance not
+    identifiable (schema 2 records), with a defocus of radius where it is withheld."""
+    folder = tmp_path / ("+".join(withheld) or "none")
+    folder.mkdir(parents=True)
+    white = Candidate(
+        "white_balance",
+        [
+            Evidence("probe", "white_balance", 0.001, 0.02, False, "probe", {"reduction": 0.01}),
+            Evidence(
+                "identifiability",
+                "white_balance",
+                0.01,
+                0.037,
+                False,
+                "a colour cast common to every view is absorbed by the albedo's colour",
+                {"capture": "a grey card"},
+            ),
+        ],
+    )
+    (folder / "diagnosis.json").write_text(json.dumps(Diagnosis(candidates=[white]).to_json()))
+    truth = tmp_path / f"{folder.name}_truth.json"
+    parameters = {"defocus_blur": {"radius_px": radius}, "white_balance": {}}
+    truth.write_text(
+        json.dumps({"withheld": [{"name": n, "parameters": parameters[n]} for n in withheld]})
+    )
+    return {
+        "case": {"world": "own", "scene": "torus", "withheld": list(withheld), "seed": 0},
+        "run_folder": str(folder),
+        "truth_file": str(truth),
+        "fit_seconds": 10.0,
+        "diagnose_seconds": 1.0,
+    }
+
+
+def test_inert_cases_are_clean_and_unidentifiable_truths_are_answered_not_found(tmp_path):
+    thresholds = code_thresholds()
+    inert = score_one(load_collected(_stored_case(tmp_path, ("defocus_blur",))), thresholds, [])
+    assert inert["kind"] == "clean" and inert["truth"] == [] and inert["inert"] == ["defocus_blur"]
+    assert inert["exact_set"] and inert["false_positive"] is False
+    white = score_one(load_collected(_stored_case(tmp_path, ("white_balance",))), thresholds, [])
+    assert white["not_identifiable"] == ["white_balance"]
+    assert not white["top1_correct"] and not white["exact_set"]  # strict: a miss
+    assert white["top1_answered"] and white["exact_set_answered"]  # answered, not found
+    summary = summarise_world([inert, white])
+    assert summary["inert"] == {"defocus_blur": 1}
+    assert summary["top1_accuracy"] == 0.0 and summary["top1_answered"] == 1.0

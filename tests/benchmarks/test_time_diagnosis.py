@@ -1,0 +1,25 @@
+"""recon-bench time-diagnosis: the fit and the diagnosis back to back, with the ratio the
+issue's cost target reads, the stage timings and the load average they were measured at."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from benchmarks.time_diagnosis import main
+
+
+def test_time_diagnosis_prints_the_ratio_stages_and_load(tiny_run, tmp_path, capsys):
+    assert main([str(tiny_run), "--out", str(tmp_path), "--threads", "1", "--refit", "none"]) == 0
+    (result,) = json.loads(capsys.readouterr().out)
+    assert result["refit"] == "none" and result["refit_seconds"] is None
+    assert result["fit_seconds"] > 0 and result["diagnose_seconds"] > 0
+    ratio = result["diagnose_seconds"] / result["fit_seconds"]
+    # (both times rounded to 0.01 s)
+    assert result["diagnosis_share_of_fit"] == pytest.approx(ratio, rel=0.02, abs=0.002)
+    assert {"probes", "gap", "where"} <= set(result["stage_seconds"])
+    assert set(result["load_average"]) == {"before_fit", "after_fit", "after_diagnosis"}
+    # the copy was fitted and diagnosed, the source left alone
+    copy = tmp_path / tiny_run.parent.name / tiny_run.name
+    assert (copy / "diagnosis.json").exists() and (copy / "mesh").is_dir()

@@ -1,0 +1,81 @@
+"""A per-view white balance on a fit with a large misfit: named by the agreement of separate
+halves of each view; a constant one (or none) reported not identifiable, not silently missed.
+
+Built to fool the probe: a 32-px torus whose fitted texture is wrong by small grey patches (a
+~17 dB fit) under a white balance that changes by a few per cent from view to view: no share of
+the held-out error the probe can vouch for, but the same in both halves of every view.
+"""
+
+from __future__ import annotations
+
+import torch
+from diagnose_scenes import albedo_error_views
+
+from recon.config.run_config import DiagnoseConfig, NullConfig
+from recon.diagnose.agreement import agreement_evidence, shared_spread
+from recon.diagnose.checks import _as_condition
+from recon.diagnose.decision import decide
+from recon.diagnose.identifiability import white_balance_evidence
+from recon.diagnose.records import Candidate
+from recon.diagnose.which import rank_candidates
+
+SETTINGS = DiagnoseConfig(nulls=NullConfig(permutations=300))
+VIEWS = 12
+
+
+def white_balance(spread: float, varying: bool, seed: int = 4) -> torch.Tensor:
+    """[VIEWS, 3] red and blue gains exp(spread N(0, 1)) per view (or one for every view)."""
+    generator = torch.Generator().manual_seed(seed)
+    red_blue = torch.exp(spread * torch.randn(VIEWS if varying else 1, 2, generator=generator))
+    red_blue = red_blue.expand(VIEWS, 2)
+    return torch.stack([red_blue[:, 0], torch.ones(VIEWS), red_blue[:, 1]], dim=-1)
+
+
+def misfit(gains: torch.Tensor | None):
+    """The ~17 dB fit: a grey albedo error on 16 x 16 cells, the views times gains [VIEWS, 3]."""
+    return albedo_error_views(seed=1, error=0.8, cells=16, grey=True, channel_gains=gains)
+
+
+def diagnosed(data) -> Candidate:
+    """The white_balance candidate with its probe, agreement and identifiability evidence."""
+    candidate = next(
+        c for c in rank_candidates(data, ["white_balance"]) if c.name == "white_balance"
+    )
+    agreement = agreement_evidence(data, "white_balance", SETTINGS)
+    candidate.add(agreement)
+    condition = white_balance_evidence(
+        agreement.statistic, agreement.threshold, agreement.details["views"]
+    )
+    candidate.add(_as_condition(condition))
+    return decide(candidate, SETTINGS.decision)
+
+
+def test_a_white_balance_that_varies_across_views_is_named_through_a_large_misfit():
+    data = misfit(white_balance(0.06, varying=True))
+    candidate = diagnosed(data)
+    probe = candidate.evidence_of("probe")
+    # The probe alone does not clear: the white balance is a small share of the misfit.
+    assert probe.statistic < SETTINGS.decision.minimum_share, probe.statistic
+    agreement = candidate.evidence_of("agreement")
+    assert agreement.passed and agreement.details["p_value"] < 0.01, agreement.reason
+    assert candidate.significant and candidate.decided_by == "agreement", candidate.why
+    assert "separate halves" in candidate.why
+
+
+def test_a_constant_white_balance_or_none_is_reported_not_identifiable():
+    for gains in (white_balance(0.06, varying=False), None):
+        data = misfit(gains)
+        spread, _, _, _ = shared_spread(data, 300, 0)
+        assert spread < SETTINGS.decision.agreement_allowance["white_balance"]
+        candidate = diagnosed(data)
+        assert not candidate.significant
+        assert candidate.status == "not_identifiable", candidate.why
+        assert "absorbed by the albedo" in candidate.why and "grey card" in candidate.why
+
+
+def test_a_local_colour_misfit_is_not_a_white_balance():
+    # Large colour patches of the albedo error, no white balance: each view's colour error
+    # differs between its halves.
+    data = albedo_error_views(seed=2, error=0.8)
+    evidence = agreement_evidence(data, "white_balance", SETTINGS)
+    assert not evidence.passed, evidence.reason

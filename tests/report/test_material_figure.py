@@ -1,0 +1,62 @@
+"""The report's material figure of a `pbr` fit: every channel the fit has (base colour,
+roughness, metalness, the normal map when fitted) and the environment, as panels."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from PIL import Image
+
+from recon.mesh.mesh import Mesh
+from recon.optimize.material_stage import PbrTextureResult, light_from_environment
+from recon.report.material_figure import material_figure, material_panels
+
+
+def _result(normal_map: bool) -> PbrTextureResult:
+    verts = torch.tensor([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], dtype=torch.float32)
+    faces = torch.tensor([[0, 1, 2], [0, 2, 3]])
+    uvs = torch.tensor([[0, 1], [1, 1], [1, 0], [0, 0]], dtype=torch.float32)
+    generator = torch.Generator().manual_seed(0)
+    texture = torch.rand(8, 8, 3, generator=generator)
+    maps = torch.rand(8, 8, 2, generator=generator)
+    if normal_map:
+        tilt = torch.nn.functional.normalize(torch.tensor([0.6, 0.0, 0.8]), dim=0)
+        normals = torch.tensor([0.0, 0.0, 1.0]).expand(8, 8, 3).clone()
+        normals[:, 4:] = tilt  # right half tilted toward +u
+        maps = torch.cat([maps, normals], dim=-1)
+    environment = torch.zeros(4, 8, 3)
+    environment[0] = 9.0  # a bright sky row
+    mesh = Mesh(verts, faces, uvs=uvs, uv_faces=faces.clone(), texture=texture)
+    return PbrTextureResult(mesh, maps, environment, light_from_environment(environment), 0.5, 4)
+
+
+def test_panels_show_each_channel_of_the_material_and_the_environment():
+    result = _result(normal_map=True)
+    panels = material_panels(result)
+    titles = [title for title, _, _ in panels]
+    assert [title.split(" (")[0] for title in titles] == [
+        "base colour",
+        "roughness",
+        "metalness",
+        "normal map",
+        "environment",
+    ]
+    np.testing.assert_allclose(panels[1][1], result.material[..., 0].numpy(), atol=1e-6)
+    np.testing.assert_allclose(panels[2][1], result.material[..., 1].numpy(), atol=1e-6)
+    assert f"median {float(result.material[..., 0].median()):.2f}" in titles[1]
+    # The normal map as normal-map files code it: flat is (0.5, 0.5, 1), a +u tilt is redder.
+    normal = panels[3][1]
+    np.testing.assert_allclose(normal[0, 0], [0.5, 0.5, 1.0], atol=1e-6)
+    np.testing.assert_allclose(normal[0, 7], [0.8, 0.5, 0.9], atol=1e-6)
+    # The environment tone-mapped into [0, 1): the bright row up top, black below.
+    environment = panels[4][1]
+    assert environment.max() < 1 and environment[0].min() > 0.9 and environment[1:].max() == 0
+
+
+def test_without_a_normal_map_the_figure_has_four_panels(tmp_path):
+    assert len(material_panels(_result(normal_map=False))) == 4
+    narrow, wide = tmp_path / "four.png", tmp_path / "five.png"
+    material_figure(_result(normal_map=False), narrow)
+    material_figure(_result(normal_map=True), wide)
+    with Image.open(narrow) as four, Image.open(wide) as five:
+        assert five.size[0] > 1.15 * four.size[0]
