@@ -516,8 +516,8 @@ class PbrFitConfig:
     roughness + metalness and an optimised lat-long environment light (recon.render.pbr)."""
 
     environment_size: list[int] = setting(
-        factory=lambda: [16, 32],
-        doc="Environment map [height, width] the fit optimises (lat-long, row 0 looks up).",
+        factory=lambda: [32, 64],
+        doc="Environment map [height, width] the fit optimises (lat-long, row 0 looks up); 32 x 64 since docs/decisions/0190-pbr-benchmark-recipe.md.",
     )
     prefilter_levels: int = setting(
         6, "Pre-filtered roughness levels besides the map itself (roughness linspace(0, 1, n + 1))."
@@ -545,6 +545,14 @@ class PbrFitConfig:
     environment_learning_rate: float = setting(
         0.03,
         "Adam learning rate of the environment texels (of their log with parameterization log).",
+    )
+    environment_seed: Literal["light", "highlights"] = setting(
+        "highlights",
+        "Starting environment: light = the geometry stage's SH light (+ sun lobe); highlights = that light plus the training views' specular excess back-projected along mirror-reflection directions (recon/render/environment_seed.py: the light starts sharp; docs/decisions/0190-pbr-benchmark-recipe.md).",
+    )
+    environment_seed_prior_weight: float = setting(
+        0.01,
+        "highlights seed: pull of each texel toward the geometry stage's light, in units of one voting pixel of specular weight 1 (a dielectric pixel weighs about 0.04^2).",
     )
     environment_parameterization: Literal["linear", "log"] = setting(
         "linear",
@@ -581,6 +589,7 @@ class PbrFitConfig:
         for key in (
             "material_learning_rate",
             "environment_learning_rate",
+            "environment_seed_prior_weight",
             "material_smoothness_weight",
             "normal_map_smoothness_weight",
             "environment_smoothness_weight",

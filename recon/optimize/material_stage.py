@@ -44,8 +44,10 @@ from recon.optimize.scene_model import (
 )
 from recon.optimize.texture_stage import LOG_EVERY, start_texture_stage
 from recon.render.environment import latlong_directions, prefilter_environment, project_to_sh
+from recon.render.environment_seed import backproject_highlights
+from recon.render.interpolate import interpolate_packed
 from recon.render.renderer import Renderer, RenderOutput
-from recon.render.shading import sh_basis
+from recon.render.shading import sh_basis, sh_irradiance
 from recon.render.texture import build_mip_pyramid
 
 # Roughness below this is a mirror narrower than any texel of the environment a fit can afford.
@@ -120,6 +122,75 @@ def environment_from_light(light: LightModel, size: tuple[int, int]) -> torch.Te
         lobe = lobe / (lobe * solid_angle.reshape(-1)).sum()
         radiance = radiance + lobe[:, None] * sun.irradiance.detach()
     return radiance.reshape(*size, 3)
+
+
+def highlight_environment(
+    renderer: Renderer,
+    mesh: Mesh,
+    cameras,
+    images: torch.Tensor,
+    masks: torch.Tensor,
+    prior: torch.Tensor,
+    roughness: float,
+    specular_level: float,
+    prior_weight: float,
+    light_frame: str = "world",
+    views_per_batch: int = 4,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The highlights seed (fit.pbr.environment_seed): prior [h, w, 3] plus the training views'
+    specular excess back-projected along reflection directions
+    (recon.render.environment_seed.backproject_highlights), and the factor [3] that keeps the
+    diffuse shading of the base colour mesh.texture where it was under prior.
+
+    The excess is measured against the diffuse shading of the base colour under prior; pixels
+    on the silhouette (mask < 1) do not vote. A brighter seed raises the irradiance too, so the
+    base colour, baked under prior, is rescaled by sum(b E_prior) / sum(b E_seed) over the
+    voting pixels (one factor per channel: the light's level is fixed by the specular
+    reflectance, which the base colour does not scale).
+    images: [B, H, W, 3], masks: [B, H, W, 1] at the cameras' resolution.
+    """
+    observed, base, normals, to_viewer = [], [], [], []
+    material = torch.cat([mesh.texture, torch.zeros_like(mesh.texture[..., :2])], dim=-1)
+    with torch.no_grad():
+        for start in range(0, len(cameras), views_per_batch):
+            views = torch.arange(start, min(start + views_per_batch, len(cameras)))
+            batch = cameras[views.to(cameras.device)]
+            buffers = renderer.surface_buffers(mesh, batch)
+            fragments = buffers.fragments
+            covered = fragments.covered_index
+            albedo = renderer.shade_pbr(
+                buffers, batch.centers(), material, None, antialias_edges=False
+            ).albedo
+            inside = masks[views].reshape(-1)[covered] >= 0.999
+            positions = interpolate_packed(mesh.verts, fragments, mesh.faces)
+            centers = batch.centers().to(positions.dtype)[fragments.covered_batch]
+            view_directions = torch.nn.functional.normalize(centers - positions, dim=-1)
+            view_normals = buffers.normals
+            if light_frame == "camera":
+                # The environment's directions are each view's OpenCV camera axes.
+                rotation = buffers.world_to_cam[fragments.covered_batch][:, :3, :3]
+                view_normals = (rotation @ view_normals[..., None])[..., 0]
+                view_directions = (rotation @ view_directions[..., None])[..., 0]
+            observed.append(images[views].reshape(-1, 3)[covered][inside])
+            base.append(albedo.reshape(-1, 3)[covered][inside])
+            normals.append(view_normals[inside])
+            to_viewer.append(view_directions[inside])
+        observed, base = torch.cat(observed), torch.cat(base)
+        normals, to_viewer = torch.cat(normals), torch.cat(to_viewer)
+        prior_irradiance = sh_irradiance(normals, project_to_sh(prior))
+        environment = backproject_highlights(
+            observed,
+            base / math.pi * prior_irradiance,
+            normals,
+            to_viewer,
+            prior,
+            roughness,
+            specular_level,
+            prior_weight,
+        )
+        seed_irradiance = sh_irradiance(normals, project_to_sh(environment))
+        scale = (base * prior_irradiance).sum(0) / (base * seed_irradiance).sum(0).clamp_min(1e-8)
+    return environment, scale
 
 
 def light_from_environment(environment: torch.Tensor, frame: str = "world") -> LightModel:
@@ -256,6 +327,21 @@ def run_pbr_texture_stage(
     # A camera-frame light (turntable captures) seeds, and stays, a camera-frame environment.
     light_frame = config.light.frame
     seed_environment = environment_from_light(geometry.light, size).to(device)
+    if pbr.environment_seed == "highlights" and checkpoint is None:
+        seed_environment, base_scale = highlight_environment(
+            renderer,
+            mesh,
+            cameras,
+            images,
+            masks,
+            seed_environment,
+            initial[0],
+            pbr.specular_level,
+            pbr.environment_seed_prior_weight,
+            light_frame,
+        )
+        with torch.no_grad():
+            base_color.mul_(base_scale).clamp_(0, 1)
     # 'log': Adam's steps are relative, so a softbox 100x brighter than the room is reached in
     # as many steps as the room itself (linear steps of the learning rate would need hundreds).
     log_environment = pbr.environment_parameterization == "log"

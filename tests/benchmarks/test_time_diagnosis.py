@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import json
 
-import pytest
-
 from benchmarks.time_diagnosis import main
 
 
@@ -15,9 +13,11 @@ def test_time_diagnosis_prints_the_ratio_stages_and_load(tiny_run, tmp_path, cap
     (result,) = json.loads(capsys.readouterr().out)
     assert result["refit"] == "none" and result["refit_seconds"] is None
     assert result["fit_seconds"] > 0 and result["diagnose_seconds"] > 0
-    ratio = result["diagnose_seconds"] / result["fit_seconds"]
-    # (both times rounded to 0.01 s)
-    assert result["diagnosis_share_of_fit"] == pytest.approx(ratio, rel=0.02, abs=0.002)
+    # Both printed times are rounded to 0.01 s, which matters for a fit this tiny: the share
+    # computed from the unrounded times lies between the extremes the roundings allow.
+    fit, diagnosis, half = result["fit_seconds"], result["diagnose_seconds"], 0.005
+    low, high = (diagnosis - half) / (fit + half), (diagnosis + half) / max(fit - half, 1e-9)
+    assert low - 0.001 <= result["diagnosis_share_of_fit"] <= high + 0.001
     assert {"probes", "gap", "where"} <= set(result["stage_seconds"])
     assert set(result["load_average"]) == {"before_fit", "after_fit", "after_diagnosis"}
     # the copy was fitted and diagnosed, the source left alone
