@@ -108,6 +108,12 @@ def fit_config_difference(
     for key in ("diagnose", *ignore):
         stored.pop(key, None)
         current.pop(key, None)
+    # A Lambertian fit never reads the pbr material's settings: a changed pbr default (e.g. the
+    # environment's size) is the same Lambertian fit.
+    stored_fit, current_fit = stored.get("fit", {}), current.get("fit", {})
+    if stored_fit.get("material", "lambert") == current_fit.get("material") == "lambert":
+        stored_fit.pop("pbr", None)
+        current_fit.pop("pbr", None)
     return _difference(stored, current, defaults, "")
 
 

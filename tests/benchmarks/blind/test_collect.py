@@ -50,6 +50,22 @@ def test_a_changed_value_is_another_fit_and_named(tmp_path):
     assert same_fit_config(path, config, ignore=("seed",))
 
 
+def test_pbr_settings_do_not_change_a_lambertian_fit(tmp_path):
+    def edit(stored):
+        stored["fit"]["pbr"]["environment_size"] = [8, 16]
+
+    path, config = _stored_config(tmp_path, edit)
+    assert config.fit.material == "lambert"
+    assert same_fit_config(path, config)
+    pbr_config = replace(config, fit=replace(config.fit, material="pbr"))
+    path, _ = _stored_config(
+        tmp_path, lambda stored: (edit(stored), stored["fit"].update(material="pbr"))
+    )
+    assert fit_config_difference(path, pbr_config) == (
+        f"fit.pbr.environment_size: stored [8, 16], now {pbr_config.fit.pbr.environment_size!r}"
+    )
+
+
 def test_rediagnose_refuses_to_refit(tmp_path):
     def edit(stored):
         stored["seed"] = 4
