@@ -8,22 +8,12 @@ import torch
 
 from recon.errors import ReconError
 from recon.io.meshes import load_material_maps, load_mesh, save_mesh
-from recon.mesh.mesh import Mesh
-
-
-def _textured_quad() -> tuple[Mesh, torch.Tensor]:
-    verts = torch.tensor([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], dtype=torch.float32)
-    faces = torch.tensor([[0, 1, 2], [0, 2, 3]])
-    uvs = torch.tensor([[0, 1], [1, 1], [1, 0], [0, 0]], dtype=torch.float32)
-    generator = torch.Generator().manual_seed(0)
-    texture = torch.rand(8, 8, 3, generator=generator)
-    maps = torch.rand(8, 8, 2, generator=generator)
-    return Mesh(verts, faces, uvs=uvs, uv_faces=faces.clone(), texture=texture), maps
+from tests.material_scenes import textured_quad
 
 
 @pytest.mark.parametrize("suffix", [".obj", ".glb"])
 def test_material_maps_round_trip(tmp_path, suffix):
-    mesh, maps = _textured_quad()
+    mesh, maps = textured_quad()
     path = tmp_path / f"model{suffix}"
     save_mesh(path, mesh, material_maps=maps)
     loaded = load_material_maps(path)
@@ -39,7 +29,7 @@ def test_material_maps_round_trip(tmp_path, suffix):
 
 
 def test_meshes_without_material_maps_have_none(tmp_path):
-    mesh, _ = _textured_quad()
+    mesh, _ = textured_quad()
     save_mesh(tmp_path / "plain.obj", mesh)
     save_mesh(tmp_path / "plain.glb", mesh)
     assert load_material_maps(tmp_path / "plain.obj") is None
@@ -47,7 +37,7 @@ def test_meshes_without_material_maps_have_none(tmp_path):
 
 
 def test_material_maps_of_the_wrong_shape_are_refused_by_name(tmp_path):
-    mesh, maps = _textured_quad()
+    mesh, maps = textured_quad()
     with pytest.raises(ReconError, match=r"material_maps: expected \[h, w, 2\].*\(8, 8, 3\)"):
         save_mesh(tmp_path / "bad.obj", mesh, material_maps=torch.cat([maps, maps[..., :1]], -1))
 
@@ -78,7 +68,7 @@ def test_glb_metallic_roughness_follows_the_gltf_channels(tmp_path):
     import json
     import struct
 
-    mesh, maps = _textured_quad()
+    mesh, maps = textured_quad()
     path = tmp_path / "model.glb"
     save_mesh(path, mesh, material_maps=maps)
     data = path.read_bytes()
@@ -102,7 +92,7 @@ def test_obj_roughness_and_metallic_files_hold_linear_values(tmp_path):
     """map_Pr / map_Pm are single-channel linear images (no sRGB curve): read back directly."""
     from PIL import Image
 
-    mesh, maps = _textured_quad()
+    mesh, maps = textured_quad()
     save_mesh(tmp_path / "model.obj", mesh, material_maps=maps)
     for name, channel in (("model_roughness.png", 0), ("model_metallic.png", 1)):
         with Image.open(tmp_path / name) as image:

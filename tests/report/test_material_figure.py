@@ -7,18 +7,13 @@ import numpy as np
 import torch
 from PIL import Image
 
-from recon.mesh.mesh import Mesh
 from recon.optimize.material_stage import PbrTextureResult, light_from_environment
 from recon.report.material_figure import material_figure, material_panels
+from tests.material_scenes import textured_quad
 
 
 def _result(normal_map: bool) -> PbrTextureResult:
-    verts = torch.tensor([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], dtype=torch.float32)
-    faces = torch.tensor([[0, 1, 2], [0, 2, 3]])
-    uvs = torch.tensor([[0, 1], [1, 1], [1, 0], [0, 0]], dtype=torch.float32)
-    generator = torch.Generator().manual_seed(0)
-    texture = torch.rand(8, 8, 3, generator=generator)
-    maps = torch.rand(8, 8, 2, generator=generator)
+    mesh, maps = textured_quad()
     if normal_map:
         tilt = torch.nn.functional.normalize(torch.tensor([0.6, 0.0, 0.8]), dim=0)
         normals = torch.tensor([0.0, 0.0, 1.0]).expand(8, 8, 3).clone()
@@ -26,7 +21,6 @@ def _result(normal_map: bool) -> PbrTextureResult:
         maps = torch.cat([maps, normals], dim=-1)
     environment = torch.zeros(4, 8, 3)
     environment[0] = 9.0  # a bright sky row
-    mesh = Mesh(verts, faces, uvs=uvs, uv_faces=faces.clone(), texture=texture)
     return PbrTextureResult(mesh, maps, environment, light_from_environment(environment), 0.5, 4)
 
 

@@ -12,23 +12,13 @@ from recon.errors import ReconError
 from recon.io.images import read_exr
 from recon.io.meshes import load_material_maps
 from recon.io.run_folder import RunPaths
-from recon.mesh.mesh import Mesh
 from recon.optimize.material_stage import PbrTextureResult, light_from_environment
 from recon.stages.fitted_scene import load_fitted_effects, load_pbr_fit, write_pbr_fit
-
-
-def _textured_quad() -> tuple[Mesh, torch.Tensor]:
-    verts = torch.tensor([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], dtype=torch.float32)
-    faces = torch.tensor([[0, 1, 2], [0, 2, 3]])
-    uvs = torch.tensor([[0, 1], [1, 1], [1, 0], [0, 0]], dtype=torch.float32)
-    generator = torch.Generator().manual_seed(0)
-    texture = torch.rand(8, 8, 3, generator=generator)
-    maps = torch.rand(8, 8, 2, generator=generator)
-    return Mesh(verts, faces, uvs=uvs, uv_faces=faces.clone(), texture=texture), maps
+from tests.material_scenes import textured_quad
 
 
 def test_write_pbr_fit_writes_mesh_maps_environment_and_light(tmp_path):
-    mesh, maps = _textured_quad()
+    mesh, maps = textured_quad()
     environment = torch.rand(4, 8, 3, generator=torch.Generator().manual_seed(1))
     result = PbrTextureResult(mesh, maps, environment, light_from_environment(environment), 0.5, 4)
     paths = RunPaths(tmp_path)
@@ -43,7 +33,7 @@ def test_write_pbr_fit_writes_mesh_maps_environment_and_light(tmp_path):
 
 
 def test_a_pbr_run_with_its_environment_missing_is_named(tmp_path):
-    mesh, maps = _textured_quad()
+    mesh, maps = textured_quad()
     environment = torch.ones(4, 8, 3)
     paths = RunPaths(tmp_path)
     write_pbr_fit(
@@ -59,7 +49,7 @@ def test_a_pbr_run_with_its_environment_missing_is_named(tmp_path):
 
 
 def test_a_camera_frame_environment_keeps_its_frame(tmp_path):
-    mesh, maps = _textured_quad()
+    mesh, maps = textured_quad()
     environment = torch.rand(4, 8, 3, generator=torch.Generator().manual_seed(2))
     light = light_from_environment(environment, "camera")
     result = PbrTextureResult(mesh, maps, environment, light, 0.5, 4, light_frame="camera")
@@ -71,7 +61,7 @@ def test_a_camera_frame_environment_keeps_its_frame(tmp_path):
 
 
 def test_a_normal_map_is_written_and_read_back(tmp_path):
-    mesh, maps = _textured_quad()
+    mesh, maps = textured_quad()
     normal = torch.nn.functional.normalize(torch.tensor([0.2, -0.1, 1.0]), dim=0)
     maps = torch.cat([maps, normal.expand(8, 8, 3)], dim=-1)
     environment = torch.ones(4, 8, 3)
@@ -87,7 +77,7 @@ def test_a_normal_map_is_written_and_read_back(tmp_path):
 def test_a_normalised_fit_is_written_in_the_dataset_frame(tmp_path):
     from recon.optimize.normalize import SceneTransform
 
-    mesh, maps = _textured_quad()
+    mesh, maps = textured_quad()
     environment = torch.ones(4, 8, 3)
     result = PbrTextureResult(mesh, maps, environment, light_from_environment(environment), 0.5, 4)
     transform = SceneTransform(scale=2.0, centre=[1.0, -2.0, 0.5], up=[0.0, 1.0, 0.0])
