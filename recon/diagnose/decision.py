@@ -16,7 +16,8 @@ probe         clear         held-out reduction's lower bound above its allowance
 absorption    clear         the same for the absorption refit (unless voided)
 relight       clear         the same for the relight split's probe
 agreement     clear         a per-view colour gain shared by separate halves of each view
-                            above its allowance, beyond permuted views (recon.diagnose.agreement)
+                            above its allowance, beyond permuted views (recon.diagnose.agreement);
+                            a specificity veto in the image position alone does not overturn it
 fingerprint   name          the visibility fingerprint names the effect (ranks after the above)
 null          raise bar     a failed null from the run (placebo, permutation, split half)
                             keeps the clearing rows from making the candidate significant
@@ -126,6 +127,10 @@ class Rule:
     independent: whether it measures the effect on other data than the held-out residual
         (flat-field frames, the relight split under its own light): a specificity veto, a
         pattern of the held-out residual, does not overturn it.
+    settles: specificity domains (recon.diagnose.specificity) this evidence tests itself: a
+        specificity veto whose failing domains (details["failing_domains"]) all lie among
+        them does not overturn it (the agreement's separate halves of each view share the
+        colour change: it is not a profile of the image position).
     """
 
     kind: str
@@ -136,6 +141,7 @@ class Rule:
     passes: Callable[[Evidence, float, DecisionConfig], bool] | None = None
     parameters_from: tuple[str, ...] = ()
     independent: bool = False
+    settles: tuple[str, ...] = ()
 
 
 DECISION_TABLE: tuple[Rule, ...] = (
@@ -183,6 +189,7 @@ DECISION_TABLE: tuple[Rule, ...] = (
         threshold=agreement_threshold,
         passes=_agrees,
         parameters_from=("probe",),
+        settles=("image_position",),
     ),
     Rule(
         "fingerprint",
@@ -262,6 +269,8 @@ def decide(candidate: Candidate, config: DecisionConfig) -> Candidate:
         # Measured on other data (flat-field frames, the relight split): the held-out
         # residual's pattern (specificity) does not overturn it; the capture's record does.
         vetoes = [item for item in vetoes if item.kind != "specificity"]
+    if deciding is not None and RULES[deciding.kind].settles:
+        vetoes = [item for item in vetoes if not _settled(item, RULES[deciding.kind].settles)]
     if vetoes and status == "significant":
         status, why = "vetoed", vetoes[0].reason
     unidentifiable = [item for item in _role_evidence(candidate, "qualify") if not item.passed]
@@ -294,6 +303,13 @@ def decide(candidate: Candidate, config: DecisionConfig) -> Candidate:
     kinds = RULES[deciding.kind].parameters_from if candidate.significant else ()
     candidate.parameters = _parameters(candidate, kinds or UNDECIDED_PARAMETERS)
     return candidate
+
+
+def _settled(veto: Evidence, domains: tuple[str, ...]) -> bool:
+    """Whether a failed specificity check failed only in domains the deciding evidence tested
+    itself (a record without its failing domains is not settled)."""
+    failing = veto.details.get("failing_domains")
+    return veto.kind == "specificity" and bool(failing) and set(failing) <= set(domains)
 
 
 def _confusable(condition: Evidence) -> str | None:
