@@ -744,7 +744,7 @@ class FitConfig:
 # docs/decisions/0191-blind-misses.md).
 AGREEMENT_WHITE_BALANCE = 0.037
 # The lobe evidence's allowance for specular (docs/decisions/0196-diagnosis-light-transport-lobe.md).
-LOBE_SPECULAR = 0.1
+LOBE_SPECULAR = 0.02
 
 
 @dataclass
@@ -812,11 +812,11 @@ class DecisionConfig:
     )
     lobe_allowance: dict[str, float] = setting(
         factory=lambda: {"specular": LOBE_SPECULAR},
-        doc="Per effect with lobe evidence (recon.diagnose.lobe): the partial correlation of the view-to-view residual with a highlight's lobe under the fitted light that it must clear (twice the largest on the blind check's clean synthetic fits, docs/decisions/0196-diagnosis-light-transport-lobe.md).",
+        doc="Per effect with lobe evidence (recon.diagnose.lobe): how far the partial correlation of the view-to-view residual with a highlight's lobe under the fitted light must exceed the placebo lights' 95th percentile (the floor: on the blind check's clean synthetic fits the excess is below zero, docs/decisions/0196-diagnosis-light-transport-lobe.md).",
     )
     lobe_minimum: float = setting(
-        0.05,
-        "Floor of every lobe allowance: a correlation of 0.05 explains a quarter of a per cent of the residual's view-to-view variance.",
+        0.02,
+        "Floor of every lobe allowance: an excess correlation of 0.02 over the placebo lights' 95th percentile.",
     )
     lobe_alpha: float = setting(
         0.01,
@@ -1015,20 +1015,21 @@ class LobeConfig:
         45.0,
         "Least angle between a placebo light and the fitted light: nearer ones share its highlights.",
     )
-    iterations: int = setting(
-        30, "Alternating projections that take the cell offsets and per-view gains out."
-    )
     minimum_pixels: int = setting(
         200, "Interior object pixels over all views below which no lobe evidence is measured."
     )
     enabled: bool = setting(True, "Measure the lobe evidence for the specular candidate.")
+    maximum_pixels: int = setting(
+        20000,
+        "Interior object pixels (over all views) the lobe evidence uses at most, an even stride through them: its cost is pixels x placebo lights x exponents.",
+    )
 
     def __post_init__(self) -> None:
         if not self.exponents or any(value <= 0 for value in self.exponents):
             raise ConfigFieldError(
                 "exponents", f"expected positive exponents, got {self.exponents}"
             )
-        for name in ("cells_per_axis", "placebo_lights", "iterations", "minimum_pixels"):
+        for name in ("cells_per_axis", "placebo_lights", "minimum_pixels", "maximum_pixels"):
             check_range(getattr(self, name), name, low=1)
         check_range(
             self.placebo_separation_degrees, "placebo_separation_degrees", low=0.0, high=180.0
