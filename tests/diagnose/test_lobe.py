@@ -91,3 +91,25 @@ def test_placebo_data_rarely_reaches_the_level():
         p_values.append(lobe_statistic([data], settings)["p_value"])
     assert sum(value < 0.05 for value in p_values) <= 2, p_values
     assert max(p_values) > 0.2, p_values
+
+
+def test_the_producer_is_registered_and_measures_training_and_heldout_views_together():
+    from recon.diagnose.data import FittedModel
+    from recon.diagnose.lobe import lobe_producer
+    from recon.diagnose.producers import PRODUCERS, EvidenceInputs
+    from recon.io.datasets import CaptureSet
+
+    assert lobe_producer in PRODUCERS
+    heldout, _ = glossy_torus_views(views=6, size=40, specular=0.3, shininess=30.0, seed=1)
+    training, _ = glossy_torus_views(views=9, size=40, specular=0.3, shininess=30.0, seed=2)
+    captures = CaptureSet(
+        training.cameras, training.observed, training.observed_alpha, training.names, "train"
+    )
+    model = FittedModel(training.mesh, training.lighting)
+    inputs = EvidenceInputs(heldout, None, None, captures, model)
+    candidates = [Candidate("specular"), Candidate("exposure")]
+    evidence = lobe_producer(inputs, candidates, SETTINGS)
+    assert [item.candidate for item in evidence] == ["specular"]
+    assert evidence[0].details["views"] == 15 and evidence[0].passed, evidence[0].reason
+    disabled = replace(SETTINGS, lobe=replace(SETTINGS.lobe, enabled=False))
+    assert lobe_producer(inputs, candidates, disabled) == []
