@@ -8,37 +8,19 @@ import math
 
 import pytest
 import torch
-import trimesh
 
 from recon.camera import Cameras, intrinsics_from_fov, look_at
 from recon.errors import ReconError
 from recon.mesh.mesh import Mesh
-from recon.mesh.uv import bake_vertex_attribute, dilate, unwrap
+from recon.mesh.uv import bake_vertex_attribute, dilate
 from recon.metrics.material import material_metrics, sample_maps, seen_points
-
-
-def _material(verts: torch.Tensor) -> torch.Tensor:
-    """A material [V, 2] linear in the position (so barycentric blends of it are exact):
-    roughness 0.3 + 0.15 x in [0.15, 0.45], metalness 0.5 + 0.3 z in [0.2, 0.8]."""
-    return torch.stack([0.3 + 0.15 * verts[:, 0], 0.5 + 0.3 * verts[:, 2]], dim=-1)
-
-
-def _unwrapped_sphere(resolution: int) -> tuple[Mesh, torch.Tensor]:
-    """A unit icosphere unwrapped for a resolution x resolution atlas, and _material baked onto
-    it (dilated, so that bilinear taps at chart borders read the chart's own values)."""
-    sphere = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
-    verts = torch.tensor(sphere.vertices, dtype=torch.float32)
-    faces = torch.tensor(sphere.faces, dtype=torch.int64)
-    uvs, uv_faces = unwrap(verts, faces, resolution=resolution)
-    mesh = Mesh(verts, faces, uvs=uvs, uv_faces=uv_faces, texture=torch.ones(4, 4, 3))
-    maps, coverage = bake_vertex_attribute(mesh, _material(verts), (resolution, resolution))
-    return mesh, dilate(maps, coverage)
+from tests.material_scenes import position_material, unwrapped_sphere
 
 
 @pytest.fixture(scope="module")
 def spheres() -> tuple[Mesh, torch.Tensor, Mesh, torch.Tensor]:
-    reference, reference_maps = _unwrapped_sphere(128)
-    fitted, fitted_maps = _unwrapped_sphere(96)
+    reference, reference_maps = unwrapped_sphere(128)
+    fitted, fitted_maps = unwrapped_sphere(96)
     return reference, reference_maps, fitted, fitted_maps
 
 
@@ -92,7 +74,7 @@ def test_surface_no_training_view_saw_is_left_out(spheres):
     # depth range), none of the back.
     assert seen[centres[:, 2] > 0.6].all() and not seen[centres[:, 2] < 0.0].any()
     # A material wrong only on the unseen back does not count.
-    wrong_back = _material(fitted.verts)
+    wrong_back = position_material(fitted.verts)
     wrong_back[fitted.verts[:, 2] < -0.05, 0] += 0.3
     baked, coverage = bake_vertex_attribute(fitted, wrong_back, tuple(fitted_maps.shape[:2]))
     maps = dilate(baked, coverage)
