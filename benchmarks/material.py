@@ -63,6 +63,7 @@ SURFACE_KEYS = {
     "surface_roughness_mae": "roughness_mae",
     "surface_roughness_median_error": "roughness_median_error",
     "surface_roughness_within_tolerance": "roughness_within_tolerance",
+    "surface_roughness_uniform_mae": "roughness_uniform_mae",
     "surface_metalness_mae": "metalness_mae",
     "surface_metalness_within_tolerance": "metalness_within_tolerance",
     "surface_compared_fraction": "compared_fraction",

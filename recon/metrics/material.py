@@ -135,6 +135,9 @@ def _channel_errors(fitted: torch.Tensor, true: torch.Tensor, tolerance: float) 
         "bias": float((fitted - true).mean()),
         "fitted_median": float(fitted.median()),
         "true_median": float(true.median()),
+        # What the best uniform map (the true median) would score: the bar a fit that
+        # resolves the variation must beat.
+        "uniform_mae": float((true - true.median()).abs().mean()),
     }
 
 
@@ -152,7 +155,8 @@ def material_metrics(
 ) -> dict:
     """The fitted roughness and metalness against the true ones over the surface (module
     docstring): per channel the mean and median absolute error, the fraction of samples within
-    tolerance, the mean signed error (bias) and both medians, as flat keys
+    tolerance, the mean signed error (bias), both medians and the MAE a uniform map at the true
+    median would have (uniform_mae), as flat keys
     (`roughness_mae`, `metalness_within_tolerance`, ...); plus the samples drawn, the fraction
     kept and why others were not.
 

@@ -62,10 +62,11 @@ def evaluate_stage(config: RunConfig, paths: RunPaths, device: torch.device) -> 
 
 def _material_comparison(config: RunConfig, paths: RunPaths, pbr, reference, true_maps) -> dict:
     """The fitted material against the reference's true maps (recon.metrics.material), where
-    the training views saw the surface (evaluate.material_seen_only)."""
+    the training views saw the surface (evaluate.material_seen_only; everywhere, with
+    seen_from null, when the dataset has no training split)."""
     settings = config.evaluate
     seen_from = None
-    if settings.material_seen_only:
+    if settings.material_seen_only and paths.dataset_layout.has_split("train"):
         seen_from = read_captures(paths.dataset, "train", config.dataset).cameras
     metrics = material_metrics(
         pbr.mesh.to("cpu"),

@@ -35,6 +35,9 @@ def test_the_reference_against_itself_with_other_uvs_scores_about_zero(spheres):
     assert metrics["roughness_within_tolerance"] == 1.0
     assert metrics["metalness_within_tolerance"] == 1.0
     assert abs(metrics["roughness_true_median"] - 0.3) < 0.02
+    # On a sphere x is uniform in [-1, 1] by area (Archimedes): the best uniform roughness
+    # (0.3) is off by 0.15 E|x| = 0.075 on average.
+    assert metrics["roughness_uniform_mae"] == pytest.approx(0.075, abs=0.004)
 
 
 def test_a_perturbed_map_scores_its_perturbation(spheres):
