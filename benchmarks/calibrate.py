@@ -107,6 +107,9 @@ def clean_statistics(
         agreement = candidate.evidence_of("agreement")
         if agreement is not None:
             keep(f"agreement.{candidate.name}", agreement.statistic)
+        lobe = candidate.evidence_of("lobe")
+        if lobe is not None:
+            keep(f"lobe.{candidate.name}", lobe.statistic)
         flat_field = candidate.evidence_of("flat_field")
         if flat_field is not None:
             keep("flat_field", flat_field.statistic)
@@ -129,6 +132,7 @@ def threshold_floors() -> dict[str, float]:
             probe_allowance={},
             absorption_allowance={},
             agreement_allowance={},
+            lobe_allowance={},
             relight_allowance=defaults.minimum_share,
         )
     )
