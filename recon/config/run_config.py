@@ -590,6 +590,10 @@ class PbrFitConfig:
         1,
         "Training views per full-lobe step (each costs lobe_samples look-ups per pixel; texture.views_per_step applies to the split-sum steps).",
     )
+    lobe_learning_rate_scale: float = setting(
+        0.25,
+        "Full-lobe steps: factor on the base colour's and the environment's learning rates (a refinement of a settled fit on fewer views per step; the material's rate is unchanged).",
+    )
 
     def __post_init__(self) -> None:
         _check_vector(self.environment_size, "environment_size", length=2)
@@ -602,6 +606,7 @@ class PbrFitConfig:
         check_range(self.lobe_samples, "lobe_samples", low=1, high=4096)
         check_range(self.lobe_filter_width, "lobe_filter_width", low=0.0)
         check_range(self.lobe_views_per_step, "lobe_views_per_step", low=1)
+        check_range(self.lobe_learning_rate_scale, "lobe_learning_rate_scale", low=0.0)
         check_range(self.initial_roughness, "initial_roughness", low=0.0, high=1.0)
         check_range(self.initial_metalness, "initial_metalness", low=0.0, high=1.0)
         check_range(self.specular_level, "specular_level", low=0.0, high=1.0)

@@ -434,6 +434,13 @@ def run_pbr_texture_stage(
     )
     for step in bar:
         lobe = step >= settings.steps
+        if lobe and step == max(start_step, settings.steps):
+            # The refinement moves the light and base colour gently (fit.pbr.lobe_*).
+            texture_optimizer.param_groups[0]["lr"] = (
+                settings.texture_learning_rate * pbr.lobe_learning_rate_scale
+            )
+            for group in light_optimizer.param_groups:
+                group["lr"] = pbr.environment_learning_rate * pbr.lobe_learning_rate_scale
         views_per_step = pbr.lobe_views_per_step if lobe else settings.views_per_step
         views = sample_views(len(cameras), views_per_step, generator).to(device)
         verts = preconditioner.from_latent(latent)
@@ -508,7 +515,13 @@ def run_pbr_texture_stage(
             record = step_record(
                 "texture",
                 step,
-                {"loss": loss, "color_loss": color_loss, "mask_loss": mask_loss},
+                {
+                    "loss": loss,
+                    "color_loss": color_loss,
+                    "mask_loss": mask_loss,
+                    # Followed through the run: the split sum trades it against the light's blur.
+                    "roughness_median": material[..., 0].median(),
+                },
                 color,
                 images[views],
                 cameras.image_size,
