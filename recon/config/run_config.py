@@ -592,7 +592,7 @@ class PbrFitConfig:
     )
     lobe_learning_rate_scale: float = setting(
         0.25,
-        "Full-lobe steps: factor on the base colour's and the environment's learning rates (a refinement of a settled fit on fewer views per step; the material's rate is unchanged).",
+        "Full-lobe steps: factor on the learning rates of the base colour, the material and the environment (a refinement of a settled fit on fewer views per step).",
     )
 
     def __post_init__(self) -> None:

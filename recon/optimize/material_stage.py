@@ -435,10 +435,13 @@ def run_pbr_texture_stage(
     for step in bar:
         lobe = step >= settings.steps
         if lobe and step == max(start_step, settings.steps):
-            # The refinement moves the light and base colour gently (fit.pbr.lobe_*).
+            # The refinement moves everything gently (fit.pbr.lobe_*): with one view per step the
+            # full rates make the roughness jitter by +-0.04 from step to step.
             texture_optimizer.param_groups[0]["lr"] = (
                 settings.texture_learning_rate * pbr.lobe_learning_rate_scale
             )
+            for group in texture_optimizer.param_groups[1:]:
+                group["lr"] = pbr.material_learning_rate * pbr.lobe_learning_rate_scale
             for group in light_optimizer.param_groups:
                 group["lr"] = pbr.environment_learning_rate * pbr.lobe_learning_rate_scale
         views_per_step = pbr.lobe_views_per_step if lobe else settings.views_per_step
