@@ -575,6 +575,25 @@ class PbrFitConfig:
         0.01,
         "Pull of each environment texel toward grey (its channel mean): light colour and base colour are otherwise interchangeable.",
     )
+    lobe_steps: int = setting(
+        0,
+        "Texture steps after texture.steps that shade the specular lobe per pixel by visible-normal samples (recon/render/lobe_sampling.py) instead of the split sum, which cannot tell a blurry light from a rough surface (docs/decisions/0193-pbr-roughness-lobe.md); the fitted scene is then rendered that way too.",
+    )
+    lobe_samples: int = setting(
+        16, "Visible-normal samples per pixel of the full-lobe shading (used with lobe_steps)."
+    )
+    lobe_filter_width: float = setting(
+        0.5,
+        "Full-lobe shading: each sample looks the environment up pre-filtered at GGX width alpha = this x the angular radius (radians) of the solid angle the sample stands for (filtered importance sampling); 0 = unfiltered.",
+    )
+    lobe_views_per_step: int = setting(
+        1,
+        "Training views per full-lobe step (each costs lobe_samples look-ups per pixel; texture.views_per_step applies to the split-sum steps).",
+    )
+    lobe_learning_rate_scale: float = setting(
+        0.25,
+        "Full-lobe steps: factor on the learning rates of the base colour, the material and the environment (a refinement of a settled fit on fewer views per step).",
+    )
 
     def __post_init__(self) -> None:
         _check_vector(self.environment_size, "environment_size", length=2)
@@ -583,6 +602,11 @@ class PbrFitConfig:
         check_range(self.prefilter_levels, "prefilter_levels", low=1, high=16)
         check_range(self.material_texture_size, "material_texture_size", low=0, high=8192)
         check_range(self.material_warmup_steps, "material_warmup_steps", low=0)
+        check_range(self.lobe_steps, "lobe_steps", low=0)
+        check_range(self.lobe_samples, "lobe_samples", low=1, high=4096)
+        check_range(self.lobe_filter_width, "lobe_filter_width", low=0.0)
+        check_range(self.lobe_views_per_step, "lobe_views_per_step", low=1)
+        check_range(self.lobe_learning_rate_scale, "lobe_learning_rate_scale", low=0.0)
         check_range(self.initial_roughness, "initial_roughness", low=0.0, high=1.0)
         check_range(self.initial_metalness, "initial_metalness", low=0.0, high=1.0)
         check_range(self.specular_level, "specular_level", low=0.0, high=1.0)

@@ -43,9 +43,15 @@ from recon.optimize.scene_model import (
     texture_total_variation,
 )
 from recon.optimize.texture_stage import LOG_EVERY, start_texture_stage
-from recon.render.environment import latlong_directions, prefilter_environment, project_to_sh
+from recon.render.environment import (
+    PrefilteredEnvironment,
+    latlong_directions,
+    prefilter_environment,
+    project_to_sh,
+)
 from recon.render.environment_seed import backproject_highlights
 from recon.render.interpolate import interpolate_packed
+from recon.render.lobe_sampling import SampledEnvironment
 from recon.render.renderer import Renderer, RenderOutput
 from recon.render.shading import sh_basis, sh_irradiance
 from recon.render.texture import build_mip_pyramid
@@ -70,6 +76,8 @@ class PbrTextureResult:
     environment: [he, we, 3] lat-long radiance of the fitted light.
     light: an SH light equivalent to the environment (for Lambertian consumers).
     specular_level, prefilter_levels, diffuse_weighting: the shading settings the fit used.
+    lobe_samples, lobe_filter_width: the full-lobe shading's samples per pixel and filter
+    (recon.render.lobe_sampling; lobe_samples 0: the split sum).
     light_frame: 'world', or 'camera' when the environment is fixed to the camera (turntable
     captures, fit.light.frame): its directions are then OpenCV camera axes of each view.
     """
@@ -83,6 +91,16 @@ class PbrTextureResult:
     effects: FitEffects | None = None
     diffuse_weighting: str = "none"
     light_frame: str = "world"
+    lobe_samples: int = 0
+    lobe_filter_width: float = 0.5
+
+    def shading_environment(self) -> PrefilteredEnvironment | SampledEnvironment:
+        """The environment as the fit shaded with it: split sum, or the full lobe per pixel
+        (lobe_samples > 0, fit.pbr.lobe_steps)."""
+        prefiltered = prefilter_environment(self.environment, self.prefilter_levels)
+        if self.lobe_samples > 0:
+            return SampledEnvironment(prefiltered, self.lobe_samples, self.lobe_filter_width)
+        return prefiltered
 
     def material_texture(self) -> torch.Tensor:
         """[h, w, 5] base colour, roughness, metalness (+ normal map: [h, w, 8]): what
@@ -97,7 +115,7 @@ class PbrTextureResult:
             buffers,
             cameras.centers(),
             texture,
-            prefilter_environment(self.environment, self.prefilter_levels),
+            self.shading_environment(),
             specular_level=self.specular_level,
             background=background,
             mip_pyramid=build_mip_pyramid(texture),
@@ -213,6 +231,8 @@ def pbr_light_record(result: PbrTextureResult, environment_file: str) -> dict:
             "specular_level": result.specular_level,
             "prefilter_levels": result.prefilter_levels,
             "diffuse_weighting": result.diffuse_weighting,
+            "lobe_samples": result.lobe_samples,
+            "lobe_filter_width": result.lobe_filter_width,
         }
     )
     return record
@@ -253,6 +273,8 @@ def read_pbr_result(
         int(record["prefilter_levels"]),
         diffuse_weighting=record.get("diffuse_weighting", "none"),
         light_frame=record.get("frame", "world"),
+        lobe_samples=int(record.get("lobe_samples", 0)),
+        lobe_filter_width=float(record.get("lobe_filter_width", 0.5)),
     )
 
 
@@ -400,27 +422,55 @@ def run_pbr_texture_stage(
             },
         )
 
+    # After texture.steps split-sum steps, fit.pbr.lobe_steps shade the full lobe per pixel.
+    total_steps = settings.steps + pbr.lobe_steps
     started = time.perf_counter()
     bar = tqdm(
-        range(start_step, settings.steps),
+        range(start_step, total_steps),
         desc="fit pbr texture",
         initial=start_step,
-        total=settings.steps,
+        total=total_steps,
         unit="step",
     )
     for step in bar:
-        views = sample_views(len(cameras), settings.views_per_step, generator).to(device)
+        lobe = step >= settings.steps
+        if lobe and step == max(start_step, settings.steps):
+            # The refinement moves everything gently (fit.pbr.lobe_*): with one view per step the
+            # full rates make the roughness jitter by +-0.04 from step to step.
+            texture_optimizer.param_groups[0]["lr"] = (
+                settings.texture_learning_rate * pbr.lobe_learning_rate_scale
+            )
+            for group in texture_optimizer.param_groups[1:]:
+                group["lr"] = pbr.material_learning_rate * pbr.lobe_learning_rate_scale
+            for group in light_optimizer.param_groups:
+                group["lr"] = pbr.environment_learning_rate * pbr.lobe_learning_rate_scale
+        views_per_step = pbr.lobe_views_per_step if lobe else settings.views_per_step
+        views = sample_views(len(cameras), views_per_step, generator).to(device)
         verts = preconditioner.from_latent(latent)
+        if lobe:
+            # The full-lobe steps refine material and light on the settled shape: one view per
+            # step and the samples' sensitivity to the normals move the vertices off it.
+            verts = verts.detach()
         current = Mesh(verts, mesh.faces, uvs=mesh.uvs, uv_faces=mesh.uv_faces, texture=base_color)
         batch_cameras = apply_camera_effects(effects.modules, cameras[views], views)
         buffers = renderer.surface_buffers(current, batch_cameras, topology)
         texture = torch.cat([base_color, full_material()], dim=-1)
         environment = current_environment()
+        shading_environment = prefilter_environment(environment, pbr.prefilter_levels)
+        if lobe:
+            # Fresh per-pixel shifts of the sample points each step: the lobe's sampling error
+            # averages out over steps instead of biasing every step alike.
+            shifts = torch.rand(
+                int(buffers.fragments.covered_index.numel()), 2, generator=generator
+            )
+            shading_environment = SampledEnvironment(
+                shading_environment, pbr.lobe_samples, pbr.lobe_filter_width, shifts.to(device)
+            )
         output = renderer.shade_pbr(
             buffers,
             batch_cameras.centers(),
             texture,
-            prefilter_environment(environment, pbr.prefilter_levels),
+            shading_environment,
             specular_level=pbr.specular_level,
             mip_pyramid=build_mip_pyramid(texture),
             diffuse_weighting=pbr.diffuse_weighting,
@@ -448,7 +498,8 @@ def run_pbr_texture_stage(
         light_optimizer.zero_grad()
         effects.zero_grad()
         loss.backward()
-        position_optimizer.step()
+        if not lobe:
+            position_optimizer.step()
         if step < pbr.material_warmup_steps:
             # The environment settles first around the starting roughness (docs/decisions/0180).
             material.grad = None
@@ -463,11 +514,17 @@ def run_pbr_texture_stage(
             normal_slopes.clamp_(-MAXIMUM_NORMAL_SLOPE, MAXIMUM_NORMAL_SLOPE)
             if not log_environment:
                 environment_parameter.clamp_min_(0)
-        if step % LOG_EVERY == 0 or step == settings.steps - 1:
+        if step % LOG_EVERY == 0 or step == total_steps - 1:
             record = step_record(
                 "texture",
                 step,
-                {"loss": loss, "color_loss": color_loss, "mask_loss": mask_loss},
+                {
+                    "loss": loss,
+                    "color_loss": color_loss,
+                    "mask_loss": mask_loss,
+                    # Followed through the run: the split sum trades it against the light's blur.
+                    "roughness_median": material[..., 0].median(),
+                },
                 color,
                 images[views],
                 cameras.image_size,
@@ -490,7 +547,7 @@ def run_pbr_texture_stage(
         uv_faces=mesh.uv_faces,
         texture=final_base,
     )
-    save(settings.steps, stage="texture_done")
+    save(total_steps, stage="texture_done")
     return PbrTextureResult(
         final,
         final_material,
@@ -501,4 +558,6 @@ def run_pbr_texture_stage(
         effects,
         pbr.diffuse_weighting,
         light_frame,
+        pbr.lobe_samples if pbr.lobe_steps > 0 else 0,
+        pbr.lobe_filter_width,
     )

@@ -52,12 +52,27 @@ def latlong_directions(
 def sample_latlong(environment: torch.Tensor, directions: torch.Tensor) -> torch.Tensor:
     """Bilinear lookup of a lat-long map [h, w, C] at unit directions [..., 3] -> [..., C]:
     wraps in azimuth, clamps at the poles. Differentiable in the map and the directions."""
-    height, width, channels = environment.shape
-    leading = directions.shape[:-1]
-    flat = directions.reshape(-1, 3)
-    x, y, z = flat.unbind(-1)
+    return sample_latlong_at(environment, direction_angles(directions))
+
+
+def direction_angles(directions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Polar angle theta from +y and azimuth phi in [0, 2 pi) [...] of unit directions
+    [..., 3] (the lat-long convention of this module)."""
+    x, y, z = directions.unbind(-1)
     theta = torch.acos(y.clamp(-1 + 1e-6, 1 - 1e-6))
     phi = torch.atan2(z, x) % (2 * math.pi)
+    return theta, phi
+
+
+def sample_latlong_at(
+    environment: torch.Tensor, angles: tuple[torch.Tensor, torch.Tensor]
+) -> torch.Tensor:
+    """sample_latlong at directions given by their direction_angles (theta, phi) [...], so
+    that several maps are looked up along the same directions without recomputing them."""
+    height, width, channels = environment.shape
+    theta, phi = angles
+    leading = theta.shape
+    theta, phi = theta.reshape(-1), phi.reshape(-1)
     # One wrapped column on each side makes the azimuth seam bilinear too.
     padded = torch.cat([environment[:, -1:], environment, environment[:, :1]], dim=1)
     column = phi / (2 * math.pi) * width + 0.5  # texel-centre coordinates in the padded map
@@ -143,10 +158,21 @@ class PrefilteredEnvironment:
         weights = torch.where(
             offset < 0, 1 + offset / spacing_left, 1 - offset / spacing_right
         ).clamp_min(0)
-        result = 0
+        leading = directions.shape[:-1]
+        theta, phi = direction_angles(directions.reshape(-1, 3))
+        weights = weights.reshape(theta.shape[0], -1)
+        result = directions.new_zeros(theta.shape[0], self.levels[0].shape[-1])
         for index, level in enumerate(self.levels):
-            result = result + weights[..., index : index + 1] * sample_latlong(level, directions)
-        return result
+            weight = weights[:, index : index + 1]
+            used = weight[:, 0] > 0
+            if bool(used.all()):
+                result = result + weight * sample_latlong_at(level, (theta, phi))
+            elif bool(used.any()):
+                # Only the look-ups between this level and a neighbour (most of them skip it).
+                rows = used.nonzero()[:, 0]
+                sampled = sample_latlong_at(level, (theta[rows], phi[rows])) * weight[rows]
+                result = result.index_add(0, rows, sampled)
+        return result.reshape(*leading, -1)
 
     def irradiance(self, normals: torch.Tensor) -> torch.Tensor:
         """Diffuse irradiance E(n) [..., C] at unit normals [..., 3]."""

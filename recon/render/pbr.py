@@ -27,6 +27,7 @@ import torch.nn.functional as F
 from recon.errors import ReconError
 from recon.render.brdf import MINIMUM_COSINE, lookup_split_sum, specular_brdf, specular_f0
 from recon.render.environment import PrefilteredEnvironment
+from recon.render.lobe_sampling import SampledEnvironment
 from recon.render.shading import DirectionalLight
 
 
@@ -67,13 +68,14 @@ def pbr_shade(
     material: PbrMaterial,
     normals: torch.Tensor,
     to_viewer: torch.Tensor,
-    environment: PrefilteredEnvironment | None,
+    environment: PrefilteredEnvironment | SampledEnvironment | None,
     directional: list[DirectionalLight] | None = None,
 ) -> torch.Tensor:
     """Outgoing linear radiance [N, C].
 
     normals, to_viewer: [N, 3] unit vectors (to_viewer points from the surface to the camera).
-    environment: the pre-filtered environment (None: directional lights only).
+    environment: the pre-filtered environment (None: directional lights only), or a
+        SampledEnvironment to integrate the specular lobe per pixel instead of the split sum.
     directional: distant lights, each adding (f_d + f_s) E cos with the exact BRDF.
     """
     base, roughness, metalness = material.base_color, material.roughness, material.metalness
@@ -93,9 +95,12 @@ def pbr_shade(
     radiance = torch.zeros_like(base)
     if environment is not None:
         reflected = F.normalize(2 * n_dot_v * normals - to_viewer, dim=-1, eps=1e-12)
-        radiance = diffuse_albedo / math.pi * environment.irradiance(
-            normals
-        ) + specular_albedo * environment.specular(reflected, roughness)
+        if isinstance(environment, SampledEnvironment):
+            # The full lobe per pixel (recon.render.lobe_sampling) instead of the split sum.
+            specular = environment.specular_lobe(normals, to_viewer, roughness, f0)
+        else:
+            specular = specular_albedo * environment.specular(reflected, roughness)
+        radiance = diffuse_albedo / math.pi * environment.irradiance(normals) + specular
     for light in directional or []:
         to_light = F.normalize(light.direction_to_light, dim=-1).expand_as(normals)
         cosine = (normals * to_light).sum(-1, keepdim=True).clamp_min(0)

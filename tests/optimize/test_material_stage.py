@@ -3,6 +3,7 @@ views of the same data and recovers the roughness roughly."""
 
 from __future__ import annotations
 
+import json
 import math
 
 import pytest
@@ -20,6 +21,7 @@ from recon.optimize.geometry_stage import GeometryResult
 from recon.optimize.material_stage import (
     environment_from_light,
     highlight_environment,
+    pbr_light_record,
     run_pbr_texture_stage,
 )
 from recon.optimize.scene_model import FitEffects, LightModel, psnr_from_mse
@@ -282,3 +284,37 @@ def test_highlights_seed_finds_the_softbox_the_sh_light_blurs(glossy_scene):
     # The prior's irradiance is the truth's here, and so is (nearly) the seed's: the factor
     # that keeps the base colour's diffuse shading stays near 1 (one per channel).
     assert scale.shape == (3,) and bool(((scale > 0.7) & (scale < 1.4)).all()), scale
+
+
+def test_lobe_steps_refine_material_on_the_settled_shape(glossy_scene, tmp_path):
+    """fit.pbr.lobe_steps resume a finished split-sum fit: the shape stays, the roughness
+    moves, history follows it, and the result (and its light record) names the shading."""
+    mesh, train, _ = glossy_scene
+    config = _config()
+    config.texture.steps = 2
+    config.texture.learning_rate = 0.01
+    config.pbr.material_texture_size = 1
+    device = torch.device("cpu")
+    checkpoint = tmp_path / "lobe.pt"
+    settled = run_pbr_texture_stage(
+        train, _geometry(mesh), config, device, 0, checkpoint, History(tmp_path / "s")
+    )
+    assert settled.lobe_samples == 0
+    config.pbr.lobe_steps = 3
+    config.pbr.lobe_samples = 4
+    history = History(tmp_path / "h")
+    refined = run_pbr_texture_stage(
+        train, _geometry(mesh), config, device, 0, checkpoint, history, resume=True
+    )
+    torch.testing.assert_close(refined.mesh.verts, settled.mesh.verts)
+    assert float((refined.material[..., 0] - settled.material[..., 0]).abs().max()) > 1e-4
+    assert refined.lobe_samples == 4
+    record = pbr_light_record(refined, "environment.exr")
+    assert record["lobe_samples"] == 4
+    assert record["lobe_filter_width"] == config.pbr.lobe_filter_width
+    logged = [json.loads(line) for line in (tmp_path / "h").read_text().splitlines()]
+    assert logged[-1]["step"] == 4 and "roughness_median" in logged[-1]
+    renderer = Renderer(texture_boundary="clamp")
+    with torch.no_grad():
+        color = refined.render(renderer, train.cameras[:1]).color
+    assert bool(torch.isfinite(color).all())
