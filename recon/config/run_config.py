@@ -743,6 +743,8 @@ class FitConfig:
 # (2 x 0.0186, Mitsuba teapot; 10 clean cases of the own and Mitsuba worlds, /work/blind_runs/b48v9;
 # docs/decisions/0191-blind-misses.md).
 AGREEMENT_WHITE_BALANCE = 0.037
+# The lobe evidence's allowance for specular (docs/decisions/0196-diagnosis-light-transport-lobe.md).
+LOBE_SPECULAR = 0.02
 
 
 @dataclass
@@ -808,10 +810,24 @@ class DecisionConfig:
         0.01,
         "Level of the agreement's permutation test (views of one half permuted): conventional, not tuned.",
     )
+    lobe_allowance: dict[str, float] = setting(
+        factory=lambda: {"specular": LOBE_SPECULAR},
+        doc="Per effect with lobe evidence (recon.diagnose.lobe): how far the partial correlation of the view-to-view residual with a highlight's lobe under the fitted light must exceed the placebo lights' 95th percentile (the floor: on the blind check's clean synthetic fits the excess is below zero, docs/decisions/0196-diagnosis-light-transport-lobe.md).",
+    )
+    lobe_minimum: float = setting(
+        0.02,
+        "Floor of every lobe allowance: an excess correlation of 0.02 over the placebo lights' 95th percentile.",
+    )
+    lobe_alpha: float = setting(
+        0.01,
+        "Level of the lobe's placebo-light test (the share of placebo lights reaching the fitted light's correlation): conventional, not tuned.",
+    )
 
     def __post_init__(self) -> None:
         check_range(self.agreement_minimum, "agreement_minimum", low=0.0, high=1.0)
         check_range(self.agreement_alpha, "agreement_alpha", low=0.0, high=1.0)
+        check_range(self.lobe_minimum, "lobe_minimum", low=0.0, high=1.0)
+        check_range(self.lobe_alpha, "lobe_alpha", low=0.0, high=1.0)
         for name in ("minimum_share", "absorption_minimum_share", "regression_minimum_share"):
             check_range(getattr(self, name), name, low=0.0, high=1.0)
         for name in ("relight_allowance", "flat_field_allowance", "visibility_share_minimum"):
@@ -979,6 +995,48 @@ class MetadataConfig:
 
 
 @dataclass
+class LobeConfig:
+    """The lobe evidence (recon.diagnose.lobe): the view-to-view residual against a highlight's
+    lobe under the fitted light, on the training and held-out views, against placebo lights."""
+
+    exponents: list[float] = setting(
+        factory=lambda: [8.0, 16.0, 32.0, 64.0, 128.0],
+        doc="Blinn-Phong exponents the lobe is tried at (the best counts, for the placebo lights as for the fitted one): roughness about 0.55 to 0.25.",
+    )
+    cells_per_axis: int = setting(
+        12,
+        "Cells per axis of the voxel grid over the object's surface points that get one offset each (what an albedo absorbs).",
+    )
+    placebo_lights: int = setting(
+        200,
+        "Directions of the Fibonacci sphere tried as placebo lights (those near the fitted light are left out).",
+    )
+    placebo_separation_degrees: float = setting(
+        45.0,
+        "Least angle between a placebo light and the fitted light: nearer ones share its highlights.",
+    )
+    minimum_pixels: int = setting(
+        200, "Interior object pixels over all views below which no lobe evidence is measured."
+    )
+    enabled: bool = setting(True, "Measure the lobe evidence for the specular candidate.")
+    maximum_pixels: int = setting(
+        20000,
+        "Interior object pixels (over all views) the lobe evidence uses at most, an even stride through them: its cost is pixels x placebo lights x exponents.",
+    )
+
+    def __post_init__(self) -> None:
+        if not self.exponents or any(value <= 0 for value in self.exponents):
+            raise ConfigFieldError(
+                "exponents", f"expected positive exponents, got {self.exponents}"
+            )
+        for name in ("cells_per_axis", "placebo_lights", "minimum_pixels", "maximum_pixels"):
+            check_range(getattr(self, name), name, low=1)
+        check_range(
+            self.placebo_separation_degrees, "placebo_separation_degrees", low=0.0, high=180.0
+        )
+
+
+@dataclass
 class DiagnoseConfig:
     """The gap diagnosis (recon diagnose): which candidates, how each kind of evidence is
     measured, how far the refits go, and the decision's allowances."""
@@ -1094,6 +1152,10 @@ class DiagnoseConfig:
     metadata: MetadataConfig = setting(
         factory=MetadataConfig, doc="Recovered exposure against the capture's EXIF exposure."
     )
+    lobe: LobeConfig = setting(
+        factory=LobeConfig,
+        doc="The lobe evidence: the view-to-view residual against a highlight under the fitted light.",
+    )
 
     def __post_init__(self) -> None:
         for name in (
@@ -1125,6 +1187,39 @@ class DiagnoseConfig:
             raise ConfigFieldError(
                 "candidates", f"unknown effects {unknown}; known: {', '.join(EFFECT_NAMES)}"
             )
+
+
+@dataclass
+class EvaluateConfig:
+    """The evaluate stage's settings beyond the held-out images: how a `pbr` fit's material is
+    compared with a synthetic world's true maps (recon/metrics/material.py)."""
+
+    material_samples: int = setting(
+        50_000,
+        "Points sampled (by area) on the fitted surface to compare its roughness/metalness with the reference's true maps at the closest reference point.",
+    )
+    material_tolerance: float = setting(
+        0.05,
+        "A sample's roughness (metalness) counts as recovered when within this of the truth: metrics.json's material.*_within_tolerance.",
+    )
+    material_max_distance: float = setting(
+        0.01,
+        "Samples farther than this (in reference bounding-box diagonals) from the reference are left out of the material comparison (a geometry error, not a material one).",
+    )
+    material_seen_only: bool = setting(
+        True,
+        "Compare the material only where some training view saw the surface (unseen texels hold the regulariser's guess, not a measurement).",
+    )
+    material_depth_tolerance: float = setting(
+        0.02,
+        "A surface point counts as seen by a view when it is at most this fraction of its depth behind the nearest surface at its pixel.",
+    )
+
+    def __post_init__(self) -> None:
+        check_range(self.material_samples, "material_samples", low=1)
+        check_range(self.material_tolerance, "material_tolerance", low=0.0, high=1.0)
+        check_range(self.material_max_distance, "material_max_distance", low=0.0)
+        check_range(self.material_depth_tolerance, "material_depth_tolerance", low=0.0)
 
 
 @dataclass
@@ -1166,6 +1261,10 @@ class RunConfig:
     diagnose: DiagnoseConfig = setting(
         factory=DiagnoseConfig,
         doc="The gap diagnosis (recon diagnose): evidence settings, refits, decision allowances.",
+    )
+    evaluate: EvaluateConfig = setting(
+        factory=EvaluateConfig,
+        doc="The evaluate stage: how a pbr fit's material is compared with a synthetic world's true maps.",
     )
 
     def __post_init__(self) -> None:

@@ -144,8 +144,10 @@ def identifiability_producer(
         # Corner coverage and regions seen at one radius (flat-field frames settle both).
         evidence.append(_as_condition(vignetting_evidence(inputs.data, conditions, options)))
     if "lens_distortion" in names:
-        shift = _recovered_corner_shift(by_name["lens_distortion"])
-        evidence.append(_as_condition(lens_distortion_evidence(inputs.data, options, shift)))
+        shift, radial = _recovered_distortion(by_name["lens_distortion"])
+        evidence.append(
+            _as_condition(lens_distortion_evidence(inputs.data, options, shift, radial))
+        )
     if "motion_blur" in names:
         evidence.append(_as_condition(motion_blur_evidence(inputs.data, options)))
     agreement = (
@@ -160,19 +162,26 @@ def identifiability_producer(
     return evidence
 
 
-def _recovered_corner_shift(candidate: Candidate) -> float | None:
-    """The corner displacement (pixels) of the distortion a significant lens_distortion
-    candidate recovered (its absorption's or probe's parameters), to judge that distortion
-    against a pose correction; None for one that did not clear (then the condition judges the
-    reference strength: whether even a strong distortion would hide in a pose error)."""
+def _recovered_distortion(
+    candidate: Candidate,
+) -> tuple[float | None, tuple[float, float] | None]:
+    """(corner displacement in pixels, (k1, k2)) of the distortion a significant
+    lens_distortion candidate recovered (its absorption's or probe's parameters), to judge that
+    distortion against a pose correction by its flow over the object (its corner shift is an
+    extrapolation, reported only); (None, None) for one that did not clear (then the condition
+    judges the reference strength: whether even a strong distortion would hide in a pose
+    error). A record without k1 is judged by its corner shift alone."""
     if not candidate.significant:
-        return None
+        return None, None
     for kind in ("absorption", "probe"):
         item = candidate.evidence_of(kind)
         parameters = (item.details.get("parameters") or {}) if item is not None else {}
         if parameters.get("corner_shift_px") is not None:
-            return float(parameters["corner_shift_px"])
-    return None
+            shift = float(parameters["corner_shift_px"])
+            if parameters.get("k1") is None:
+                return shift, None
+            return shift, (float(parameters["k1"]), float(parameters.get("k2") or 0.0))
+    return None, None
 
 
 def _as_condition(evidence: Evidence) -> Evidence:

@@ -16,7 +16,11 @@ probe         clear         held-out reduction's lower bound above its allowance
 absorption    clear         the same for the absorption refit (unless voided)
 relight       clear         the same for the relight split's probe
 agreement     clear         a per-view colour gain shared by separate halves of each view
-                            above its allowance, beyond permuted views (recon.diagnose.agreement)
+                            above its allowance, beyond permuted views (recon.diagnose.agreement);
+                            a specificity veto in the image position alone does not overturn it
+lobe          clear         the view-to-view residual (training and held-out views) follows a
+                            highlight's lobe under the fitted light beyond placebo lights
+                            (recon.diagnose.lobe); ranks after clearing residual evidence
 fingerprint   name          the visibility fingerprint names the effect (ranks after the above)
 null          raise bar     a failed null from the run (placebo, permutation, split half)
                             keeps the clearing rows from making the candidate significant
@@ -89,6 +93,17 @@ def agreement_threshold(effect: str, config: DecisionConfig) -> float:
     return max(config.agreement_minimum, config.agreement_allowance.get(effect, 0.0))
 
 
+def lobe_threshold(effect: str, config: DecisionConfig) -> float:
+    """The partial correlation a lobe evidence must clear (floored)."""
+    return max(config.lobe_minimum, config.lobe_allowance.get(effect, 0.0))
+
+
+def _lobe_clears(evidence: Evidence, threshold: float, config: DecisionConfig) -> bool:
+    """The lobe correlates above the allowance, and more than placebo lights' lobes do."""
+    p_value = evidence.details.get("p_value", 1.0)
+    return evidence.statistic > threshold and p_value < config.lobe_alpha
+
+
 def _agrees(evidence: Evidence, threshold: float, config: DecisionConfig) -> bool:
     """The halves share a spread above the allowance, and more than permuted views do."""
     p_value = evidence.details.get("p_value", 1.0)
@@ -126,6 +141,10 @@ class Rule:
     independent: whether it measures the effect on other data than the held-out residual
         (flat-field frames, the relight split under its own light): a specificity veto, a
         pattern of the held-out residual, does not overturn it.
+    settles: specificity domains (recon.diagnose.specificity) this evidence tests itself: a
+        specificity veto whose failing domains (details["failing_domains"]) all lie among
+        them does not overturn it (the agreement's separate halves of each view share the
+        colour change: it is not a profile of the image position).
     """
 
     kind: str
@@ -136,6 +155,7 @@ class Rule:
     passes: Callable[[Evidence, float, DecisionConfig], bool] | None = None
     parameters_from: tuple[str, ...] = ()
     independent: bool = False
+    settles: tuple[str, ...] = ()
 
 
 DECISION_TABLE: tuple[Rule, ...] = (
@@ -183,6 +203,15 @@ DECISION_TABLE: tuple[Rule, ...] = (
         threshold=agreement_threshold,
         passes=_agrees,
         parameters_from=("probe",),
+        settles=("image_position",),
+    ),
+    Rule(
+        "lobe",
+        "clear",
+        measured=True,
+        threshold=lobe_threshold,
+        passes=_lobe_clears,
+        parameters_from=("lobe", "absorption", "probe"),
     ),
     Rule(
         "fingerprint",
@@ -262,6 +291,8 @@ def decide(candidate: Candidate, config: DecisionConfig) -> Candidate:
         # Measured on other data (flat-field frames, the relight split): the held-out
         # residual's pattern (specificity) does not overturn it; the capture's record does.
         vetoes = [item for item in vetoes if item.kind != "specificity"]
+    if deciding is not None and RULES[deciding.kind].settles:
+        vetoes = [item for item in vetoes if not _settled(item, RULES[deciding.kind].settles)]
     if vetoes and status == "significant":
         status, why = "vetoed", vetoes[0].reason
     unidentifiable = [item for item in _role_evidence(candidate, "qualify") if not item.passed]
@@ -294,6 +325,13 @@ def decide(candidate: Candidate, config: DecisionConfig) -> Candidate:
     kinds = RULES[deciding.kind].parameters_from if candidate.significant else ()
     candidate.parameters = _parameters(candidate, kinds or UNDECIDED_PARAMETERS)
     return candidate
+
+
+def _settled(veto: Evidence, domains: tuple[str, ...]) -> bool:
+    """Whether a failed specificity check failed only in domains the deciding evidence tested
+    itself (a record without its failing domains is not settled)."""
+    failing = veto.details.get("failing_domains")
+    return veto.kind == "specificity" and bool(failing) and set(failing) <= set(domains)
 
 
 def _confusable(condition: Evidence) -> str | None:

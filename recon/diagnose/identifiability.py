@@ -224,23 +224,70 @@ def similarity_share(data: DiagnosisData) -> tuple[float, float, int]:
     return share, math.sqrt(residual / max(points, 1)), views
 
 
+def radial_flow_remainder(data: DiagnosisData, k1: float, k2: float) -> tuple[float, float, int]:
+    """The same comparison as similarity_share for one radial distortion x_d = x (1 + k1 r^2 +
+    k2 r^4) (normalised camera coordinates, the diagnosis' lens_distortion model), in pixels:
+    the share of its flow over each view's covered pixels that a per-view shift, zoom and
+    rotation reproduces, the RMS (pixels) of the rest, and the number of views with coverage.
+
+    A recovered distortion is fitted where the object is; its displacement at the image corners
+    is an extrapolation of its polynomial (a k1 and k2 of opposite signs can cancel there), so
+    it is judged by its flow over the object, not by its corner shift."""
+    batch, height, width, _ = data.observed.shape
+    intrinsics = data.cameras.intrinsics.double()
+    rows = torch.arange(height, dtype=torch.float64)[:, None].expand(height, width) + 0.5
+    columns = torch.arange(width, dtype=torch.float64)[None, :].expand(height, width) + 0.5
+    total, residual, views, points = 0.0, 0.0, 0, 0
+    for view in range(batch):
+        covered = data.observed_alpha[view, ..., 0] > 0.5
+        if int(covered.sum()) < 8:
+            continue
+        views += 1
+        points += int(covered.sum())
+        fx, fy = intrinsics[view, 0, 0], intrinsics[view, 1, 1]
+        x = columns[covered] - intrinsics[view, 0, 2]  # pixels from the principal point
+        y = rows[covered] - intrinsics[view, 1, 2]
+        squared = (x / fx) ** 2 + (y / fy) ** 2
+        scale = k1 * squared + k2 * squared * squared
+        flow = torch.cat([scale * x, scale * y])  # [2N] pixels
+        ones, zeros = torch.ones_like(x), torch.zeros_like(x)
+        design = torch.stack(
+            [
+                torch.cat([ones, zeros]),
+                torch.cat([zeros, ones]),
+                torch.cat([x, y]),
+                torch.cat([-y, x]),
+            ],
+            dim=1,
+        )
+        solution = torch.linalg.lstsq(design, flow[:, None]).solution
+        residual += float(((design @ solution)[:, 0] - flow).pow(2).sum())
+        total += float(flow.pow(2).sum())
+    share = 1 - residual / total if total > 0 else 1.0
+    return share, math.sqrt(residual / max(points, 1)), views
+
+
 def lens_distortion_evidence(
     data: DiagnosisData,
     options: IdentifiabilityConfig,
     corner_shift_pixels: float | None = None,
+    radial: tuple[float, float] | None = None,
 ) -> Evidence:
     """A radial distortion is told from a pose error by the part of its flow that no per-view
     zoom, shift and rotation makes; where the object covers only the centre, that part is
     small and a pose correction explains the distortion as well.
 
-    corner_shift_pixels: the distortion to judge, by its displacement at the image corners
-    (e.g. the probe's recovered one); default options.reference_corner_shift of the half
-    diagonal."""
+    corner_shift_pixels: the distortion to judge, by its displacement at the image corners;
+    default options.reference_corner_shift of the half diagonal (judged with the flow shape
+    r^2 x). radial: a recovered distortion's (k1, k2), judged by its own flow over the object
+    (radial_flow_remainder); corner_shift_pixels is then only reported."""
     explained, distinguishable, views = similarity_share(data)
     height, width = data.image_size
     if corner_shift_pixels is None:
         corner_shift_pixels = options.reference_corner_shift * 0.5 * math.hypot(height, width)
     pixels = distinguishable * abs(corner_shift_pixels)
+    if radial is not None:
+        explained, pixels, views = radial_flow_remainder(data, *radial)
     passed = pixels >= options.minimum_distinguishable_pixels
     radius = covered_radius(data)
     details = {
@@ -252,19 +299,22 @@ def lens_distortion_evidence(
         "views": views,
         "confused_with": ["pose_error"],
     }
+    if radial is not None:
+        details["judged"] = {"k1": radial[0], "k2": radial[1]}
+        what = f"the recovered radial distortion (k1 {radial[0]:.3g}, k2 {radial[1]:.3g})"
+    else:
+        what = f"a radial distortion moving the corners by {corner_shift_pixels:.1f} px"
     if passed:
         reason = (
-            "lens_distortion is identifiable: a radial distortion moving the corners by "
-            f"{corner_shift_pixels:.1f} px leaves {pixels:.2f} px (RMS) over the object (radius "
-            f"up to {radius:.2f}) that no per-view zoom, shift or rotation makes"
+            f"lens_distortion is identifiable: {what} leaves {pixels:.2f} px (RMS) over the "
+            f"object (radius up to {radius:.2f}) that no per-view zoom, shift or rotation makes"
         )
     else:
         reason = (
             "lens_distortion is not identifiable from pose_error on this data, because the "
-            f"object covers radii up to {radius:.2f} only, where a radial distortion moving the "
-            f"corners by {corner_shift_pixels:.1f} px is a per-view zoom and shift but for "
-            f"{pixels:.2f} px (RMS, over {views} views): a pose correction explains it as "
-            "well; views with the object off-centre or near "
+            f"object covers radii up to {radius:.2f} only, where {what} is a per-view zoom and "
+            f"shift but for {pixels:.2f} px (RMS, over {views} views): a pose correction "
+            "explains it as well; views with the object off-centre or near "
             "the image edges, or a calibration target, would settle it"
         )
     return Evidence(

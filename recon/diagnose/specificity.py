@@ -32,6 +32,7 @@ from recon.config.run_config import DiagnoseConfig
 from recon.diagnose.data import DiagnosisData
 from recon.diagnose.pixel_table import GainModels, PixelTable, Term, pixel_table
 from recon.diagnose.records import Evidence
+from recon.effects.registry import diagnosis_facts
 
 KIND = "specificity"
 
@@ -246,32 +247,36 @@ def signature_evidence(
     relative, relative_low, _ = share_interval(alone, before, settings)
     if relative_low <= 0:
         # Without a reduction of its own there is no signature to check (and naming a
-        # mismatch from a ratio of two noises would be a false alarm). But a significant
-        # candidate whose own signature (one gain per view, a curve of intensity) removes no
-        # held-out error did not remove its error through that signature: the refit's freedom
-        # absorbed something else (under a light that turns with the camera, the diffuse
-        # model's rim and highlight mismatch), so it is not specific.
-        # (Whether the candidate is significant is decided after this check, so under a
-        # camera-fixed light a candidate without its own reduction fails here; an
-        # insignificant one names nothing either way.)
-        camera_light = data.lighting.frame == "camera"
+        # mismatch from a ratio of two noises would be a false alarm). But a camera gain
+        # (facts.gain_signature: one gain per view, a curve of intensity, a radial falloff)
+        # whose own signature removes no held-out error did not remove its error through that
+        # signature: a refit's or probe's freedom absorbed something else (under a light that
+        # turns with the camera, the diffuse model's rim and highlight mismatch), so it is not
+        # specific, whatever the light. A light-transport effect's gain signature is not its
+        # evidence (its fingerprint is): not tested. (Whether the candidate is significant is
+        # decided after this check; an insignificant one names nothing either way.)
+        facts = diagnosis_facts(name)
+        camera_gain = facts is not None and facts.gain_signature
         reason = (
             f"{name}: its signature's gain removes no held-out error "
             f"({100 * relative:.1f} %, interval from {100 * relative_low:.1f} %)"
         )
-        reason += (
-            "; under a light that turns with the camera a refit's gain absorbs the diffuse "
-            "model's mismatch instead, so it is not specific"
-            if camera_light
-            else "; not tested"
-        )
+        if not camera_gain:
+            reason += "; not tested"
+        elif data.lighting.frame == "camera":
+            reason += (
+                "; under a light that turns with the camera a refit's gain absorbs the diffuse "
+                "model's mismatch instead, so it is not specific"
+            )
+        else:
+            reason += "; what removed its error is not its signature, so it is not specific"
         return [
             Evidence(
                 kind=KIND,
                 candidate=name,
                 statistic=float("nan"),
                 threshold=settings.specificity.alpha,
-                passed=not camera_light,
+                passed=not camera_gain,
                 reason=reason,
                 details={"tested": False, "heldout_reduction": relative},
             )
@@ -318,6 +323,7 @@ def signature_evidence(
     details = {
         "heldout_reduction": relative,
         "domains": domains,
+        "failing_domains": failing,
         "worst_domain": worst,
         "views": views,
         "light_direction": table.light_source,

@@ -43,6 +43,11 @@ class DiagnosisFacts:
     identifiable_when: the capture that makes it identifiable (said when the data cannot).
     modelled_by: fit materials (config fit.material) that model it already: with one of them
         it is part of the model, not a candidate.
+    gain_signature: the camera scales the image by a gain that its signature is (one per view,
+        a curve of intensity, a falloff over the radius; recon.diagnose.specificity): a
+        candidate whose signature removes no held-out error did not remove its error through
+        it, whatever the light, and fails specificity. (Light-transport effects carry gain
+        signatures too, but their evidence is their fingerprint: False.)
     """
 
     family: Family
@@ -56,3 +61,4 @@ class DiagnosisFacts:
     confusable: tuple[str, ...] = ()
     identifiable_when: str = ""
     modelled_by: tuple[str, ...] = ()
+    gain_signature: bool = False

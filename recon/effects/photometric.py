@@ -37,6 +37,7 @@ class Exposure(ModelEffect):
         family="camera",
         confusable=("white_balance", "view_dependent_reflectance"),
         identifiable_when="views whose exposure differs, of surfaces whose reflectance does not change with the view",
+        gain_signature=True,
     )
     stage = "image"
     per_view = True
@@ -80,6 +81,7 @@ class WhiteBalance(ModelEffect):
         family="camera",
         confusable=("exposure", "view_dependent_reflectance"),
         identifiable_when="views whose colour balance differs (one view pins the gauge)",
+        gain_signature=True,
     )
     stage = "image"
     per_view = True
@@ -152,6 +154,7 @@ class Vignetting(ModelEffect):
         radial_falloff=True,
         confusable=("response_curve", "view_dependent_reflectance"),
         identifiable_when="the object reaching the image corners, or flat-field frames",
+        gain_signature=True,
     )
     stage = "image"
     per_view = False
@@ -224,6 +227,7 @@ class ResponseCurve(ModelEffect):
         relight_exponent=True,
         confusable=("lens_distortion", "exposure"),
         identifiable_when="views under a second light (a relight split) or with varying exposure",
+        gain_signature=True,
     )
     stage = "image"
     per_view = False

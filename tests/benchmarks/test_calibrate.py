@@ -1,5 +1,6 @@
-"""benchmarks/calibrate.py: allowances are twice the largest clean reduction, floored, and the
-config fragment it writes carries its provenance and loads as the diagnose section."""
+"""benchmarks/calibrate.py: allowances are twice the largest clean statistic (the probes' point
+reduction, the absorption's and relight probe's lower bound), floored; the config fragment it
+writes carries its provenance and loads as the diagnose section."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from benchmarks import calibrate
 from recon.config import from_dict
 from recon.config.run_config import RunConfig
 from recon.diagnose.records import Candidate, Diagnosis, Evidence
+from recon.errors import ReconError
 
 
 def _candidate(name: str, **reductions) -> Candidate:
@@ -42,7 +44,7 @@ def _run(
 def test_allowances_from_stored_diagnoses(tmp_path, capsys):
     runs = [
         _run(tmp_path / "a", pose=0.05, vignetting_absorption=0.004, share=0.03, relight=0.03),
-        _run(tmp_path / "b", pose=0.08, vignetting_absorption=0.012, share=-0.02, relight=0.001),
+        _run(tmp_path / "b", pose=0.08, vignetting_absorption=0.022, share=-0.02, relight=0.001),
     ]
     out = tmp_path / "calibration.yaml"
     assert calibrate.main([str(run) for run in runs] + ["--stored", "--write", str(out)]) == 0
@@ -51,11 +53,74 @@ def test_allowances_from_stored_diagnoses(tmp_path, capsys):
     assert printed["probe_allowance"]["pose_error"] == pytest.approx(0.16)
     # Below the floor: minimum_share.
     assert printed["probe_allowance"]["vignetting"] == pytest.approx(0.02)
+    # Absorption and relight: twice the largest lower bound (the reduction less 0.01 here).
     assert printed["absorption_allowance"]["vignetting"] == pytest.approx(0.024)
-    assert printed["relight_allowance"]["response_curve"] == pytest.approx(0.06)
+    assert printed["relight_allowance"]["response_curve"] == pytest.approx(0.04)
     assert printed["visibility_share_largest"] == pytest.approx(0.03)
     text = out.read_text()
     assert "# commit:" in text and "config_hash" in text and "seed 0" in text
     config = from_dict(yaml.safe_load(text), RunConfig)
     assert config.diagnose.decision.probe_allowance == {"pose_error": pytest.approx(0.16)}
-    assert config.diagnose.decision.relight_allowance == pytest.approx(0.06)
+    assert config.diagnose.decision.relight_allowance == pytest.approx(0.04)
+
+
+def _evidence(kind: str, name: str, low: float, reduction: float) -> Evidence:
+    details = {"reduction": reduction, "interval": [low, 2 * reduction - low]}
+    return Evidence(kind, name, low, math.nan, False, f"{kind}: lower bound", details)
+
+
+def _diagnosis(pose: tuple[float, float], relight: tuple[float, float]) -> dict:
+    """A diagnosis with a pose probe and a relight split's response probe, each given as
+    (lower bound, point reduction)."""
+    pose_error = Candidate("pose_error")
+    pose_error.add(_evidence("probe", "pose_error", *pose))
+    response = Candidate("response_curve")
+    response.add(_evidence("probe", "response_curve", -0.01, 0.001))
+    response.add(_evidence("relight", "response_curve", *relight))
+    return Diagnosis(candidates=[pose_error, response]).to_json()
+
+
+# Clean calibration fits: a path-traced-like one whose pose probe removes 10 % at its point but
+# whose bootstrap interval reaches down to 2 % (a misfit the rotations partly absorb), and one
+# whose relight probe's point reduction is 4.5 % (the clean fit's baked shading) but whose lower
+# bound is 1.2 %.
+CLEAN = [
+    _diagnosis(pose=(0.02, 0.10), relight=(0.002, 0.01)),
+    _diagnosis((0.0, 0.01), (0.012, 0.045)),
+]
+
+
+def _named(diagnosis: dict, thresholds: dict) -> list[str]:
+    from benchmarks.blind.decide import redecide_with, significant_effects
+
+    return significant_effects(redecide_with(diagnosis, thresholds))
+
+
+def test_each_rule_is_calibrated_on_the_statistic_it_is_compared_with():
+    thresholds = calibrate.calibrate_thresholds(CLEAN)
+    assert thresholds["relight"] == pytest.approx(2 * 0.012)  # the lower bound's
+    assert thresholds["probe.pose_error"] == pytest.approx(2 * 0.10)  # the point reduction's
+    # 'reduction' everywhere: the relight allowance from a point estimate.
+    assert calibrate.calibrate_thresholds(CLEAN, statistic="reduction")["relight"] == (
+        pytest.approx(0.09)
+    )
+    with pytest.raises(ReconError, match="calibration statistic.*'median'"):
+        calibrate.calibrate_thresholds(CLEAN, statistic="median")
+
+
+def test_an_injected_response_curve_with_a_relight_split_is_found():
+    # The relight probe removes 8 % (lower bound 3.6 %): above twice the clean lower bounds,
+    # below twice the clean point reductions (the rule that missed it).
+    injected = _diagnosis(pose=(-0.01, 0.01), relight=(0.036, 0.08))
+    assert _named(injected, calibrate.calibrate_thresholds(CLEAN)) == ["response_curve"]
+    assert _named(injected, calibrate.calibrate_thresholds(CLEAN, statistic="reduction")) == []
+
+
+def test_a_clean_path_traced_like_fit_gets_no_pose_error():
+    # A held-out clean fit of the same kind: its pose lower bound (6 %) clears twice the clean
+    # lower bounds (4 %), not twice the clean point reductions (20 %).
+    clean = _diagnosis(pose=(0.06, 0.12), relight=(0.004, 0.02))
+    assert _named(clean, calibrate.calibrate_thresholds(CLEAN)) == []
+    assert _named(clean, calibrate.calibrate_thresholds(CLEAN, statistic="lower_bound")) == [
+        "pose_error"
+    ]

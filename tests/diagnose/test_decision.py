@@ -320,3 +320,37 @@ def test_redecide_uses_the_stored_evidence_and_the_given_config():
     assert decided.candidate("vignetting").evidence_of("probe").threshold == 0.05
     # The stored record itself is unchanged.
     assert stored["candidates"][1]["significant"]
+
+
+def test_a_colour_gain_shared_by_separate_halves_is_not_vetoed_by_the_image_position_alone():
+    # Own bunny's white balance in the blind check: the halves of each view share a 6 % colour
+    # change (p = 0.001), but the F-test against the image position (p = 1, under a misfit of
+    # 18-20 dB) vetoed it. The agreement tested the image position itself; a veto in other
+    # domains (n.h: the base model's view-dependent reflectance) still stands.
+    def white_balance(failing):
+        result = Candidate("white_balance")
+        result.add(evidence("agreement", "white_balance", 0.06, p_value=0.001, views=8))
+        details = {"worst_domain": "image_position", "alternative": "vignetting"}
+        if failing is not None:
+            details["failing_domains"] = failing
+        result.add(Evidence("specificity", "white_balance", 1.0, 0.01, False, "veto", details))
+        return decide(result, CONFIG)
+
+    assert white_balance(["image_position"]).status == "significant"
+    assert white_balance(["image_position", "n_dot_h"]).status == "vetoed"
+    assert white_balance(None).status == "vetoed"  # a record without its failing domains
+    # The probe did not test the image position: its veto stands.
+    probed = Candidate("white_balance")
+    probed.add(evidence("probe", "white_balance", 0.2, interval=[0.2, 0.3], reduction=0.25))
+    probed.add(
+        Evidence(
+            "specificity",
+            "white_balance",
+            1.0,
+            0.01,
+            False,
+            "veto",
+            {"failing_domains": ["image_position"]},
+        )
+    )
+    assert decide(probed, CONFIG).status == "vetoed"

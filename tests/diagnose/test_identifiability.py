@@ -10,8 +10,10 @@ must come back identifiable.
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import replace
 
+import pytest
 import torch
 from diagnose_scenes import glossy_torus_views
 
@@ -90,3 +92,34 @@ def test_edges_that_all_run_one_way_cannot_tell_motion_blur_from_defocus():
     assert not blur.passed and "defocus_blur" in blur.reason
     for item in identifiability_evidence(data):
         json.dumps(item.to_json())
+
+
+def test_a_recovered_distortion_is_judged_by_its_flow_over_the_object():
+    from recon.diagnose.identifiability import (
+        lens_distortion_evidence,
+        radial_flow_remainder,
+        similarity_share,
+    )
+
+    data, _ = glossy_torus_views(specular=0.0, size=48, views=6, distance=1.6, fov_x_deg=60)
+    options = IdentifiabilityConfig()
+    focal = float(data.cameras.intrinsics[0, 0, 0])
+    corner = 0.5 * math.hypot(48, 48) / focal  # normalised corner radius
+    # A pure k1 distortion: the pixel flow is the reference shape scaled by its corner shift.
+    k1 = 0.3
+    shift = focal * corner**3 * k1
+    _, distinguishable, _ = similarity_share(data)
+    _, pixels, _ = radial_flow_remainder(data, k1, 0.0)
+    assert pixels == pytest.approx(distinguishable * shift, rel=1e-6)
+    # k1 and k2 of opposite signs that cancel at the corners (what a probe fitted on the
+    # object's radii often recovers): judged by its corner shift it is nothing, by its flow
+    # over the object it is what it is.
+    k2 = -k1 / corner**2
+    cancelled = focal * corner**3 * (k1 + k2 * corner**2)
+    assert abs(cancelled) < 1e-9
+    by_corner = lens_distortion_evidence(data, options, corner_shift_pixels=cancelled)
+    by_flow = lens_distortion_evidence(data, options, cancelled, radial=(k1, k2))
+    assert by_corner.details["distinguishable_pixels"] < 1e-6
+    assert by_flow.details["distinguishable_pixels"] > 0.05
+    assert by_flow.details["judged"] == {"k1": k1, "k2": k2}
+    assert "recovered radial distortion" in by_flow.reason

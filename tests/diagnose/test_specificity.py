@@ -89,15 +89,37 @@ def test_vignetting_is_image_bound_and_takes_the_per_view_gains_with_it():
     assert not curve.passed, curve.reason
 
 
-def test_white_balance_on_a_glossy_object_passes_and_clean_data_is_not_tested():
+def test_white_balance_on_a_glossy_object_passes_and_clean_data_has_no_camera_gain():
     data, _ = glossy_torus_views(white_balance_sigma=0.2)
     white = by_candidate(specificity_evidence(data, ["white_balance"]))["white_balance"]
     assert white.passed and white.statistic < white.threshold, white.reason
     clean, _ = glossy_torus_views(specular=0.0)
-    evidence = specificity_evidence(clean, ["exposure", "white_balance", "vignetting"])
-    assert all(item.passed and not item.details.get("domains") for item in evidence)
+    cameras = ["exposure", "white_balance", "vignetting", "response_curve"]
+    evidence = specificity_evidence(clean, cameras + ["shadows"])
+    assert {item.candidate for item in evidence} == set(cameras) | {"shadows"}
+    assert all(not item.details.get("domains") for item in evidence)
     assert all(math.isnan(item.statistic) for item in evidence)
-    assert {item.candidate for item in evidence} == {"exposure", "white_balance", "vignetting"}
+    # A camera gain (facts.gain_signature) whose signature removes nothing of its own is not
+    # specific, under a world light too (a significant one's error went elsewhere); a light-
+    # transport effect's gain signature is not its evidence: not tested.
+    for item in evidence:
+        camera_gain = item.candidate in cameras
+        assert item.passed is not camera_gain, item.reason
+        assert ("not specific" in item.reason) is camera_gain, item.reason
+        assert "instead" not in item.details
+
+
+def test_only_camera_gains_fail_without_a_signature_under_a_turning_light():
+    # 0192's rule applied to every light frame vetoed the path tracer's shadows and
+    # interreflection (their fingerprint finds them, their gain signature removes nothing):
+    # the fact limits it to the camera's gains.
+    data = turntable_torus_views(limb=0.0)
+    evidence = by_candidate(specificity_evidence(data, ["shadows", "interreflection", "exposure"]))
+    for name in ("shadows", "interreflection"):
+        assert evidence[name].details["tested"] is False
+        assert evidence[name].passed and "not tested" in evidence[name].reason
+    assert not evidence["exposure"].passed
+    assert "light that turns with the camera" in evidence["exposure"].reason
 
 
 def test_geometric_candidates_get_no_evidence_and_records_are_json():
