@@ -43,7 +43,7 @@ def lens_control(paths, config, data) -> dict:
     errors = {}
     refit = RefitSettings(steps=settings.geometry_steps, resolution=settings.geometry_resolution)
     for names in ([], ["lens_distortion"]):
-        mesh, lighting, fitted = refit_with(
+        refitted, fitted = refit_with(
             names,
             inputs.training,
             inputs.model,
@@ -53,7 +53,8 @@ def lens_control(paths, config, data) -> dict:
             refit,
         )
         modules = heldout_modules(names, fitted.modules, data.view_count, "cpu")
-        refitted = replace(data, mesh=mesh.to("cpu"), lighting=lighting.to("cpu"))
+        refitted = refitted.to("cpu")
+        refitted = replace(data, mesh=refitted.mesh, lighting=refitted.lighting, model=refitted)
         errors[bool(names)] = heldout_errors(refitted, modules, settings)[0]
     samples = settings.bootstrap_samples
     return {

@@ -224,19 +224,22 @@ def absorption_probes(
             refit = RefitSettings(
                 steps=settings.geometry_steps, resolution=settings.geometry_resolution
             )
-            mesh, lighting, fitted_effects = refit_with(
+            refitted, fitted_effects = refit_with(
                 names, inputs.training, inputs.model, inputs.config, device, inputs.scratch, refit
             )
             fitted = fitted_effects.modules
-        else:
-            if cache.frozen is None:
-                cache.frozen = FrozenTrainingViews.build(
-                    inputs.training,
-                    data.mesh.to(device),
-                    data.lighting.to(device),
-                    renderer,
-                )
-            mesh, lighting, fitted = frozen_refit(cache.frozen, names, renderer, settings)
+            refitted = refitted.to("cpu")
+            modules = heldout_modules(names, fitted, data.view_count, data.observed.device)
+            moved = replace(data, mesh=refitted.mesh, lighting=refitted.lighting, model=refitted)
+            return heldout_errors(moved, modules, settings)[0], fitted
+        if cache.frozen is None:
+            cache.frozen = FrozenTrainingViews.build(
+                inputs.training,
+                data.mesh.to(device),
+                data.lighting.to(device),
+                renderer,
+            )
+        mesh, lighting, fitted = frozen_refit(cache.frozen, names, renderer, settings)
         modules = heldout_modules(names, fitted, data.view_count, data.observed.device)
         refitted = replace(data, mesh=mesh.to("cpu"), lighting=lighting.to("cpu"))
         return heldout_errors(refitted, modules, settings)[0], fitted
@@ -246,8 +249,8 @@ def absorption_probes(
         facts = diagnosis_facts(candidate.name)
         if facts is None or facts.absorption == "none" or candidate.name == given:
             continue
-        if inputs.model.pbr is not None and facts.absorption != "closed_form":
-            continue  # the refits refit the Lambertian texture; a pbr model is not refitted
+        if inputs.model.pbr is not None and facts.absorption == "frozen":
+            continue  # the frozen refits re-texture the Lambertian model only
         if facts.absorption == "closed_form":
             flat_field = candidate.evidence_of("flat_field")
             if flat_field is not None and not candidate.significant:

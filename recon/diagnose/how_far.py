@@ -124,12 +124,18 @@ def measure_refit(
     """Refit with `names` switched on and measure the gap again. Returns (the refit record of
     diagnosis.json without the geometry errors, the refitted mesh)."""
     diagnose = inputs.config.diagnose
-    mesh, lighting, fitted_effects = refit_with(
+    refitted, fitted_effects = refit_with(
         names, inputs.training, inputs.model, inputs.config, inputs.device, inputs.scratch, settings
     )
+    mesh = refitted.mesh
     data = baseline.data
     modules = heldout_modules(names, fitted_effects.modules, len(data.cameras), inputs.device)
-    after = heldout_gap(replace(data, mesh=mesh, lighting=lighting), modules, diagnose)
+    refitted = refitted.to("cpu")
+    after = heldout_gap(
+        replace(data, mesh=refitted.mesh, lighting=refitted.lighting, model=refitted),
+        modules,
+        diagnose,
+    )
     closed = _closed(baseline.before, after, baseline.floor)
     record = {
         "effects": names,

@@ -175,7 +175,9 @@ class Diagnosis:
         "visibility_fingerprint {share, interval, coverage, names}; flat_field {corner_falloff, "
         "half_radius_falloff, deviation, allowance, frames, profile...} or flat_field_error; "
         "parameters.geometry {chamfer_l1, normal_consistency, f1@1%} against a ground truth; "
-        "how_far_skipped when no refit could run.",
+        "heldout_mse (with a refit mode: the held-out MSE the refits are measured against); "
+        "how_far_relight_skipped when a pbr model's refits are measured on the held-out views "
+        "only.",
         default_factory=dict,
     )
     where: dict[str, Any] = doc(

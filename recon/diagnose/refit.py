@@ -16,9 +16,11 @@ import torch
 
 from recon.config.run_config import RunConfig
 from recon.diagnose.data import FittedModel
+from recon.errors import ReconError
 from recon.io.datasets import CaptureSet
 from recon.optimize.checkpoint import History
 from recon.optimize.geometry_stage import GeometryResult
+from recon.optimize.material_stage import run_pbr_texture_stage
 from recon.optimize.scene_model import FitEffects, LightModel
 from recon.optimize.texture_stage import run_texture_stage
 
@@ -48,11 +50,15 @@ def refit_with(
     device: torch.device,
     scratch: Path,
     settings: RefitSettings,
-):
-    """Warm start from the fitted mesh + light (+ the fit's own effects, at their fitted
-    parameters); optimise texture, light, positions and the named effects on the training
-    views. Returns (mesh, lighting, FitEffects of the named effects and the fit's own).
+) -> tuple[FittedModel, FitEffects]:
+    """Warm start from the fitted model (+ the fit's own effects, at their fitted parameters);
+    optimise its material, light, positions and the named effects on the training views with
+    the stage the fit used: the Lambertian texture stage (texture and SH light), or for a
+    fit.material pbr model the pbr material stage (base colour, roughness/metalness maps and
+    environment, recon.optimize.material_stage.run_pbr_texture_stage with warm_start).
 
+    Returns (the refitted model: mesh, light, pbr material where the fit had one, and the fit's
+    own effects at their refitted parameters; FitEffects of the fit's own and the named effects).
     scratch: a folder for the refit's checkpoint and history (overwritten)."""
     learning_rate = settings.position_learning_rate
     if learning_rate is None:
@@ -73,17 +79,42 @@ def refit_with(
         if module.diagnosis.relight_exponent and settings.response_exponent is not None:
             module.hold_exponent(settings.response_exponent)
     geometry = GeometryResult(mesh.verts, mesh.faces, torch.zeros_like(mesh.verts), light)
+    checkpoint = scratch / f"{'+'.join(names) or 'control'}.pt"
+    history = History(scratch / "refits.jsonl")  # the refits' own log, not the run's history
+    own_modules = [module for module in effects.modules if module.name in own]
+    if model.pbr is not None:
+        shading = [module.name for module in effects.modules if module.stage == "shading"]
+        if shading:
+            raise ReconError(
+                f"diagnose: cannot refit {shading} on a fit.material pbr model: they are shading "
+                "effects of the Lambertian model (the pbr material models specular reflection)"
+            )
+        pbr = run_pbr_texture_stage(
+            training,
+            geometry,
+            fit_config,
+            device,
+            config.seed,
+            checkpoint,
+            history,
+            effects=effects,
+            resolution=settings.resolution,
+            warm_start=model.pbr,
+        )
+        refitted = FittedModel(pbr.mesh, pbr.light.lighting().detached(), own_modules, pbr)
+        return refitted, effects
     result = run_texture_stage(
         training,
         geometry,
         fit_config,
         device,
         config.seed,
-        scratch / f"{'+'.join(names) or 'control'}.pt",
-        History(scratch / "refits.jsonl"),  # the refits' own log, not the run's history
+        checkpoint,
+        history,
         initial=mesh,
         effects=effects,
         resolution=settings.resolution,
     )
     # Detached: the held-out probes run their own optimisations on top of this frozen scene.
-    return result.mesh, result.light.lighting().detached(), result.effects
+    lighting = result.light.lighting().detached()
+    return FittedModel(result.mesh, lighting, own_modules), result.effects

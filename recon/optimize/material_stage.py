@@ -289,11 +289,16 @@ def run_pbr_texture_stage(
     resume: bool = False,
     effects: FitEffects | None = None,
     resolution: int | None = None,
+    warm_start: PbrTextureResult | None = None,
 ) -> PbrTextureResult:
     """The `pbr` counterpart of run_texture_stage (same steps, views, learning rates and
     checkpoint cadence from config.texture; material and light settings from config.pbr).
     Camera and image effects apply around the render; shading effects are Lambertian add-ons
-    and are refused."""
+    and are refused.
+
+    warm_start: a fitted pbr result to start from (a warm-started refit, recon.diagnose.refit):
+    its mesh, base colour, material maps (on its own texel grid, so the start renders exactly
+    as the fit) and environment; no simplify + unwrap, no environment seeding, no warm-up."""
     settings, pbr = config.texture, config.pbr
     if effects is None:
         effects = geometry.effects or FitEffects(config.effects, len(captures.cameras), device)
@@ -305,7 +310,14 @@ def run_pbr_texture_stage(
         )
     generator = torch.Generator().manual_seed(seed + 1)
     start = start_texture_stage(
-        captures, geometry, config, device, checkpoint_path, resume, resolution
+        captures,
+        geometry,
+        config,
+        device,
+        checkpoint_path,
+        resume,
+        resolution,
+        None if warm_start is None else warm_start.mesh.to(device),
     )
     mesh, coverage, start_step, checkpoint = (
         start.mesh,
@@ -332,6 +344,12 @@ def run_pbr_texture_stage(
     normal_slopes = torch.nn.Parameter(
         torch.zeros(height, width, 2 if pbr.normal_map else 0, device=device)
     )
+    if warm_start is not None:
+        # The fitted maps on the base colour's grid (upsampled and dilated by the fit): the
+        # refit starts from exactly the fitted material.
+        material = torch.nn.Parameter(warm_start.material[..., :2].to(device).clone())
+        if pbr.normal_map and warm_start.material.shape[-1] >= 5:
+            normal_slopes.data.copy_(warm_start.material[..., 2:4].to(device))
 
     def full_material() -> torch.Tensor:
         """The material [h, w, 2] (or [h, w, 5] with the normal map) on the base colour's
@@ -348,8 +366,11 @@ def run_pbr_texture_stage(
 
     # A camera-frame light (turntable captures) seeds, and stays, a camera-frame environment.
     light_frame = config.light.frame
-    seed_environment = environment_from_light(geometry.light, size).to(device)
-    if pbr.environment_seed == "highlights" and checkpoint is None:
+    if warm_start is not None:
+        seed_environment = warm_start.environment.to(device)
+    else:
+        seed_environment = environment_from_light(geometry.light, size).to(device)
+    if pbr.environment_seed == "highlights" and checkpoint is None and warm_start is None:
         seed_environment, base_scale = highlight_environment(
             renderer,
             mesh,
@@ -500,7 +521,7 @@ def run_pbr_texture_stage(
         loss.backward()
         if not lobe:
             position_optimizer.step()
-        if step < pbr.material_warmup_steps:
+        if step < pbr.material_warmup_steps and warm_start is None:
             # The environment settles first around the starting roughness (docs/decisions/0180).
             material.grad = None
         texture_optimizer.step()

@@ -17,7 +17,7 @@ from diagnose_where_scene import SETTINGS, make_scene, noisy
 import recon.diagnose.how_far as how_far
 from recon.camera import orbit_cameras
 from recon.config.run_config import RunConfig
-from recon.diagnose.data import build_diagnosis_data
+from recon.diagnose.data import FittedModel, build_diagnosis_data
 from recon.diagnose.how_far import (
     RefitBaseline,
     RefitInputs,
@@ -79,7 +79,7 @@ def test_measure_refit_scores_a_refit_that_takes_the_effect_back(monkeypatch):
     data, relight = views(30.0), views(-20.0)
 
     def refit_with(names, *arguments, **options):
-        return mesh, lighting, FitEffects(names, 24, torch.device("cpu"))
+        return FittedModel(mesh, lighting), FitEffects(names, 24, torch.device("cpu"))
 
     monkeypatch.setattr(how_far, "refit_with", refit_with)
     config = RunConfig()
@@ -120,3 +120,31 @@ def test_relight_heldout_gap_fixes_the_gauge_through_a_response_curve(scene, mon
     )  # the curve unmodelled
     monkeypatch.setattr(how_far, "GAUGE_ITERATIONS", 1)
     assert how_far.relight_heldout_gap(data, darker, [curve], SETTINGS) > 2 * gauged_error
+
+
+def test_gap_closed_is_the_share_of_the_error_above_the_floor_a_refit_removes(monkeypatch):
+    """A known answer: the observed views are 1.2 x the fitted render and the 'refit' (no
+    effect) brightens the texture by 1.1, so the residual halves and its squared error drops to
+    a quarter on every pixel. With the floor at an eighth of the error before, the refit
+    removes (1 - 1/4) / (1 - 1/8) = 6/7 of the error above the floor."""
+    mesh = patterned_torus((2, 3), 0.25, lambda p: [0.5 * p + 0.1, 0.4 * p + 0.1, 0.3 * p + 0.2])
+    lighting = Lighting.constant(0.9)
+    renderer = Renderer(texture_filter="linear-mipmap-linear", texture_boundary="clamp")
+    cameras = orbit_cameras(4, (32, 32), distance=2.2, fov_x_deg=50, elevation_deg=30.0)
+    output = renderer.render(mesh, cameras, lighting)
+    data = build_diagnosis_data(1.2 * output.color, output.alpha, output, cameras, lighting, mesh)
+    brighter = replace(mesh, texture=1.1 * mesh.texture)
+
+    def refit_with(names, *arguments, **options):
+        return FittedModel(brighter, lighting), FitEffects(names, 4, torch.device("cpu"))
+
+    monkeypatch.setattr(how_far, "refit_with", refit_with)
+    config = RunConfig()
+    before = how_far.heldout_gap(data, [], config.diagnose)
+    baseline = RefitBaseline.measure(data, before / 8, None, config.diagnose)
+    inputs = RefitInputs(
+        SimpleNamespace(), SimpleNamespace(), config, torch.device("cpu"), Path("scratch")
+    )
+    record, _ = measure_refit([], baseline, inputs, RefitSettings(steps=1))
+    assert record["after"] == pytest.approx(before / 4, rel=1e-4)
+    assert record["closed_fraction"] == pytest.approx(6 / 7, rel=1e-3)

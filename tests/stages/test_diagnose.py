@@ -217,8 +217,8 @@ def test_the_fits_own_effects_are_part_of_the_model(tmp_path):
 
 def test_a_pbr_fit_is_diagnosed_with_its_material(tiny_run, tmp_path):
     """With fit.material: pbr the baseline is the pbr render (the held-out render equals the
-    evaluate stage's), specular is modelled by the material (not a candidate), and no refit
-    runs (the refits refit the Lambertian texture), which diagnosis.json says."""
+    evaluate stage's), specular is modelled by the material (not a candidate), and the how-far
+    step is not skipped (its refits refit the pbr material, recon.diagnose.refit)."""
     config = yaml.safe_load((tiny_run.parent / "tiny.yaml").read_text())
     config["fit"]["material"] = "pbr"
     path = tmp_path / "pbr.yaml"
@@ -235,7 +235,8 @@ def test_a_pbr_fit_is_diagnosed_with_its_material(tiny_run, tmp_path):
     )
     assert diagnosis.model["material"] == "pbr"
     assert [item.name for item in diagnosis.candidates] == ["exposure"]
-    assert diagnosis.refits == [] and "pbr" in diagnosis.gap["how_far_skipped"]
+    assert "how_far_skipped" not in diagnosis.gap
+    assert all(record["effects"] == ["exposure"] for record in diagnosis.refits)
 
 
 def test_the_stage_table_names_the_stage_module():

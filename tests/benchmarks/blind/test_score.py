@@ -169,3 +169,44 @@ def test_inert_cases_are_clean_and_unidentifiable_truths_are_answered_not_found(
     summary = summarise_world([inert, white])
     assert summary["inert"] == {"defocus_blur": 1}
     assert summary["top1_accuracy"] == 0.0 and summary["top1_answered"] == 1.0
+
+
+def test_gap_closed_is_the_share_of_the_effects_error_a_refit_removes():
+    """Known answers: the clean fit's held-out error is 2, the effect case's 10 before and 4
+    after its refit, so the refit removes (10 - 4) / (10 - 2) = 3/4 of what the effect added;
+    an effect that adds less than a tenth of the clean error has no gap of its own (None), and
+    neither has a case without a clean reference or without a refit."""
+    from benchmarks.blind.score import SMALLEST_EFFECT_SHARE, gap_closed_of_effect
+
+    refit = {"effects": ["exposure"], "before": 10.0, "after": 4.0}
+    assert gap_closed_of_effect(refit, 2.0) == pytest.approx(0.75)
+    barely = {"effects": ["vignetting"], "before": 2.0 * (1 + SMALLEST_EFFECT_SHARE / 2)}
+    assert gap_closed_of_effect({**barely, "after": 1.0}, 2.0) is None
+    assert gap_closed_of_effect(refit, None) is None and gap_closed_of_effect(None, 2.0) is None
+
+
+def test_the_clean_reference_is_the_untouched_case_of_the_same_scene_and_seed(tmp_path):
+    """A refit record of an exposure case is scored against the held-out error of the clean
+    case of its world, scene and seed (gap.heldout_mse), and the median counts it."""
+    from benchmarks.blind.score import with_clean_references
+
+    records = []
+    for withheld, gap, refits in (
+        ((), {"heldout_mse": 2.0}, []),
+        (
+            ("exposure",),
+            {"heldout_mse": 10.0},
+            [{"effects": ["exposure"], "before": 10.0, "after": 4.0}],
+        ),
+    ):
+        record = load_collected(_fake_record(tmp_path, "own", "spot", withheld, 0.0))
+        record["diagnosis"] = {**record["diagnosis"], "gap": gap, "refits": refits}
+        records.append(record)
+    clean, exposure = with_clean_references(records)
+    assert clean["clean_heldout_mse"] == exposure["clean_heldout_mse"] == 2.0
+    scored = score_one(exposure, code_thresholds(), [])
+    assert scored["closed_of_effect"] == pytest.approx(0.75) and scored["refitted"] == ["exposure"]
+    summary = summarise_world([score_one(clean, code_thresholds(), []), scored])
+    assert summary["median_closed_of_effect"] == pytest.approx(0.75)
+    assert summary["median_closed_of_effect_true"] == pytest.approx(0.75)
+    assert summary["refits_scored"] == 1 and summary["refits_no_gap"] == 0
