@@ -12,7 +12,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
@@ -42,12 +42,13 @@ from recon.optimize.scene_model import (
     step_record,
     texture_total_variation,
 )
+from recon.optimize.sun_light import ShadowSettings, split_sun, sun_visibility
 from recon.optimize.texture_stage import LOG_EVERY, start_texture_stage
 from recon.render.environment import latlong_directions, prefilter_environment, project_to_sh
 from recon.render.environment_seed import backproject_highlights
 from recon.render.interpolate import interpolate_packed
-from recon.render.renderer import Renderer, RenderOutput
-from recon.render.shading import sh_basis, sh_irradiance
+from recon.render.renderer import Renderer, RenderOutput, SurfaceBuffers
+from recon.render.shading import DirectionalLight, sh_basis, sh_irradiance
 from recon.render.texture import build_mip_pyramid
 
 # Roughness below this is a mirror narrower than any texel of the environment a fit can afford.
@@ -72,6 +73,8 @@ class PbrTextureResult:
     specular_level, prefilter_levels, diffuse_weighting: the shading settings the fit used.
     light_frame: 'world', or 'camera' when the environment is fixed to the camera (turntable
     captures, fit.light.frame): its directions are then OpenCV camera axes of each view.
+    suns: directional lights split off the environment (fit.pbr.sun_lights), shaded with the
+    exact BRDF and shadowed by shadow maps with the settings shadow (recon.optimize.sun_light).
     """
 
     mesh: Mesh
@@ -83,6 +86,8 @@ class PbrTextureResult:
     effects: FitEffects | None = None
     diffuse_weighting: str = "none"
     light_frame: str = "world"
+    suns: list[DirectionalLight] = field(default_factory=list)
+    shadow: ShadowSettings = field(default_factory=ShadowSettings)
 
     def material_texture(self) -> torch.Tensor:
         """[h, w, 5] base colour, roughness, metalness (+ normal map: [h, w, 8]): what
@@ -103,25 +108,48 @@ class PbrTextureResult:
             mip_pyramid=build_mip_pyramid(texture),
             diffuse_weighting=self.diffuse_weighting,
             light_frame=self.light_frame,
+            directional=self.suns,
+            directional_visibility=shadowed_suns(buffers, self.suns, self.shadow),
         )
+
+
+def shadowed_suns(
+    buffers: SurfaceBuffers, suns: list[DirectionalLight], shadow: ShadowSettings
+) -> list[torch.Tensor]:
+    """Visibility [N, 1] of each sun from the buffers' covered pixels: a shadow map of the
+    buffers' mesh along the sun (recon.optimize.sun_light.sun_visibility)."""
+    if not suns:
+        return []
+    mesh = buffers.mesh
+    points = interpolate_packed(mesh.verts, buffers.fragments, mesh.faces)
+    return [
+        sun_visibility(
+            mesh.verts, mesh.faces, points, buffers.normals, sun.direction_to_light, shadow
+        )
+        for sun in suns
+    ]
 
 
 def environment_from_light(light: LightModel, size: tuple[int, int]) -> torch.Tensor:
     """A lat-long map [h, w, 3] of a SH (+ sun) light: the SH radiance, clamped at 0, plus the
     sun as a narrow lobe whose integral over solid angle is the sun's irradiance."""
-    device = light.sh.device
-    directions, solid_angle = latlong_directions(*size, device=device)
-    flat = directions.reshape(-1, 3)
-    radiance = (sh_basis(flat) @ light.sh.detach()).clamp_min(0)
-    if light.with_sun:
-        lighting = light.lighting()
-        sun = lighting.directional[0]
-        width = SUN_LOBE_TEXELS * math.pi / size[0]
-        cosine = flat @ sun.direction_to_light.detach()
-        lobe = torch.exp((cosine - 1) / (width * width))
-        lobe = lobe / (lobe * solid_angle.reshape(-1)).sum()
-        radiance = radiance + lobe[:, None] * sun.irradiance.detach()
-    return radiance.reshape(*size, 3)
+    directions, _ = latlong_directions(*size, device=light.sh.device)
+    radiance = (sh_basis(directions.reshape(-1, 3)) @ light.sh.detach()).clamp_min(0)
+    return radiance.reshape(*size, 3) + sun_lobe_environment(light, size)
+
+
+def sun_lobe_environment(light: LightModel, size: tuple[int, int]) -> torch.Tensor:
+    """The light's sun as a lat-long map [h, w, 3]: a lobe SUN_LOBE_TEXELS wide whose integral
+    over solid angle is the sun's irradiance (zero without a sun)."""
+    directions, solid_angle = latlong_directions(*size, device=light.sh.device)
+    if not light.with_sun:
+        return directions.new_zeros(*size, 3)
+    sun = light.lighting().directional[0]
+    width = SUN_LOBE_TEXELS * math.pi / size[0]
+    cosine = directions.reshape(-1, 3) @ sun.direction_to_light.detach()
+    lobe = torch.exp((cosine - 1) / (width * width))
+    lobe = lobe / (lobe * solid_angle.reshape(-1)).sum()
+    return (lobe[:, None] * sun.irradiance.detach()).reshape(*size, 3)
 
 
 def highlight_environment(
@@ -193,11 +221,25 @@ def highlight_environment(
     return environment, scale
 
 
-def light_from_environment(environment: torch.Tensor, frame: str = "world") -> LightModel:
-    """An SH-only LightModel with the environment's order-2 projection, in the same frame."""
-    light = LightModel(with_sun=False, frame=frame).to(environment.device)
+def light_from_environment(
+    environment: torch.Tensor, frame: str = "world", suns: list[DirectionalLight] | None = None
+) -> LightModel:
+    """A LightModel with the environment's order-2 SH projection, in the same frame; with suns
+    the first is its sun and further ones are added to the SH as delta lights."""
+    suns = suns or []
+    light = LightModel(with_sun=bool(suns), frame=frame).to(environment.device)
     with torch.no_grad():
-        light.sh.copy_(project_to_sh(environment.detach()))
+        coefficients = project_to_sh(environment.detach())
+        for sun in suns[1:]:
+            direction = torch.nn.functional.normalize(sun.direction_to_light.detach(), dim=0)
+            coefficients = (
+                coefficients
+                + sh_basis(direction[None])[0][:, None] * (sun.irradiance.detach()[None])
+            )
+        light.sh.copy_(coefficients)
+        if suns:
+            light.sun_direction.copy_(suns[0].direction_to_light.detach())
+            light.sun_log_irradiance.copy_(suns[0].irradiance.detach().clamp_min(1e-8).log())
     return light
 
 
@@ -215,6 +257,15 @@ def pbr_light_record(result: PbrTextureResult, environment_file: str) -> dict:
             "diffuse_weighting": result.diffuse_weighting,
         }
     )
+    if result.suns:
+        record["suns"] = [
+            {
+                "direction_to_light": sun.direction_to_light.detach().cpu().tolist(),
+                "irradiance": sun.irradiance.detach().cpu().tolist(),
+            }
+            for sun in result.suns
+        ]
+        record["shadow"] = result.shadow.to_json()
     return record
 
 
@@ -244,15 +295,25 @@ def read_pbr_result(
         )
     mesh = load_mesh(mesh_file).to(device)
     environment = read_exr(environment_path)[..., :3].to(device)
+    suns = [
+        DirectionalLight(
+            torch.tensor(sun["direction_to_light"], dtype=torch.float32, device=device),
+            torch.tensor(sun["irradiance"], dtype=torch.float32, device=device),
+        )
+        for sun in record.get("suns", [])
+    ]
+    shadow = ShadowSettings.from_json(record["shadow"]) if suns else ShadowSettings()
     return PbrTextureResult(
         mesh,
         maps.to(device),
         environment,
-        light_from_environment(environment, record.get("frame", "world")),
+        light_from_environment(environment, record.get("frame", "world"), suns),
         float(record["specular_level"]),
         int(record["prefilter_levels"]),
         diffuse_weighting=record.get("diffuse_weighting", "none"),
         light_frame=record.get("frame", "world"),
+        suns=suns,
+        shadow=shadow,
     )
 
 
@@ -342,6 +403,49 @@ def run_pbr_texture_stage(
         )
         with torch.no_grad():
             base_color.mul_(base_scale).clamp_(0, 1)
+    shadow = ShadowSettings(
+        pbr.shadow_map_resolution,
+        pbr.shadow_bias_texels,
+        pbr.shadow_slope_bias_texels,
+        pbr.shadow_softness_texels,
+    )
+    if pbr.sun_lights and light_frame != "world":
+        raise ReconError(
+            f"fit.pbr.sun_lights: {pbr.sun_lights} suns need a world-frame light (their shadow "
+            f"maps are drawn in the world), but fit.light.frame is {light_frame!r}"
+        )
+    # The suns leave the map: the split-sum path would shade them without visibility and
+    # through the SH's ringing irradiance (recon/optimize/sun_light.py). The geometry stage's
+    # sun is the first (its lobe taken back out of the map), brightest spots the others.
+    sun_directions, sun_irradiances = [], []
+    if pbr.sun_lights and geometry.light.with_sun:
+        sun = geometry.light.lighting().directional[0]
+        lobe = sun_lobe_environment(geometry.light, size).to(device)
+        seed_environment = (seed_environment - lobe).clamp_min(ENVIRONMENT_FLOOR)
+        sun_directions.append(sun.direction_to_light.detach().to(device))
+        sun_irradiances.append(sun.irradiance.detach().to(device))
+    while len(sun_directions) < pbr.sun_lights:
+        seed_environment, direction, irradiance = split_sun(seed_environment, pbr.sun_cone_degrees)
+        sun_directions.append(direction)
+        sun_irradiances.append(irradiance)
+    sun_direction = torch.nn.Parameter(
+        torch.stack(sun_directions) if sun_directions else torch.zeros(0, 3, device=device)
+    )
+    sun_log_irradiance = torch.nn.Parameter(
+        torch.stack(sun_irradiances).clamp_min(ENVIRONMENT_FLOOR).log()
+        if sun_irradiances
+        else torch.zeros(0, 3, device=device)
+    )
+
+    def current_suns() -> list[DirectionalLight]:
+        return [
+            DirectionalLight(
+                torch.nn.functional.normalize(sun_direction[index], dim=0),
+                sun_log_irradiance[index].exp(),
+            )
+            for index in range(pbr.sun_lights)
+        ]
+
     # 'log': Adam's steps are relative, so a softbox 100x brighter than the room is reached in
     # as many steps as the room itself (linear steps of the learning rate would need hundreds).
     log_environment = pbr.environment_parameterization == "log"
@@ -360,7 +464,12 @@ def run_pbr_texture_stage(
             {"params": [normal_slopes], "lr": pbr.material_learning_rate},
         ]
     )
-    light_optimizer = torch.optim.Adam([environment_parameter], lr=pbr.environment_learning_rate)
+    light_optimizer = torch.optim.Adam(
+        [
+            {"params": [environment_parameter], "lr": pbr.environment_learning_rate},
+            {"params": [sun_direction, sun_log_irradiance], "lr": pbr.sun_learning_rate},
+        ]
+    )
     if checkpoint is not None:
         material.data.copy_(checkpoint["material"].to(device))
         if "normal_slopes" in checkpoint:  # checkpoints from before the normal map lack it
@@ -369,6 +478,9 @@ def run_pbr_texture_stage(
         if log_environment:
             saved = saved.clamp_min(ENVIRONMENT_FLOOR).log()
         environment_parameter.data.copy_(saved)
+        if pbr.sun_lights:
+            sun_direction.data.copy_(checkpoint["sun_direction"].to(device))
+            sun_log_irradiance.data.copy_(checkpoint["sun_log_irradiance"].to(device))
         effects.load_state_dict(checkpoint["effects"])
         position_optimizer.load_state_dict(checkpoint["position_optimizer"])
         texture_optimizer.load_state_dict(checkpoint["texture_optimizer"])
@@ -391,6 +503,8 @@ def run_pbr_texture_stage(
                 "material": material.detach().cpu(),
                 "normal_slopes": normal_slopes.detach().cpu(),
                 "environment": current_environment().detach().cpu(),
+                "sun_direction": sun_direction.detach().cpu(),
+                "sun_log_irradiance": sun_log_irradiance.detach().cpu(),
                 "coverage": coverage.cpu(),
                 "position_optimizer": position_optimizer.state_dict(),
                 "texture_optimizer": texture_optimizer.state_dict(),
@@ -416,6 +530,7 @@ def run_pbr_texture_stage(
         buffers = renderer.surface_buffers(current, batch_cameras, topology)
         texture = torch.cat([base_color, full_material()], dim=-1)
         environment = current_environment()
+        suns = current_suns()
         output = renderer.shade_pbr(
             buffers,
             batch_cameras.centers(),
@@ -425,6 +540,8 @@ def run_pbr_texture_stage(
             mip_pyramid=build_mip_pyramid(texture),
             diffuse_weighting=pbr.diffuse_weighting,
             light_frame=light_frame,
+            directional=suns,
+            directional_visibility=shadowed_suns(buffers, suns, shadow),
         )
         color, alpha = apply_image_effects(
             effects.modules, output.color, output.alpha, batch_cameras, views
@@ -483,6 +600,10 @@ def run_pbr_texture_stage(
         final_base = dilate(base_color.detach(), coverage)
         final_material = dilate(full_material().detach(), coverage)
         final_environment = current_environment().detach().clone()
+        final_suns = [
+            DirectionalLight(sun.direction_to_light.detach(), sun.irradiance.detach())
+            for sun in current_suns()
+        ]
     final = Mesh(
         preconditioner.from_latent(latent).detach(),
         mesh.faces,
@@ -495,10 +616,12 @@ def run_pbr_texture_stage(
         final,
         final_material,
         final_environment,
-        light_from_environment(final_environment, light_frame),
+        light_from_environment(final_environment, light_frame, final_suns),
         pbr.specular_level,
         pbr.prefilter_levels,
         effects,
         pbr.diffuse_weighting,
         light_frame,
+        final_suns,
+        shadow,
     )
