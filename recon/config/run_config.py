@@ -598,6 +598,9 @@ class PbrFitConfig:
     shadow_softness_texels: float = setting(
         0.5, "Softness of the shadow test's sigmoid in depth, in shadow-map texels."
     )
+    shadow_map_every: int = setting(
+        10, "Texture steps between redrawings of the suns' shadow maps (the mesh and suns move)."
+    )
 
     def __post_init__(self) -> None:
         _check_vector(self.environment_size, "environment_size", length=2)
@@ -622,6 +625,7 @@ class PbrFitConfig:
         check_range(self.sun_lights, "sun_lights", low=0, high=4)
         check_range(self.sun_cone_degrees, "sun_cone_degrees", low=1.0, high=45.0)
         check_range(self.shadow_map_resolution, "shadow_map_resolution", low=16, high=4096)
+        check_range(self.shadow_map_every, "shadow_map_every", low=1)
         for key in (
             "sun_learning_rate",
             "shadow_bias_texels",

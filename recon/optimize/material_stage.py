@@ -42,7 +42,7 @@ from recon.optimize.scene_model import (
     step_record,
     texture_total_variation,
 )
-from recon.optimize.sun_light import ShadowSettings, split_sun, sun_visibility
+from recon.optimize.sun_light import ShadowMap, ShadowSettings, split_sun
 from recon.optimize.texture_stage import LOG_EVERY, start_texture_stage
 from recon.render.environment import latlong_directions, prefilter_environment, project_to_sh
 from recon.render.environment_seed import backproject_highlights
@@ -114,20 +114,33 @@ class PbrTextureResult:
 
 
 def shadowed_suns(
-    buffers: SurfaceBuffers, suns: list[DirectionalLight], shadow: ShadowSettings
+    buffers: SurfaceBuffers,
+    suns: list[DirectionalLight],
+    shadow: ShadowSettings,
+    maps: list[ShadowMap] | None = None,
 ) -> list[torch.Tensor]:
-    """Visibility [N, 1] of each sun from the buffers' covered pixels: a shadow map of the
-    buffers' mesh along the sun (recon.optimize.sun_light.sun_visibility)."""
+    """Visibility [N, 1] of each sun from the buffers' covered pixels: its shadow map in maps,
+    or one drawn of the buffers' mesh along it (recon.optimize.sun_light)."""
     if not suns:
         return []
     mesh = buffers.mesh
+    if maps is None:
+        maps = [
+            ShadowMap.draw(mesh.verts, mesh.faces, sun.direction_to_light, shadow) for sun in suns
+        ]
     points = interpolate_packed(mesh.verts, buffers.fragments, mesh.faces)
-    return [
-        sun_visibility(
-            mesh.verts, mesh.faces, points, buffers.normals, sun.direction_to_light, shadow
-        )
-        for sun in suns
-    ]
+    return [shadow_map.visibility(points, buffers.normals, shadow) for shadow_map in maps]
+
+
+def _sun_moved(maps: list[ShadowMap], suns: list[DirectionalLight], resolution: int) -> bool:
+    """Whether a sun turned by more than 1 / resolution radians from its map's direction: the
+    shadow of the far side of the mesh's bounding sphere then moves by over half a texel."""
+    for shadow_map, sun in zip(maps, suns, strict=True):
+        drawn = -shadow_map.frames.axes[0, 2]
+        now = torch.nn.functional.normalize(sun.direction_to_light.detach(), dim=0).to(drawn)
+        if float((drawn * now).sum().clamp(-1, 1)) < math.cos(1.0 / resolution):
+            return True
+    return False
 
 
 def environment_from_light(light: LightModel, size: tuple[int, int]) -> torch.Tensor:
@@ -514,6 +527,7 @@ def run_pbr_texture_stage(
             },
         )
 
+    shadow_maps: list[ShadowMap] | None = None
     started = time.perf_counter()
     bar = tqdm(
         range(start_step, settings.steps),
@@ -531,6 +545,17 @@ def run_pbr_texture_stage(
         texture = torch.cat([base_color, full_material()], dim=-1)
         environment = current_environment()
         suns = current_suns()
+        if suns and (
+            shadow_maps is None
+            or (step - start_step) % pbr.shadow_map_every == 0
+            or _sun_moved(shadow_maps, suns, shadow.resolution)
+        ):
+            # Redrawn every few steps (the vertices move little between them), and whenever a
+            # sun has turned far enough to move its shadows by half a texel.
+            shadow_maps = [
+                ShadowMap.draw(verts.detach(), mesh.faces, sun.direction_to_light, shadow)
+                for sun in suns
+            ]
         output = renderer.shade_pbr(
             buffers,
             batch_cameras.centers(),
@@ -541,7 +566,7 @@ def run_pbr_texture_stage(
             diffuse_weighting=pbr.diffuse_weighting,
             light_frame=light_frame,
             directional=suns,
-            directional_visibility=shadowed_suns(buffers, suns, shadow),
+            directional_visibility=shadowed_suns(buffers, suns, shadow, shadow_maps),
         )
         color, alpha = apply_image_effects(
             effects.modules, output.color, output.alpha, batch_cameras, views

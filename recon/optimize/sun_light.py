@@ -97,6 +97,43 @@ def split_sun(
     return remaining, direction, irradiance
 
 
+@dataclass
+class ShadowMap:
+    """A directional light's shadow map: the orthographic frame along it and the nearest
+    surface's NDC depth [1, R, R] (no gradient)."""
+
+    frames: OrthographicFrames
+    depth: torch.Tensor
+
+    @staticmethod
+    def draw(
+        verts: torch.Tensor,
+        faces: torch.Tensor,
+        direction_to_light: torch.Tensor,
+        settings: ShadowSettings,
+    ) -> ShadowMap:
+        """The map of the mesh verts [V, 3], faces [F, 3] along direction_to_light [3]."""
+        direction = torch.nn.functional.normalize(direction_to_light.detach().to(verts), dim=0)
+        frames = OrthographicFrames.build(verts, direction[None])
+        return ShadowMap(frames, frames.depth_maps(verts, faces, settings.resolution))
+
+    def visibility(
+        self, points: torch.Tensor, normals: torch.Tensor, settings: ShadowSettings
+    ) -> torch.Tensor:
+        """Visibility [N, 1] in [0, 1] of the light from points [N, 3] (differentiable: their
+        depth along the light) with unit normals [N, 3] (for the slope-scaled bias)."""
+        direction = -self.frames.axes[0, 2].to(points)
+        cosine = (normals.detach() * direction).sum(-1).clamp(0.05, 1.0)
+        slope = torch.sqrt(1 - cosine * cosine) / cosine
+        texel = 2.0 / settings.resolution  # NDC units
+        bias = texel * (settings.bias_texels + settings.slope_bias_texels * slope.clamp(max=10.0))
+        softness = torch.tensor(
+            settings.softness_texels * texel, dtype=points.dtype, device=points.device
+        )
+        visible = filtered_visibility(self.depth, self.frames.to_ndc(points), bias[None], softness)
+        return visible[0][:, None]
+
+
 def sun_visibility(
     verts: torch.Tensor,
     faces: torch.Tensor,
@@ -112,13 +149,5 @@ def sun_visibility(
     normals [N, 3]: unit normals there (for the slope-scaled bias);
     direction_to_light [3]: toward the light (need not be unit).
     """
-    direction = torch.nn.functional.normalize(direction_to_light.detach().to(points), dim=0)
-    frames = OrthographicFrames.build(verts, direction[None])
-    maps = frames.depth_maps(verts, faces, settings.resolution)
-    cosine = (normals.detach() * direction).sum(-1).clamp(0.05, 1.0)
-    slope = torch.sqrt(1 - cosine * cosine) / cosine
-    texel = 2.0 / settings.resolution  # NDC units
-    bias = texel * (settings.bias_texels + settings.slope_bias_texels * slope.clamp(max=10.0))
-    softness = torch.tensor(settings.softness_texels * texel, dtype=points.dtype)
-    visible = filtered_visibility(maps, frames.to_ndc(points), bias[None], softness)
-    return visible[0][:, None]
+    shadow_map = ShadowMap.draw(verts, faces, direction_to_light, settings)
+    return shadow_map.visibility(points, normals, settings)
