@@ -601,6 +601,10 @@ class PbrFitConfig:
     shadow_map_every: int = setting(
         10, "Texture steps between redrawings of the suns' shadow maps (the mesh and suns move)."
     )
+    sun_reclaim_share: float = setting(
+        1.0,
+        "Share of the starting environment's linear SH band along each sun moved into that sun (a Lambertian geometry stage leaves most of a sun in its SH; recon/optimize/sun_light.py reclaim_sun).",
+    )
 
     def __post_init__(self) -> None:
         _check_vector(self.environment_size, "environment_size", length=2)
@@ -626,6 +630,7 @@ class PbrFitConfig:
         check_range(self.sun_cone_degrees, "sun_cone_degrees", low=1.0, high=45.0)
         check_range(self.shadow_map_resolution, "shadow_map_resolution", low=16, high=4096)
         check_range(self.shadow_map_every, "shadow_map_every", low=1)
+        check_range(self.sun_reclaim_share, "sun_reclaim_share", low=0.0, high=1.0)
         for key in (
             "sun_learning_rate",
             "shadow_bias_texels",

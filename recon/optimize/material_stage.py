@@ -42,7 +42,7 @@ from recon.optimize.scene_model import (
     step_record,
     texture_total_variation,
 )
-from recon.optimize.sun_light import ShadowMap, ShadowSettings, split_sun
+from recon.optimize.sun_light import ShadowMap, ShadowSettings, reclaim_sun, split_sun
 from recon.optimize.texture_stage import LOG_EVERY, start_texture_stage
 from recon.render.environment import latlong_directions, prefilter_environment, project_to_sh
 from recon.render.environment_seed import backproject_highlights
@@ -441,6 +441,14 @@ def run_pbr_texture_stage(
         seed_environment, direction, irradiance = split_sun(seed_environment, pbr.sun_cone_degrees)
         sun_directions.append(direction)
         sun_irradiances.append(irradiance)
+    for index, direction in enumerate(sun_directions):
+        # A Lambertian geometry stage leaves most of a sun in its SH (the smooth lobe mimics
+        # the irradiance): without this the environment keeps it, unshadowed.
+        seed_environment, reclaimed = reclaim_sun(
+            seed_environment, direction, pbr.sun_reclaim_share
+        )
+        seed_environment = seed_environment.clamp_min(ENVIRONMENT_FLOOR)
+        sun_irradiances[index] = sun_irradiances[index] + reclaimed
     sun_direction = torch.nn.Parameter(
         torch.stack(sun_directions) if sun_directions else torch.zeros(0, 3, device=device)
     )

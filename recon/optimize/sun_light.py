@@ -11,6 +11,9 @@ GGX lobe) and lets a shadow map give it visibility.
 - split_sun: the brightest spot of a lat-long map -> a directional light (the radiance-weighted
   mean direction of the spot's excess over its surroundings, the excess's irradiance) and the
   map with that excess removed.
+- reclaim_sun: the share of a sun that a Lambertian fit's order-2 SH light absorbed (the SH of
+  a sun is a smooth lobe that mimics its irradiance but for the clamp): the map's linear band
+  along the sun, moved into the sun, the sun's order-2 SH taken out of the map.
 - sun_visibility: shadow-map visibility of the light at surface points, drawn with recon's own
   rasterizer orthographically along the light (recon.effects.light_transport.OrthographicFrames,
   filtered_visibility: a slope-scaled bias and a 2 x 2 percentage-closer filter). The map is
@@ -28,7 +31,12 @@ import torch
 
 from recon.effects.light_transport import OrthographicFrames, filtered_visibility
 from recon.errors import ReconError
-from recon.render.environment import latlong_directions
+from recon.render.environment import latlong_directions, project_to_sh
+from recon.render.shading import sh_basis
+
+# Y_1m = BAND_ONE (y, z, x): a delta light of irradiance I along d has band-one coefficients
+# I BAND_ONE (d_y, d_z, d_x).
+BAND_ONE = 0.4886025119029199
 
 
 @dataclass
@@ -95,6 +103,29 @@ def split_sun(
         irradiance = (excess * solid_angle[:, None]).sum(0)
         remaining = (flat - excess).reshape(height, width, channels)
     return remaining, direction, irradiance
+
+
+def reclaim_sun(
+    environment: torch.Tensor, direction_to_light: torch.Tensor, share: float = 1.0
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Move the irradiance a sun along direction_to_light [3] would explain of the map's linear
+    SH band into the sun.
+
+    environment: [h, w, C] radiance. The irradiance I [C] = share x the band-one coefficients
+    along the direction / BAND_ONE (0 where negative); the map loses the order-2 SH radiance of
+    that delta light, I sum_k Y_k(d) Y_k(w), clamped at 0 (a sun's SH rings: negative
+    radiance on its horizon). Returns (environment [h, w, C], irradiance [C]). No gradient.
+    """
+    with torch.no_grad():
+        height, width, _ = environment.shape
+        direction = torch.nn.functional.normalize(direction_to_light.to(environment), dim=0)
+        band_one = project_to_sh(environment)[1:4]  # [3, C] in (y, z, x) order
+        along = direction[[1, 2, 0]] @ band_one / BAND_ONE
+        irradiance = share * along.clamp_min(0)
+        directions, _ = latlong_directions(height, width, environment.device, environment.dtype)
+        kernel = sh_basis(directions.reshape(-1, 3)) @ sh_basis(direction[None])[0]  # [h w]
+        removed = kernel.reshape(height, width, 1) * irradiance
+    return (environment - removed).clamp_min(0), irradiance
 
 
 @dataclass

@@ -19,10 +19,10 @@ from recon.optimize.checkpoint import History
 from recon.optimize.geometry_stage import GeometryResult
 from recon.optimize.material_stage import pbr_light_record, run_pbr_texture_stage
 from recon.optimize.scene_model import LightModel, psnr_from_mse
-from recon.optimize.sun_light import ShadowSettings, split_sun, sun_visibility
+from recon.optimize.sun_light import ShadowSettings, reclaim_sun, split_sun, sun_visibility
 from recon.render.environment import latlong_directions, prefilter_environment
 from recon.render.renderer import Renderer
-from recon.render.shading import DirectionalLight
+from recon.render.shading import DirectionalLight, sh_basis
 from recon.render.texture import build_mip_pyramid
 
 
@@ -97,6 +97,22 @@ def test_split_sun_moves_the_spot_into_a_directional_light():
     assert torch.equal(remaining[far], environment[far])
     with pytest.raises(ReconError, match="cone_degrees"):
         split_sun(environment, 95.0)
+
+
+def test_reclaim_sun_takes_back_the_sun_an_sh_light_absorbed():
+    size = (32, 64)
+    directions, _ = latlong_directions(*size)
+    sun = torch.nn.functional.normalize(torch.tensor([0.6, 0.7, 0.35]), dim=0)
+    irradiance = torch.tensor([2.5, 2.0, 1.5])
+    # What an order-2 SH light holds of a sun: I sum_k Y_k(d) Y_k(w), over a uniform sky.
+    kernel = sh_basis(directions.reshape(-1, 3)) @ sh_basis(sun[None])[0]
+    environment = 0.4 + kernel.reshape(*size, 1) * irradiance
+    remaining, reclaimed = reclaim_sun(environment, sun)
+    assert torch.allclose(reclaimed, irradiance, rtol=0.02)
+    assert float((remaining - 0.4).abs().max()) < 0.02
+    # A sky without a sun along d gives nothing; half a share gives half.
+    assert float(reclaim_sun(torch.full((*size, 3), 0.4), sun)[1].abs().max()) < 1e-4
+    assert torch.allclose(reclaim_sun(environment, sun, 0.5)[1], irradiance / 2, rtol=0.02)
 
 
 def test_visibility_scales_the_directional_term_with_gradients():
