@@ -61,9 +61,9 @@ def case_of(record: dict) -> BlindCase:
 
 
 def inert_effects(truth_record: dict) -> list[str]:
-    """The withheld effects whose realisation changed no pixel: a defocus disk smaller than the
-    centre pixel (at 48 px the sampler's 1-2.5 px at 128 px gives 0.47 px, whose antialiased
-    pillbox is the identity kernel). The data then holds no such effect: the case is scored
+    """The withheld effects whose realisation changed no pixel: a defocus disk inside the centre
+    pixel (its antialiased pillbox is the identity kernel; cases stored before the sampler's
+    1 px floor hold 0.47 px at 48 px). The data then holds no such effect: the case is scored
     against what was realised, and the withheld name is kept as 'inert'."""
     from data_synth.effects.optics import disk_kernel
 
@@ -345,9 +345,10 @@ def markdown(result: dict, provenance: dict) -> str:
         "and their evidence on clean cases is left out of calibration.",
         "",
         "An injected effect whose realisation changed no pixel is scored as not there (row",
-        "'injected but inert'): at 48 px the defocus sampler's radius, 1-2.5 px at 128 px, is",
-        "0.47 px, and a pillbox inside the centre pixel is the identity kernel (the images equal",
-        "the clean case's). The strict rows count a truth effect that the diagnosis reports as",
+        "'injected but inert'): a defocus pillbox inside the centre pixel is the identity kernel",
+        "(the images equal the clean case's). The sampler draws at least 1 px (decision 0199);",
+        "cases synthesised before it hold 0.47 px at 48 px and stay inert.",
+        "The strict rows count a truth effect that the diagnosis reports as",
         "'not identifiable from this data' as missed; the 'declared not identifiable' rows count",
         "it as answered (never as found). See docs/decisions/0191-blind-misses.md.",
         "",

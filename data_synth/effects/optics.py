@@ -108,12 +108,19 @@ class DefocusBlur(WorldEffect):
         "radius_px": ParameterSpec(1.5, 0.0, 32.0, "radius of the circle of confusion in pixels"),
     }
 
+    # The smallest radius the sampler draws, in pixels of the image itself. A disk whose radius
+    # is below half a pixel lies inside the centre pixel's square: its antialiased kernel is the
+    # identity and the "defocused" images equal the sharp ones (at 48 px the scaled range gave
+    # 0.38-0.94 px). One pixel is the first radius whose disk reaches over the four neighbours.
+    SMALLEST_SAMPLED_RADIUS_PX = 1.0
+
     @classmethod
     def sample_strength(cls, generator: torch.Generator, cameras: Cameras | None = None) -> dict:
-        """radius 1-2.5 px at 128 px, scaled with the smaller image side."""
+        """radius 1-2.5 px at 128 px, scaled with the smaller image side, at least 1 px."""
         (height, width), _ = nominal_geometry(cameras)
         scale = min(height, width) / 128.0
-        return {"radius_px": round_float(sample_uniform(generator, 1.0, 2.5) * scale)}
+        radius = max(sample_uniform(generator, 1.0, 2.5) * scale, cls.SMALLEST_SAMPLED_RADIUS_PX)
+        return {"radius_px": round_float(radius)}
 
     def apply(self, capture: Capture, generator: torch.Generator) -> AppliedEffect:
         """images [B, H, W, 3] and alpha [B, H, W, 1] convolved with the disk; cameras unchanged."""

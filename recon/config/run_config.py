@@ -1172,6 +1172,39 @@ class DiagnoseConfig:
 
 
 @dataclass
+class EvaluateConfig:
+    """The evaluate stage's settings beyond the held-out images: how a `pbr` fit's material is
+    compared with a synthetic world's true maps (recon/metrics/material.py)."""
+
+    material_samples: int = setting(
+        50_000,
+        "Points sampled (by area) on the fitted surface to compare its roughness/metalness with the reference's true maps at the closest reference point.",
+    )
+    material_tolerance: float = setting(
+        0.05,
+        "A sample's roughness (metalness) counts as recovered when within this of the truth: metrics.json's material.*_within_tolerance.",
+    )
+    material_max_distance: float = setting(
+        0.01,
+        "Samples farther than this (in reference bounding-box diagonals) from the reference are left out of the material comparison (a geometry error, not a material one).",
+    )
+    material_seen_only: bool = setting(
+        True,
+        "Compare the material only where some training view saw the surface (unseen texels hold the regulariser's guess, not a measurement).",
+    )
+    material_depth_tolerance: float = setting(
+        0.02,
+        "A surface point counts as seen by a view when it is at most this fraction of its depth behind the nearest surface at its pixel.",
+    )
+
+    def __post_init__(self) -> None:
+        check_range(self.material_samples, "material_samples", low=1)
+        check_range(self.material_tolerance, "material_tolerance", low=0.0, high=1.0)
+        check_range(self.material_max_distance, "material_max_distance", low=0.0)
+        check_range(self.material_depth_tolerance, "material_depth_tolerance", low=0.0)
+
+
+@dataclass
 class RunConfig:
     """A whole run: a name, one seed threaded through every stage, the device, and sections."""
 
@@ -1210,6 +1243,10 @@ class RunConfig:
     diagnose: DiagnoseConfig = setting(
         factory=DiagnoseConfig,
         doc="The gap diagnosis (recon diagnose): evidence settings, refits, decision allowances.",
+    )
+    evaluate: EvaluateConfig = setting(
+        factory=EvaluateConfig,
+        doc="The evaluate stage: how a pbr fit's material is compared with a synthetic world's true maps.",
     )
 
     def __post_init__(self) -> None:

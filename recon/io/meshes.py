@@ -258,7 +258,8 @@ def _save_obj(
     path: Path, mesh: Mesh, texture_bits: int, material_maps: torch.Tensor | None = None
 ) -> None:
     """OBJ (+ STEM.mtl and STEM_texture.png when textured; + STEM_roughness.png and
-    STEM_metallic.png as map_Pr / map_Pm, the MTL's PBR extension, with material_maps). The
+    STEM_metallic.png as map_Pr / map_Pm, the MTL's PBR extension, and both packed in
+    STEM_orm.png (map_ORM, orm_texture), with material_maps). The
     textures and MTL are written first, so the OBJ never names a file that does not exist yet."""
     verts = mesh.verts.detach().cpu().double().numpy()
     faces = mesh.faces.detach().cpu().numpy() + 1  # OBJ indices start at 1
@@ -279,6 +280,13 @@ def _save_obj(
                     encode_srgb=False,
                 )
                 pbr_lines += f"{key} 1\nmap_{key} {name}\n"
+            # The same maps packed as one ORM texture in glTF's channel order (R occlusion, 1:
+            # not fitted; G roughness; B metalness), for engines that take packed maps. No MTL
+            # key for it is standard: map_ORM is recon's, which other readers skip
+            # (docs/decisions/0195-material-evaluation-orm.md).
+            name = f"{path.stem}_orm.png"
+            write_png(path.parent / name, orm_texture(maps), bits=texture_bits, encode_srgb=False)
+            pbr_lines += f"map_ORM {name}\n"
             if maps.shape[-1] == 5:
                 # A tangent-space normal map (+y up in the image), coded (n + 1) / 2 as usual.
                 name = f"{path.stem}_normal.png"
@@ -318,11 +326,19 @@ def _save_obj(
     atomic_write_text(path, "\n".join(lines) + "\n")
 
 
+def orm_texture(material_maps: torch.Tensor) -> torch.Tensor:
+    """[h, w, 3] ORM texture (occlusion, roughness, metalness; glTF's channel order, linear) of
+    material maps [h, w, >= 2] (roughness, metalness): occlusion is 1 (recon fits none)."""
+    maps = material_maps.detach().cpu().float()[..., :2].clamp(0, 1)
+    return torch.cat([torch.ones_like(maps[..., :1]), maps], dim=-1)
+
+
 def _save_glb(path: Path, mesh: Mesh, material_maps: torch.Tensor | None = None) -> None:
     """Binary glTF. glTF has one UV per vertex, so vertices are split where a position is used
     with several UVs; the texture (sRGB PNG inside the GLB) wins over vertex colours.
     material_maps [h, w, 2] (roughness, metalness) become the metallic-roughness texture
-    (glTF: green = roughness, blue = metalness, linear)."""
+    (glTF: green = roughness, blue = metalness, linear; red holds occlusion 1, which glTF
+    ignores there, so the image is orm_texture's)."""
     verts = mesh.verts.detach().cpu().float().numpy()
     faces = mesh.faces.detach().cpu().numpy()
     if mesh.uvs is not None:
@@ -347,15 +363,15 @@ def _save_glb(path: Path, mesh: Mesh, material_maps: torch.Tensor | None = None)
             image = Image.fromarray(pixels[..., 0] if pixels.shape[-1] == 1 else pixels)
             pbr_maps = {"metallicFactor": 0.0, "roughnessFactor": 1.0}
             if material_maps is not None:
-                maps = material_maps.detach().cpu().float().clamp(0, 1).numpy()
-                packed = np.zeros((*maps.shape[:2], 3), dtype=np.uint8)
-                packed[..., 1:] = np.round(maps[..., :2] * 255).astype(np.uint8)
+                maps = material_maps.detach().cpu().float()
+                # glTF reads G and B only; R holds occlusion 1 so the image is the OBJ's ORM.
+                packed = np.round(orm_texture(maps).numpy() * 255).astype(np.uint8)
                 pbr_maps = {
                     "metallicFactor": 1.0,
                     "roughnessFactor": 1.0,
                     "metallicRoughnessTexture": Image.fromarray(packed),
                 }
-                if maps.shape[-1] == 5:
+                if material_maps.shape[-1] == 5:
                     coded = (material_maps.detach().cpu().float()[..., 2:5].clamp(-1, 1) + 1) / 2
                     normal_pixels = np.round(coded.numpy() * 255).astype(np.uint8)
                     pbr_maps["normalTexture"] = Image.fromarray(normal_pixels)
@@ -387,7 +403,8 @@ def save_mesh(
     bottom-up convention and writes vertex colours as sRGB `v x y z r g b`. GLB splits vertices at
     UV seams (glTF has one index buffer). texture_bits (8 or 16) is the OBJ texture PNG depth.
     material_maps: [h, w, 2] roughness and metalness on the texture's UVs (the `pbr` material;
-    needs mesh.texture as base colour): OBJ map_Pr / map_Pm, GLB metallicRoughnessTexture;
+    needs mesh.texture as base colour): OBJ map_Pr / map_Pm and the packed map_ORM, GLB
+    metallicRoughnessTexture;
     [h, w, 5] adds a tangent-space normal map (x, y, z in [-1, 1]): OBJ norm / map_Bump, GLB
     normalTexture.
     """

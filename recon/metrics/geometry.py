@@ -112,7 +112,18 @@ def sample_surface(
     Returns (points [count, 3], unit normals of the sampled faces [count, 3], total area).
     Zero-area faces are never picked. Raises ReconError when the total area is zero.
     """
-    areas, normals = _face_areas_and_normals(verts, faces)
+    points, picks, _, total = sample_surface_barycentric(verts, faces, count, generator)
+    _, normals = _face_areas_and_normals(verts, faces)
+    return points, normals[picks], total
+
+
+def sample_surface_barycentric(
+    verts: np.ndarray, faces: np.ndarray, count: int, generator: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """sample_surface's samples with where they lie: (points [count, 3], face index [count],
+    barycentric weights [count, 3] of the face's corners, total area). The same generator
+    draws give the same points as sample_surface."""
+    areas, _ = _face_areas_and_normals(verts, faces)
     cumulative = np.cumsum(areas)
     total = float(cumulative[-1])
     if not total > 0:
@@ -131,7 +142,8 @@ def sample_surface(
         + u[:, None] * (corners[:, 1] - corners[:, 0])
         + v[:, None] * (corners[:, 2] - corners[:, 0])
     )
-    return points, normals[picks], total
+    weights = np.stack([1.0 - u - v, u, v], axis=1)
+    return points, picks, weights, total
 
 
 def _surface_query(verts: np.ndarray, faces: np.ndarray) -> tuple[trimesh.Trimesh, np.ndarray]:

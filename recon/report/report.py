@@ -169,7 +169,7 @@ def geometry_error_figure(
 
 def _metric_rows(metrics: dict) -> list[tuple[str, str]]:
     rows = []
-    for group in ("image", "geometry", "mesh"):
+    for group in ("image", "geometry", "material", "mesh"):
         for key, value in metrics.get(group, {}).items():
             if isinstance(value, float):
                 text = f"{value:.4g}"

@@ -11,11 +11,16 @@ import torch
 
 from recon.config.run_config import RunConfig
 from recon.io.atomic import atomic_write_text
-from recon.io.meshes import load_mesh
+from recon.io.datasets import read_captures
+from recon.io.meshes import load_material_maps, load_mesh
 from recon.io.run_folder import RunPaths
 from recon.metrics.evaluate import ERROR_PANEL_MAXIMUM
 from recon.optimize.checkpoint import History
-from recon.report.material_figure import material_figure
+from recon.report.material_figure import (
+    ROUGHNESS_ERROR_MAXIMUM,
+    material_figure,
+    roughness_comparison_figure,
+)
 from recon.report.report import (
     geometry_error_figure,
     held_out_figure,
@@ -32,6 +37,10 @@ REPORT_VIEWS = 8
 def report_stage(config: RunConfig, paths: RunPaths, device: torch.device) -> dict:
     """Stage 'report': whatever the run folder holds, as figures and one page."""
     figures = _fit_figures(paths, device)
+    # The comparison with the true material goes right after the fitted material's figure.
+    after = [index for index, (_, path) in enumerate(figures) if path == paths.figure("material")]
+    at = after[0] + 1 if after else len(figures)
+    figures[at:at] = _material_truth_figures(config, paths, device)
     if paths.renders.exists():
         for render in sorted(paths.renders.glob("*.png"))[:REPORT_VIEWS]:
             figure = paths.figure(f"held_out_{render.stem}")
@@ -91,3 +100,33 @@ def _fit_figures(paths: RunPaths, device: torch.device) -> list[tuple[str, Path]
             )
         )
     return figures
+
+
+# The roughness comparison is drawn at least this many pixels wide, however small the photos.
+MATERIAL_VIEW_PIXELS = 256
+
+
+def _material_truth_figures(
+    config: RunConfig, paths: RunPaths, device: torch.device
+) -> list[tuple[str, Path]]:
+    """A `pbr` fit on a world whose reference mesh carries its true maps: the fitted roughness
+    against the true one from the first held-out view (recon.report.material_figure)."""
+    if not (paths.reference_mesh.exists() and paths.dataset.exists()):
+        return []
+    pbr = load_pbr_fit(paths, "cpu")
+    true_maps = load_material_maps(paths.reference_mesh)
+    if pbr is None or true_maps is None:
+        return []
+    split = paths.dataset_layout.held_out_split
+    camera = read_captures(paths.dataset, split, config.dataset).cameras[:1]
+    height, width = camera.image_size
+    scale = max(1.0, MATERIAL_VIEW_PIXELS / max(height, width))
+    camera = camera.with_image_size((round(height * scale), round(width * scale)))
+    reference = load_mesh(paths.reference_mesh)
+    path = paths.figure("roughness_truth")
+    roughness_comparison_figure(pbr.mesh, pbr.material, reference, true_maps, camera, path)
+    title = (
+        f"Fitted against true roughness, first {split} view (viridis 0 to 1; error magma 0 to "
+        f"{ROUGHNESS_ERROR_MAXIMUM})"
+    )
+    return [(title, path)]

@@ -17,6 +17,15 @@ def test_true_roughness_comes_from_the_specular_effect():
     config = {"capture": {"effects": [{"name": "specular", "parameters": {"roughness": 0.35}}]}}
     assert _true_roughness(config) == 0.35
     assert _true_roughness({"capture": {"effects": []}}) is None
+    # Without its own roughness the effect takes the scene material's.
+    config = {
+        "scene": {"material": {"roughness": 0.2}},
+        "capture": {"effects": [{"name": "specular", "parameters": {}}]},
+    }
+    assert _true_roughness(config) == 0.2
+    # A roughness varying over the surface has no single true value (the surface metric).
+    config["scene"]["material"]["roughness_texture"] = "checker"
+    assert _true_roughness(config) is None
 
 
 def test_markdown_has_one_row_per_scene_and_material():
@@ -49,6 +58,8 @@ def test_markdown_has_one_row_per_scene_and_material():
                         "roughness_median": 0.33,
                         "roughness_true": 0.35,
                         "metalness_median": 0.01,
+                        "surface_roughness_mae": 0.041,
+                        "surface_roughness_within_tolerance": 0.7,
                     },
                     {"material": "pbr", "failed": 1, "seconds": 3.0},
                 ],
@@ -60,3 +71,5 @@ def test_markdown_has_one_row_per_scene_and_material():
     rows = [line for line in text.splitlines() if line.startswith("| glossy_spot_sky")]
     assert len(rows) == 3 and "0.330 (0.35)" in rows[1] and "1.20e-03" in rows[0]
     assert "failed (1)" in rows[2]
+    assert "| 0.041 (70 %) |" in rows[1] and "| - |" in rows[0]
+    assert all(row.count("|") == text.splitlines()[4].count("|") for row in rows)

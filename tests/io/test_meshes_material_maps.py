@@ -98,3 +98,36 @@ def test_obj_roughness_and_metallic_files_hold_linear_values(tmp_path):
         with Image.open(tmp_path / name) as image:
             values = np.asarray(image.convert("L")).astype(np.float64) / 255
         np.testing.assert_allclose(values, maps[..., channel].numpy(), atol=0.5 / 255 + 1e-6)
+
+
+def test_obj_orm_texture_packs_occlusion_roughness_metalness_as_gltf_does(tmp_path):
+    """The MTL (read by trimesh's MTL parser, not recon's loader) names the ORM texture beside
+    map_Pr / map_Pm; its channels are R occlusion 1, G roughness, B metalness, linear."""
+    from PIL import Image
+    from trimesh.exchange.obj import parse_mtl
+
+    mesh, maps = textured_quad()
+    save_mesh(tmp_path / "model.obj", mesh, material_maps=maps)
+    (material,) = parse_mtl((tmp_path / "model.mtl").read_text()).values()
+    assert material["map_orm"] == ["model_orm.png"]
+    assert material["map_pr"] == ["model_roughness.png"]
+    assert material["map_pm"] == ["model_metallic.png"]
+    with Image.open(tmp_path / "model_orm.png") as image:
+        assert image.mode == "RGB"
+        orm = np.asarray(image).astype(np.float64) / 255
+    np.testing.assert_array_equal(orm[..., 0], 1.0)
+    np.testing.assert_allclose(orm[..., 1], maps[..., 0].numpy(), atol=0.5 / 255 + 1e-6)
+    np.testing.assert_allclose(orm[..., 2], maps[..., 1].numpy(), atol=0.5 / 255 + 1e-6)
+    # The GLB's metallic-roughness image is the same ORM texture (glTF ignores its red).
+    save_mesh(tmp_path / "model.glb", mesh, material_maps=maps)
+    data = (tmp_path / "model.glb").read_bytes()
+    import json
+    import struct
+
+    length = struct.unpack_from("<I", data, 12)[0]
+    document = json.loads(data[20 : 20 + length])
+    packed = _glb_image(
+        tmp_path / "model.glb",
+        document["materials"][0]["pbrMetallicRoughness"]["metallicRoughnessTexture"],
+    )
+    np.testing.assert_array_equal(packed, orm)

@@ -167,3 +167,21 @@ def test_a_pbr_run_turns_with_its_material_and_shows_its_channels(tmp_path):
     assert "figures/material.png" in markdown and paths.figure("material").stat().st_size > 0
     page = paths.report_html.read_text()
     assert "Fitted material and environment (pbr)" in page and "figures/material.png" in page
+
+
+def test_a_pbr_run_on_a_synthetic_world_compares_its_roughness_with_the_truth(tmp_path):
+    from tests.material_scenes import material_run
+
+    paths = material_run(tmp_path / "pbr", "pbr", roughness_offset=0.1)
+    report_stage(RunConfig(), paths, torch.device("cpu"))
+    markdown = paths.report_markdown.read_text()
+    title = "## Fitted against true roughness, first test view"
+    assert title in markdown and paths.figure("roughness_truth").stat().st_size > 0
+    # In the material section: right after the fitted material's figure.
+    assert markdown.index("## Fitted material and environment (pbr)") < markdown.index(title)
+    assert markdown.index(title) < markdown.index("## Distance to the reference")
+    assert "figures/roughness_truth.png" in paths.report_html.read_text()
+    lambert = material_run(tmp_path / "lambert", "lambert")
+    report_stage(RunConfig(), lambert, torch.device("cpu"))
+    assert "true roughness" not in lambert.report_markdown.read_text()
+    assert not lambert.figure("roughness_truth").exists()

@@ -113,7 +113,7 @@ def test_leave_one_scene_out_never_scores_a_scene_it_calibrated_on(tmp_path):
 
 
 def test_a_defocus_inside_the_centre_pixel_is_inert():
-    # At 48 px the sampler's radius is 0.47 px: the pillbox is the identity kernel.
+    # Stored cases from before the sampler's 1 px floor hold 0.47 px at 48 px: the identity.
     inert = inert_effects(
         {"withheld": [{"name": "defocus_blur", "parameters": {"radius_px": 0.47}}]}
     )

@@ -92,6 +92,19 @@ def test_sampled_ranges_match_the_blind_benchmark_brief() -> None:
         assert 0.05 - 1e-3 <= abs(k1) * corner**2 <= 0.2 + 1e-3
 
 
+@pytest.mark.parametrize("size", [32, 48, 64])
+def test_a_sampled_defocus_on_a_small_image_is_not_the_identity(size: int) -> None:
+    # Scaled with the image, the 128 px range fell inside the centre pixel below about 64 px.
+    from data_synth.effects.optics import disk_kernel
+
+    cameras = orbit_cameras(2, (size, size))
+    for seed in range(6):
+        generator = torch.Generator().manual_seed(seed)
+        radius = WORLD_EFFECTS["defocus_blur"].sample_strength(generator, cameras)["radius_px"]
+        assert radius >= 1.0
+        assert float(disk_kernel(radius).max()) < 0.5
+
+
 @pytest.mark.parametrize(
     ("name", "parameters"),
     [
