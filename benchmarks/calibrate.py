@@ -80,6 +80,9 @@ def clean_statistics(
         agreement = candidate.evidence_of("agreement")
         if agreement is not None:
             keep(f"agreement.{candidate.name}", agreement.statistic)
+        lobe = candidate.evidence_of("lobe")
+        if lobe is not None:
+            keep(f"lobe.{candidate.name}", lobe.statistic)
         flat_field = candidate.evidence_of("flat_field")
         if flat_field is not None:
             keep("flat_field", flat_field.statistic)
@@ -102,6 +105,7 @@ def threshold_floors() -> dict[str, float]:
             probe_allowance={},
             absorption_allowance={},
             agreement_allowance={},
+            lobe_allowance={},
             relight_allowance=defaults.minimum_share,
         )
     )

@@ -5,6 +5,7 @@ A threshold set maps names to values:
     probe.<effect>        the held-out reduction a probe's bootstrap lower bound must clear
     absorption.<effect>   the reduction over the control refit an absorption bound must clear
     agreement.<effect>    the per-view colour spread separate halves of each view must share
+    lobe.<effect>         the partial correlation of the view-to-view residual with a lobe
     relight               the relight probe's allowance
     flat_field            the flat-field deviation that makes vignetting significant
     visibility_share      the visibility fingerprint's lower bound that makes it name an effect
@@ -27,6 +28,7 @@ def code_thresholds(config: DecisionConfig | None = None) -> dict[str, float]:
     from recon.diagnose.decision import (
         absorption_threshold,
         agreement_threshold,
+        lobe_threshold,
         probe_threshold,
     )
 
@@ -38,6 +40,9 @@ def code_thresholds(config: DecisionConfig | None = None) -> dict[str, float]:
     # The effects with agreement evidence are the default config's (white_balance).
     for effect in sorted(DecisionConfig().agreement_allowance):
         thresholds[f"agreement.{effect}"] = agreement_threshold(effect, config)
+    # The effects with lobe evidence are the default config's (specular).
+    for effect in sorted(DecisionConfig().lobe_allowance):
+        thresholds[f"lobe.{effect}"] = lobe_threshold(effect, config)
     thresholds["relight"] = config.relight_allowance
     thresholds["flat_field"] = config.flat_field_allowance
     thresholds["visibility_share"] = config.visibility_share_minimum
@@ -62,6 +67,7 @@ def diagnose_section(thresholds: dict[str, float]) -> dict:
             "probe_allowance": per_effect("probe"),
             "absorption_allowance": per_effect("absorption"),
             "agreement_allowance": per_effect("agreement"),
+            "lobe_allowance": per_effect("lobe"),
             "relight_allowance": thresholds["relight"],
             "flat_field_allowance": thresholds["flat_field"],
             "visibility_share_minimum": thresholds["visibility_share"],
@@ -79,6 +85,7 @@ def diagnose_config(thresholds: dict[str, float]) -> DiagnoseConfig:
         absorption_minimum_share=0.0,
         regression_minimum_share=0.0,
         agreement_minimum=0.0,
+        lobe_minimum=0.0,
     )
     return DiagnoseConfig(decision=decision)
 

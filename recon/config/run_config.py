@@ -787,6 +787,8 @@ class FitConfig:
 # (2 x 0.0186, Mitsuba teapot; 10 clean cases of the own and Mitsuba worlds, /work/blind_runs/b48v9;
 # docs/decisions/0191-blind-misses.md).
 AGREEMENT_WHITE_BALANCE = 0.037
+# The lobe evidence's allowance for specular (docs/decisions/0196-diagnosis-light-transport-lobe.md).
+LOBE_SPECULAR = 0.02
 
 
 @dataclass
@@ -852,10 +854,24 @@ class DecisionConfig:
         0.01,
         "Level of the agreement's permutation test (views of one half permuted): conventional, not tuned.",
     )
+    lobe_allowance: dict[str, float] = setting(
+        factory=lambda: {"specular": LOBE_SPECULAR},
+        doc="Per effect with lobe evidence (recon.diagnose.lobe): how far the partial correlation of the view-to-view residual with a highlight's lobe under the fitted light must exceed the placebo lights' 95th percentile (the floor: on the blind check's clean synthetic fits the excess is below zero, docs/decisions/0196-diagnosis-light-transport-lobe.md).",
+    )
+    lobe_minimum: float = setting(
+        0.02,
+        "Floor of every lobe allowance: an excess correlation of 0.02 over the placebo lights' 95th percentile.",
+    )
+    lobe_alpha: float = setting(
+        0.01,
+        "Level of the lobe's placebo-light test (the share of placebo lights reaching the fitted light's correlation): conventional, not tuned.",
+    )
 
     def __post_init__(self) -> None:
         check_range(self.agreement_minimum, "agreement_minimum", low=0.0, high=1.0)
         check_range(self.agreement_alpha, "agreement_alpha", low=0.0, high=1.0)
+        check_range(self.lobe_minimum, "lobe_minimum", low=0.0, high=1.0)
+        check_range(self.lobe_alpha, "lobe_alpha", low=0.0, high=1.0)
         for name in ("minimum_share", "absorption_minimum_share", "regression_minimum_share"):
             check_range(getattr(self, name), name, low=0.0, high=1.0)
         for name in ("relight_allowance", "flat_field_allowance", "visibility_share_minimum"):
@@ -1023,6 +1039,48 @@ class MetadataConfig:
 
 
 @dataclass
+class LobeConfig:
+    """The lobe evidence (recon.diagnose.lobe): the view-to-view residual against a highlight's
+    lobe under the fitted light, on the training and held-out views, against placebo lights."""
+
+    exponents: list[float] = setting(
+        factory=lambda: [8.0, 16.0, 32.0, 64.0, 128.0],
+        doc="Blinn-Phong exponents the lobe is tried at (the best counts, for the placebo lights as for the fitted one): roughness about 0.55 to 0.25.",
+    )
+    cells_per_axis: int = setting(
+        12,
+        "Cells per axis of the voxel grid over the object's surface points that get one offset each (what an albedo absorbs).",
+    )
+    placebo_lights: int = setting(
+        200,
+        "Directions of the Fibonacci sphere tried as placebo lights (those near the fitted light are left out).",
+    )
+    placebo_separation_degrees: float = setting(
+        45.0,
+        "Least angle between a placebo light and the fitted light: nearer ones share its highlights.",
+    )
+    minimum_pixels: int = setting(
+        200, "Interior object pixels over all views below which no lobe evidence is measured."
+    )
+    enabled: bool = setting(True, "Measure the lobe evidence for the specular candidate.")
+    maximum_pixels: int = setting(
+        20000,
+        "Interior object pixels (over all views) the lobe evidence uses at most, an even stride through them: its cost is pixels x placebo lights x exponents.",
+    )
+
+    def __post_init__(self) -> None:
+        if not self.exponents or any(value <= 0 for value in self.exponents):
+            raise ConfigFieldError(
+                "exponents", f"expected positive exponents, got {self.exponents}"
+            )
+        for name in ("cells_per_axis", "placebo_lights", "minimum_pixels", "maximum_pixels"):
+            check_range(getattr(self, name), name, low=1)
+        check_range(
+            self.placebo_separation_degrees, "placebo_separation_degrees", low=0.0, high=180.0
+        )
+
+
+@dataclass
 class DiagnoseConfig:
     """The gap diagnosis (recon diagnose): which candidates, how each kind of evidence is
     measured, how far the refits go, and the decision's allowances."""
@@ -1137,6 +1195,10 @@ class DiagnoseConfig:
     )
     metadata: MetadataConfig = setting(
         factory=MetadataConfig, doc="Recovered exposure against the capture's EXIF exposure."
+    )
+    lobe: LobeConfig = setting(
+        factory=LobeConfig,
+        doc="The lobe evidence: the view-to-view residual against a highlight under the fitted light.",
     )
 
     def __post_init__(self) -> None:

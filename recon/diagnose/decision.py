@@ -17,6 +17,9 @@ absorption    clear         the same for the absorption refit (unless voided)
 relight       clear         the same for the relight split's probe
 agreement     clear         a per-view colour gain shared by separate halves of each view
                             above its allowance, beyond permuted views (recon.diagnose.agreement)
+lobe          clear         the view-to-view residual (training and held-out views) follows a
+                            highlight's lobe under the fitted light beyond placebo lights
+                            (recon.diagnose.lobe); ranks after clearing residual evidence
 fingerprint   name          the visibility fingerprint names the effect (ranks after the above)
 null          raise bar     a failed null from the run (placebo, permutation, split half)
                             keeps the clearing rows from making the candidate significant
@@ -87,6 +90,17 @@ def absorption_threshold(effect: str, config: DecisionConfig) -> float:
 def agreement_threshold(effect: str, config: DecisionConfig) -> float:
     """The per-view colour spread an agreement evidence must clear (floored)."""
     return max(config.agreement_minimum, config.agreement_allowance.get(effect, 0.0))
+
+
+def lobe_threshold(effect: str, config: DecisionConfig) -> float:
+    """The partial correlation a lobe evidence must clear (floored)."""
+    return max(config.lobe_minimum, config.lobe_allowance.get(effect, 0.0))
+
+
+def _lobe_clears(evidence: Evidence, threshold: float, config: DecisionConfig) -> bool:
+    """The lobe correlates above the allowance, and more than placebo lights' lobes do."""
+    p_value = evidence.details.get("p_value", 1.0)
+    return evidence.statistic > threshold and p_value < config.lobe_alpha
 
 
 def _agrees(evidence: Evidence, threshold: float, config: DecisionConfig) -> bool:
@@ -183,6 +197,14 @@ DECISION_TABLE: tuple[Rule, ...] = (
         threshold=agreement_threshold,
         passes=_agrees,
         parameters_from=("probe",),
+    ),
+    Rule(
+        "lobe",
+        "clear",
+        measured=True,
+        threshold=lobe_threshold,
+        passes=_lobe_clears,
+        parameters_from=("lobe", "absorption", "probe"),
     ),
     Rule(
         "fingerprint",
