@@ -594,6 +594,36 @@ class PbrFitConfig:
         0.25,
         "Full-lobe steps: factor on the learning rates of the base colour, the material and the environment (a refinement of a settled fit on fewer views per step).",
     )
+    sun_lights: int = setting(
+        0,
+        "Directional lights (suns) split off the starting environment's brightest spots and fitted with shadow-map visibility and the exact BRDF (recon/optimize/sun_light.py; docs/decisions/0194-pbr-sun-visibility.md); 0: the environment alone, unshadowed.",
+    )
+    sun_cone_degrees: float = setting(
+        10.0,
+        "Half-angle of the cone around an environment peak whose excess radiance (over the ring around it) becomes a sun.",
+    )
+    sun_learning_rate: float = setting(
+        0.01, "Adam learning rate of each sun's direction and log irradiance."
+    )
+    shadow_map_resolution: int = setting(
+        512, "Side in texels of a sun's shadow map (the mesh's bounding sphere fills it)."
+    )
+    shadow_bias_texels: float = setting(
+        2.0, "Constant depth bias of the shadow test, in shadow-map texels (against acne)."
+    )
+    shadow_slope_bias_texels: float = setting(
+        2.0, "Depth bias per unit tan of the sun's angle to the normal, in shadow-map texels."
+    )
+    shadow_softness_texels: float = setting(
+        0.5, "Softness of the shadow test's sigmoid in depth, in shadow-map texels."
+    )
+    shadow_map_every: int = setting(
+        10, "Texture steps between redrawings of the suns' shadow maps (the mesh and suns move)."
+    )
+    sun_reclaim_share: float = setting(
+        1.0,
+        "Share of the starting environment's linear SH band along each sun moved into that sun (a Lambertian geometry stage leaves most of a sun in its SH; recon/optimize/sun_light.py reclaim_sun).",
+    )
 
     def __post_init__(self) -> None:
         _check_vector(self.environment_size, "environment_size", length=2)
@@ -620,6 +650,20 @@ class PbrFitConfig:
             "environment_whiteness_weight",
         ):
             check_range(getattr(self, key), key, low=0.0)
+        check_range(self.sun_lights, "sun_lights", low=0, high=4)
+        check_range(self.sun_cone_degrees, "sun_cone_degrees", low=1.0, high=45.0)
+        check_range(self.shadow_map_resolution, "shadow_map_resolution", low=16, high=4096)
+        check_range(self.shadow_map_every, "shadow_map_every", low=1)
+        check_range(self.sun_reclaim_share, "sun_reclaim_share", low=0.0, high=1.0)
+        for key in (
+            "sun_learning_rate",
+            "shadow_bias_texels",
+            "shadow_slope_bias_texels",
+        ):
+            check_range(getattr(self, key), key, low=0.0)
+        check_range(
+            self.shadow_softness_texels, "shadow_softness_texels", low=0.0, low_inclusive=False
+        )
 
 
 @dataclass

@@ -12,7 +12,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
@@ -42,6 +42,7 @@ from recon.optimize.scene_model import (
     step_record,
     texture_total_variation,
 )
+from recon.optimize.sun_light import ShadowMap, ShadowSettings, reclaim_sun, split_sun
 from recon.optimize.texture_stage import LOG_EVERY, start_texture_stage
 from recon.render.environment import (
     PrefilteredEnvironment,
@@ -52,8 +53,8 @@ from recon.render.environment import (
 from recon.render.environment_seed import backproject_highlights
 from recon.render.interpolate import interpolate_packed
 from recon.render.lobe_sampling import SampledEnvironment
-from recon.render.renderer import Renderer, RenderOutput
-from recon.render.shading import sh_basis, sh_irradiance
+from recon.render.renderer import Renderer, RenderOutput, SurfaceBuffers
+from recon.render.shading import DirectionalLight, sh_basis, sh_irradiance
 from recon.render.texture import build_mip_pyramid
 
 # Roughness below this is a mirror narrower than any texel of the environment a fit can afford.
@@ -80,6 +81,8 @@ class PbrTextureResult:
     (recon.render.lobe_sampling; lobe_samples 0: the split sum).
     light_frame: 'world', or 'camera' when the environment is fixed to the camera (turntable
     captures, fit.light.frame): its directions are then OpenCV camera axes of each view.
+    suns: directional lights split off the environment (fit.pbr.sun_lights), shaded with the
+    exact BRDF and shadowed by shadow maps with the settings shadow (recon.optimize.sun_light).
     """
 
     mesh: Mesh
@@ -93,6 +96,8 @@ class PbrTextureResult:
     light_frame: str = "world"
     lobe_samples: int = 0
     lobe_filter_width: float = 0.5
+    suns: list[DirectionalLight] = field(default_factory=list)
+    shadow: ShadowSettings = field(default_factory=ShadowSettings)
 
     def shading_environment(self) -> PrefilteredEnvironment | SampledEnvironment:
         """The environment as the fit shaded with it: split sum, or the full lobe per pixel
@@ -121,25 +126,61 @@ class PbrTextureResult:
             mip_pyramid=build_mip_pyramid(texture),
             diffuse_weighting=self.diffuse_weighting,
             light_frame=self.light_frame,
+            directional=self.suns,
+            directional_visibility=shadowed_suns(buffers, self.suns, self.shadow),
         )
+
+
+def shadowed_suns(
+    buffers: SurfaceBuffers,
+    suns: list[DirectionalLight],
+    shadow: ShadowSettings,
+    maps: list[ShadowMap] | None = None,
+) -> list[torch.Tensor]:
+    """Visibility [N, 1] of each sun from the buffers' covered pixels: its shadow map in maps,
+    or one drawn of the buffers' mesh along it (recon.optimize.sun_light)."""
+    if not suns:
+        return []
+    mesh = buffers.mesh
+    if maps is None:
+        maps = [
+            ShadowMap.draw(mesh.verts, mesh.faces, sun.direction_to_light, shadow) for sun in suns
+        ]
+    points = interpolate_packed(mesh.verts, buffers.fragments, mesh.faces)
+    return [shadow_map.visibility(points, buffers.normals, shadow) for shadow_map in maps]
+
+
+def _sun_moved(maps: list[ShadowMap], suns: list[DirectionalLight], resolution: int) -> bool:
+    """Whether a sun turned by more than 1 / resolution radians from its map's direction: the
+    shadow of the far side of the mesh's bounding sphere then moves by over half a texel."""
+    for shadow_map, sun in zip(maps, suns, strict=True):
+        drawn = -shadow_map.frames.axes[0, 2]
+        now = torch.nn.functional.normalize(sun.direction_to_light.detach(), dim=0).to(drawn)
+        if float((drawn * now).sum().clamp(-1, 1)) < math.cos(1.0 / resolution):
+            return True
+    return False
 
 
 def environment_from_light(light: LightModel, size: tuple[int, int]) -> torch.Tensor:
     """A lat-long map [h, w, 3] of a SH (+ sun) light: the SH radiance, clamped at 0, plus the
     sun as a narrow lobe whose integral over solid angle is the sun's irradiance."""
-    device = light.sh.device
-    directions, solid_angle = latlong_directions(*size, device=device)
-    flat = directions.reshape(-1, 3)
-    radiance = (sh_basis(flat) @ light.sh.detach()).clamp_min(0)
-    if light.with_sun:
-        lighting = light.lighting()
-        sun = lighting.directional[0]
-        width = SUN_LOBE_TEXELS * math.pi / size[0]
-        cosine = flat @ sun.direction_to_light.detach()
-        lobe = torch.exp((cosine - 1) / (width * width))
-        lobe = lobe / (lobe * solid_angle.reshape(-1)).sum()
-        radiance = radiance + lobe[:, None] * sun.irradiance.detach()
-    return radiance.reshape(*size, 3)
+    directions, _ = latlong_directions(*size, device=light.sh.device)
+    radiance = (sh_basis(directions.reshape(-1, 3)) @ light.sh.detach()).clamp_min(0)
+    return radiance.reshape(*size, 3) + sun_lobe_environment(light, size)
+
+
+def sun_lobe_environment(light: LightModel, size: tuple[int, int]) -> torch.Tensor:
+    """The light's sun as a lat-long map [h, w, 3]: a lobe SUN_LOBE_TEXELS wide whose integral
+    over solid angle is the sun's irradiance (zero without a sun)."""
+    directions, solid_angle = latlong_directions(*size, device=light.sh.device)
+    if not light.with_sun:
+        return directions.new_zeros(*size, 3)
+    sun = light.lighting().directional[0]
+    width = SUN_LOBE_TEXELS * math.pi / size[0]
+    cosine = directions.reshape(-1, 3) @ sun.direction_to_light.detach()
+    lobe = torch.exp((cosine - 1) / (width * width))
+    lobe = lobe / (lobe * solid_angle.reshape(-1)).sum()
+    return (lobe[:, None] * sun.irradiance.detach()).reshape(*size, 3)
 
 
 def highlight_environment(
@@ -211,11 +252,25 @@ def highlight_environment(
     return environment, scale
 
 
-def light_from_environment(environment: torch.Tensor, frame: str = "world") -> LightModel:
-    """An SH-only LightModel with the environment's order-2 projection, in the same frame."""
-    light = LightModel(with_sun=False, frame=frame).to(environment.device)
+def light_from_environment(
+    environment: torch.Tensor, frame: str = "world", suns: list[DirectionalLight] | None = None
+) -> LightModel:
+    """A LightModel with the environment's order-2 SH projection, in the same frame; with suns
+    the first is its sun and further ones are added to the SH as delta lights."""
+    suns = suns or []
+    light = LightModel(with_sun=bool(suns), frame=frame).to(environment.device)
     with torch.no_grad():
-        light.sh.copy_(project_to_sh(environment.detach()))
+        coefficients = project_to_sh(environment.detach())
+        for sun in suns[1:]:
+            direction = torch.nn.functional.normalize(sun.direction_to_light.detach(), dim=0)
+            coefficients = (
+                coefficients
+                + sh_basis(direction[None])[0][:, None] * (sun.irradiance.detach()[None])
+            )
+        light.sh.copy_(coefficients)
+        if suns:
+            light.sun_direction.copy_(suns[0].direction_to_light.detach())
+            light.sun_log_irradiance.copy_(suns[0].irradiance.detach().clamp_min(1e-8).log())
     return light
 
 
@@ -235,6 +290,15 @@ def pbr_light_record(result: PbrTextureResult, environment_file: str) -> dict:
             "lobe_filter_width": result.lobe_filter_width,
         }
     )
+    if result.suns:
+        record["suns"] = [
+            {
+                "direction_to_light": sun.direction_to_light.detach().cpu().tolist(),
+                "irradiance": sun.irradiance.detach().cpu().tolist(),
+            }
+            for sun in result.suns
+        ]
+        record["shadow"] = result.shadow.to_json()
     return record
 
 
@@ -264,17 +328,27 @@ def read_pbr_result(
         )
     mesh = load_mesh(mesh_file).to(device)
     environment = read_exr(environment_path)[..., :3].to(device)
+    suns = [
+        DirectionalLight(
+            torch.tensor(sun["direction_to_light"], dtype=torch.float32, device=device),
+            torch.tensor(sun["irradiance"], dtype=torch.float32, device=device),
+        )
+        for sun in record.get("suns", [])
+    ]
+    shadow = ShadowSettings.from_json(record["shadow"]) if suns else ShadowSettings()
     return PbrTextureResult(
         mesh,
         maps.to(device),
         environment,
-        light_from_environment(environment, record.get("frame", "world")),
+        light_from_environment(environment, record.get("frame", "world"), suns),
         float(record["specular_level"]),
         int(record["prefilter_levels"]),
         diffuse_weighting=record.get("diffuse_weighting", "none"),
         light_frame=record.get("frame", "world"),
         lobe_samples=int(record.get("lobe_samples", 0)),
         lobe_filter_width=float(record.get("lobe_filter_width", 0.5)),
+        suns=suns,
+        shadow=shadow,
     )
 
 
@@ -385,6 +459,57 @@ def run_pbr_texture_stage(
         )
         with torch.no_grad():
             base_color.mul_(base_scale).clamp_(0, 1)
+    shadow = ShadowSettings(
+        pbr.shadow_map_resolution,
+        pbr.shadow_bias_texels,
+        pbr.shadow_slope_bias_texels,
+        pbr.shadow_softness_texels,
+    )
+    if pbr.sun_lights and light_frame != "world":
+        raise ReconError(
+            f"fit.pbr.sun_lights: {pbr.sun_lights} suns need a world-frame light (their shadow "
+            f"maps are drawn in the world), but fit.light.frame is {light_frame!r}"
+        )
+    # The suns leave the map: the split-sum path would shade them without visibility and
+    # through the SH's ringing irradiance (recon/optimize/sun_light.py). The geometry stage's
+    # sun is the first (its lobe taken back out of the map), brightest spots the others.
+    sun_directions, sun_irradiances = [], []
+    if pbr.sun_lights and geometry.light.with_sun:
+        sun = geometry.light.lighting().directional[0]
+        lobe = sun_lobe_environment(geometry.light, size).to(device)
+        seed_environment = (seed_environment - lobe).clamp_min(ENVIRONMENT_FLOOR)
+        sun_directions.append(sun.direction_to_light.detach().to(device))
+        sun_irradiances.append(sun.irradiance.detach().to(device))
+    while len(sun_directions) < pbr.sun_lights:
+        seed_environment, direction, irradiance = split_sun(seed_environment, pbr.sun_cone_degrees)
+        sun_directions.append(direction)
+        sun_irradiances.append(irradiance)
+    for index, direction in enumerate(sun_directions):
+        # A Lambertian geometry stage leaves most of a sun in its SH (the smooth lobe mimics
+        # the irradiance): without this the environment keeps it, unshadowed.
+        seed_environment, reclaimed = reclaim_sun(
+            seed_environment, direction, pbr.sun_reclaim_share
+        )
+        seed_environment = seed_environment.clamp_min(ENVIRONMENT_FLOOR)
+        sun_irradiances[index] = sun_irradiances[index] + reclaimed
+    sun_direction = torch.nn.Parameter(
+        torch.stack(sun_directions) if sun_directions else torch.zeros(0, 3, device=device)
+    )
+    sun_log_irradiance = torch.nn.Parameter(
+        torch.stack(sun_irradiances).clamp_min(ENVIRONMENT_FLOOR).log()
+        if sun_irradiances
+        else torch.zeros(0, 3, device=device)
+    )
+
+    def current_suns() -> list[DirectionalLight]:
+        return [
+            DirectionalLight(
+                torch.nn.functional.normalize(sun_direction[index], dim=0),
+                sun_log_irradiance[index].exp(),
+            )
+            for index in range(pbr.sun_lights)
+        ]
+
     # 'log': Adam's steps are relative, so a softbox 100x brighter than the room is reached in
     # as many steps as the room itself (linear steps of the learning rate would need hundreds).
     log_environment = pbr.environment_parameterization == "log"
@@ -403,7 +528,12 @@ def run_pbr_texture_stage(
             {"params": [normal_slopes], "lr": pbr.material_learning_rate},
         ]
     )
-    light_optimizer = torch.optim.Adam([environment_parameter], lr=pbr.environment_learning_rate)
+    light_optimizer = torch.optim.Adam(
+        [
+            {"params": [environment_parameter], "lr": pbr.environment_learning_rate},
+            {"params": [sun_direction, sun_log_irradiance], "lr": pbr.sun_learning_rate},
+        ]
+    )
     if checkpoint is not None:
         material.data.copy_(checkpoint["material"].to(device))
         if "normal_slopes" in checkpoint:  # checkpoints from before the normal map lack it
@@ -412,6 +542,9 @@ def run_pbr_texture_stage(
         if log_environment:
             saved = saved.clamp_min(ENVIRONMENT_FLOOR).log()
         environment_parameter.data.copy_(saved)
+        if pbr.sun_lights:
+            sun_direction.data.copy_(checkpoint["sun_direction"].to(device))
+            sun_log_irradiance.data.copy_(checkpoint["sun_log_irradiance"].to(device))
         effects.load_state_dict(checkpoint["effects"])
         position_optimizer.load_state_dict(checkpoint["position_optimizer"])
         texture_optimizer.load_state_dict(checkpoint["texture_optimizer"])
@@ -434,6 +567,8 @@ def run_pbr_texture_stage(
                 "material": material.detach().cpu(),
                 "normal_slopes": normal_slopes.detach().cpu(),
                 "environment": current_environment().detach().cpu(),
+                "sun_direction": sun_direction.detach().cpu(),
+                "sun_log_irradiance": sun_log_irradiance.detach().cpu(),
                 "coverage": coverage.cpu(),
                 "position_optimizer": position_optimizer.state_dict(),
                 "texture_optimizer": texture_optimizer.state_dict(),
@@ -445,6 +580,7 @@ def run_pbr_texture_stage(
 
     # After texture.steps split-sum steps, fit.pbr.lobe_steps shade the full lobe per pixel.
     total_steps = settings.steps + pbr.lobe_steps
+    shadow_maps: list[ShadowMap] | None = None
     started = time.perf_counter()
     bar = tqdm(
         range(start_step, total_steps),
@@ -487,6 +623,18 @@ def run_pbr_texture_stage(
             shading_environment = SampledEnvironment(
                 shading_environment, pbr.lobe_samples, pbr.lobe_filter_width, shifts.to(device)
             )
+        suns = current_suns()
+        if suns and (
+            shadow_maps is None
+            or (step - start_step) % pbr.shadow_map_every == 0
+            or _sun_moved(shadow_maps, suns, shadow.resolution)
+        ):
+            # Redrawn every few steps (the vertices move little between them), and whenever a
+            # sun has turned far enough to move its shadows by half a texel.
+            shadow_maps = [
+                ShadowMap.draw(verts.detach(), mesh.faces, sun.direction_to_light, shadow)
+                for sun in suns
+            ]
         output = renderer.shade_pbr(
             buffers,
             batch_cameras.centers(),
@@ -496,6 +644,8 @@ def run_pbr_texture_stage(
             mip_pyramid=build_mip_pyramid(texture),
             diffuse_weighting=pbr.diffuse_weighting,
             light_frame=light_frame,
+            directional=suns,
+            directional_visibility=shadowed_suns(buffers, suns, shadow, shadow_maps),
         )
         color, alpha = apply_image_effects(
             effects.modules, output.color, output.alpha, batch_cameras, views
@@ -561,6 +711,10 @@ def run_pbr_texture_stage(
         final_base = dilate(base_color.detach(), coverage)
         final_material = dilate(full_material().detach(), coverage)
         final_environment = current_environment().detach().clone()
+        final_suns = [
+            DirectionalLight(sun.direction_to_light.detach(), sun.irradiance.detach())
+            for sun in current_suns()
+        ]
     final = Mesh(
         preconditioner.from_latent(latent).detach(),
         mesh.faces,
@@ -573,7 +727,7 @@ def run_pbr_texture_stage(
         final,
         final_material,
         final_environment,
-        light_from_environment(final_environment, light_frame),
+        light_from_environment(final_environment, light_frame, final_suns),
         pbr.specular_level,
         pbr.prefilter_levels,
         effects,
@@ -581,4 +735,6 @@ def run_pbr_texture_stage(
         light_frame,
         pbr.lobe_samples if pbr.lobe_steps > 0 else 0,
         pbr.lobe_filter_width,
+        final_suns,
+        shadow,
     )

@@ -70,6 +70,7 @@ def pbr_shade(
     to_viewer: torch.Tensor,
     environment: PrefilteredEnvironment | SampledEnvironment | None,
     directional: list[DirectionalLight] | None = None,
+    directional_visibility: list[torch.Tensor | None] | None = None,
 ) -> torch.Tensor:
     """Outgoing linear radiance [N, C].
 
@@ -77,6 +78,8 @@ def pbr_shade(
     environment: the pre-filtered environment (None: directional lights only), or a
         SampledEnvironment to integrate the specular lobe per pixel instead of the split sum.
     directional: distant lights, each adding (f_d + f_s) E cos with the exact BRDF.
+    directional_visibility: per directional light, its visibility [N, 1] in [0, 1] (a shadow
+        map, recon.optimize.sun_light) or None (unshadowed); None: all unshadowed.
     """
     base, roughness, metalness = material.base_color, material.roughness, material.metalness
     f0 = specular_f0(base, metalness, material.specular_level)
@@ -101,10 +104,19 @@ def pbr_shade(
         else:
             specular = specular_albedo * environment.specular(reflected, roughness)
         radiance = diffuse_albedo / math.pi * environment.irradiance(normals) + specular
-    for light in directional or []:
+    directional = directional or []
+    visibilities = directional_visibility or [None] * len(directional)
+    if len(visibilities) != len(directional):
+        raise ReconError(
+            f"pbr_shade: {len(visibilities)} directional visibilities for "
+            f"{len(directional)} directional lights"
+        )
+    for light, visibility in zip(directional, visibilities, strict=True):
         to_light = F.normalize(light.direction_to_light, dim=-1).expand_as(normals)
         cosine = (normals * to_light).sum(-1, keepdim=True).clamp_min(0)
         specular = specular_brdf(normals, to_light, to_viewer, roughness, f0)
+        if visibility is not None:
+            cosine = cosine * visibility
         radiance = radiance + (diffuse_albedo / math.pi + specular) * cosine * light.irradiance
     return radiance
 

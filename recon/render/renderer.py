@@ -197,6 +197,7 @@ class Renderer:
         antialias_edges: bool = True,
         diffuse_weighting: str = "none",
         light_frame: str = "world",
+        directional_visibility: list[torch.Tensor | None] | None = None,
     ) -> RenderOutput:
         """Texture, shade with the metallic-roughness model (recon.render.pbr), composite and
         antialias: the `pbr` material's counterpart of shade().
@@ -212,6 +213,8 @@ class Renderer:
             the camera, as under studio lights on a turntable: normals and view directions are
             rotated into each view's OpenCV camera axes before the look-ups (the same axes as
             the Lambertian camera-frame light, Lighting.frame).
+        directional_visibility: per directional light, packed visibility [N, 1] of the
+            buffers' covered pixels (recon.optimize.sun_light.sun_visibility) or None.
         RenderOutput.albedo holds the base colour.
         """
         mesh, fragments = buffers.mesh, buffers.fragments
@@ -255,7 +258,9 @@ class Renderer:
             raise ReconError(
                 f"shade_pbr: light_frame: expected 'world' or 'camera', got {light_frame!r}"
             )
-        radiance = pbr_shade(material, normals, to_viewer, environment, directional)
+        radiance = pbr_shade(
+            material, normals, to_viewer, environment, directional, directional_visibility
+        )
         return self._composite(buffers, radiance, material.base_color, background, antialias_edges)
 
     def _composite(
