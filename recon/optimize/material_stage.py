@@ -474,17 +474,23 @@ def run_pbr_texture_stage(
     # through the SH's ringing irradiance (recon/optimize/sun_light.py). The geometry stage's
     # sun is the first (its lobe taken back out of the map), brightest spots the others.
     sun_directions, sun_irradiances = [], []
-    if pbr.sun_lights and geometry.light.with_sun:
+    if warm_start is not None and pbr.sun_lights:
+        # A refit starts from the fitted suns: the fitted environment no longer holds them.
+        for sun in warm_start.suns[: pbr.sun_lights]:
+            sun_directions.append(sun.direction_to_light.detach().to(device))
+            sun_irradiances.append(sun.irradiance.detach().to(device))
+    elif pbr.sun_lights and geometry.light.with_sun:
         sun = geometry.light.lighting().directional[0]
         lobe = sun_lobe_environment(geometry.light, size).to(device)
         seed_environment = (seed_environment - lobe).clamp_min(ENVIRONMENT_FLOOR)
         sun_directions.append(sun.direction_to_light.detach().to(device))
         sun_irradiances.append(sun.irradiance.detach().to(device))
+    fitted_suns = len(sun_directions) if warm_start is not None else 0
     while len(sun_directions) < pbr.sun_lights:
         seed_environment, direction, irradiance = split_sun(seed_environment, pbr.sun_cone_degrees)
         sun_directions.append(direction)
         sun_irradiances.append(irradiance)
-    for index, direction in enumerate(sun_directions):
+    for index, direction in enumerate(sun_directions[fitted_suns:], start=fitted_suns):
         # A Lambertian geometry stage leaves most of a sun in its SH (the smooth lobe mimics
         # the irradiance): without this the environment keeps it, unshadowed.
         seed_environment, reclaimed = reclaim_sun(

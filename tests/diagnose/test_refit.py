@@ -175,3 +175,33 @@ def test_a_pbr_refit_warm_starts_the_pbr_stage_and_takes_out_an_exposure(tmp_pat
     assert record["closed_fraction"] > 0.8, record
     ratios = torch.tensor(record["parameters"]["exposure"]["ratios"])
     assert torch.allclose(ratios / ratios[0], gains / gains[0], rtol=0.1), ratios
+
+
+def test_a_pbr_refit_of_a_fit_with_a_sun_starts_from_the_fitted_sun(tmp_path):
+    """fit.pbr.sun_lights: the fitted environment no longer holds the sun, so a refit must not
+    split another one off it: a refit of no steps keeps the fitted sun and renders the fit."""
+    from dataclasses import replace
+
+    from recon.diagnose.data import FittedModel
+    from recon.render.renderer import Renderer
+    from recon.render.shading import DirectionalLight
+
+    sun = DirectionalLight(
+        torch.nn.functional.normalize(torch.tensor([0.4, 0.8, 0.3]), dim=0),
+        torch.tensor([2.5, 2.4, 2.2]),
+    )
+    pbr = replace(_pbr_model(), suns=[sun])
+    training = _pbr_captures(pbr, torch.ones(4), "train")
+    model = FittedModel(pbr.mesh, pbr.light.lighting(), [], pbr)
+    config = _pbr_config(0)
+    config.fit.pbr.sun_lights = 1
+    still, _ = refit.refit_with(
+        [], training, model, config, torch.device("cpu"), tmp_path, RefitSettings(steps=0)
+    )
+    (kept,) = still.pbr.suns
+    assert torch.allclose(kept.direction_to_light, sun.direction_to_light, atol=1e-6)
+    assert torch.allclose(kept.irradiance, sun.irradiance, atol=1e-5)
+    renderer = Renderer(texture_filter="linear-mipmap-linear", texture_boundary="clamp")
+    with torch.no_grad():
+        fitted = model.render(renderer, training.cameras).color
+        assert torch.allclose(still.render(renderer, training.cameras).color, fitted, atol=1e-5)
