@@ -186,14 +186,13 @@ def vignetting_evidence(
     return Evidence(KIND, "vignetting", radius, options.corner_radius, False, reason, details)
 
 
-def similarity_share(data: DiagnosisData) -> tuple[float, float, int]:
-    """How a radial distortion's flow r^2 (x - c) (1 at the image corners) over each view's
-    covered pixels compares with a per-view shift, zoom and rotation (least squares): the share
-    of its energy they reproduce, the RMS of the rest (in corner displacements), and the number
-    of views with coverage."""
+def _similarity_remainder(data: DiagnosisData, flow_of) -> tuple[float, float, int]:
+    """The share of a flow over each view's covered pixels that a per-view shift, zoom and
+    rotation reproduces (least squares), the RMS of the rest and the number of views with
+    coverage. flow_of(view, x, y) -> (coordinates x, y [N] for the design, flow [2N]) from the
+    covered pixels' offsets x, y [N] (pixels) from the view's principal point."""
     batch, height, width, _ = data.observed.shape
     intrinsics = data.cameras.intrinsics.double()
-    half_diagonal = 0.5 * math.hypot(height, width)
     rows = torch.arange(height, dtype=torch.float64)[:, None].expand(height, width) + 0.5
     columns = torch.arange(width, dtype=torch.float64)[None, :].expand(height, width) + 0.5
     total, residual, views, points = 0.0, 0.0, 0, 0
@@ -203,10 +202,9 @@ def similarity_share(data: DiagnosisData) -> tuple[float, float, int]:
             continue
         views += 1
         points += int(covered.sum())
-        x = (columns[covered] - intrinsics[view, 0, 2]) / half_diagonal
-        y = (rows[covered] - intrinsics[view, 1, 2]) / half_diagonal
-        squared = x * x + y * y
-        flow = torch.cat([squared * x, squared * y])  # [2N]: the radial distortion's flow
+        x, y, flow = flow_of(
+            view, columns[covered] - intrinsics[view, 0, 2], rows[covered] - intrinsics[view, 1, 2]
+        )
         ones, zeros = torch.ones_like(x), torch.zeros_like(x)
         design = torch.stack(
             [
@@ -224,6 +222,22 @@ def similarity_share(data: DiagnosisData) -> tuple[float, float, int]:
     return share, math.sqrt(residual / max(points, 1)), views
 
 
+def similarity_share(data: DiagnosisData) -> tuple[float, float, int]:
+    """How a radial distortion's flow r^2 (x - c) (1 at the image corners) over each view's
+    covered pixels compares with a per-view shift, zoom and rotation (least squares): the share
+    of its energy they reproduce, the RMS of the rest (in corner displacements), and the number
+    of views with coverage."""
+    height, width = data.observed.shape[1:3]
+    half_diagonal = 0.5 * math.hypot(height, width)
+
+    def flow_of(view: int, x: torch.Tensor, y: torch.Tensor):
+        x, y = x / half_diagonal, y / half_diagonal
+        squared = x * x + y * y
+        return x, y, torch.cat([squared * x, squared * y])
+
+    return _similarity_remainder(data, flow_of)
+
+
 def radial_flow_remainder(data: DiagnosisData, k1: float, k2: float) -> tuple[float, float, int]:
     """The same comparison as similarity_share for one radial distortion x_d = x (1 + k1 r^2 +
     k2 r^4) (normalised camera coordinates, the diagnosis' lens_distortion model), in pixels:
@@ -233,38 +247,15 @@ def radial_flow_remainder(data: DiagnosisData, k1: float, k2: float) -> tuple[fl
     A recovered distortion is fitted where the object is; its displacement at the image corners
     is an extrapolation of its polynomial (a k1 and k2 of opposite signs can cancel there), so
     it is judged by its flow over the object, not by its corner shift."""
-    batch, height, width, _ = data.observed.shape
     intrinsics = data.cameras.intrinsics.double()
-    rows = torch.arange(height, dtype=torch.float64)[:, None].expand(height, width) + 0.5
-    columns = torch.arange(width, dtype=torch.float64)[None, :].expand(height, width) + 0.5
-    total, residual, views, points = 0.0, 0.0, 0, 0
-    for view in range(batch):
-        covered = data.observed_alpha[view, ..., 0] > 0.5
-        if int(covered.sum()) < 8:
-            continue
-        views += 1
-        points += int(covered.sum())
+
+    def flow_of(view: int, x: torch.Tensor, y: torch.Tensor):
         fx, fy = intrinsics[view, 0, 0], intrinsics[view, 1, 1]
-        x = columns[covered] - intrinsics[view, 0, 2]  # pixels from the principal point
-        y = rows[covered] - intrinsics[view, 1, 2]
         squared = (x / fx) ** 2 + (y / fy) ** 2
         scale = k1 * squared + k2 * squared * squared
-        flow = torch.cat([scale * x, scale * y])  # [2N] pixels
-        ones, zeros = torch.ones_like(x), torch.zeros_like(x)
-        design = torch.stack(
-            [
-                torch.cat([ones, zeros]),
-                torch.cat([zeros, ones]),
-                torch.cat([x, y]),
-                torch.cat([-y, x]),
-            ],
-            dim=1,
-        )
-        solution = torch.linalg.lstsq(design, flow[:, None]).solution
-        residual += float(((design @ solution)[:, 0] - flow).pow(2).sum())
-        total += float(flow.pow(2).sum())
-    share = 1 - residual / total if total > 0 else 1.0
-    return share, math.sqrt(residual / max(points, 1)), views
+        return x, y, torch.cat([scale * x, scale * y])  # [2N] pixels
+
+    return _similarity_remainder(data, flow_of)
 
 
 def lens_distortion_evidence(
