@@ -12,7 +12,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import torch
@@ -298,7 +298,7 @@ def pbr_light_record(result: PbrTextureResult, environment_file: str) -> dict:
             }
             for sun in result.suns
         ]
-        record["shadow"] = result.shadow.to_json()
+        record["shadow"] = asdict(result.shadow)
     return record
 
 
@@ -335,7 +335,7 @@ def read_pbr_result(
         )
         for sun in record.get("suns", [])
     ]
-    shadow = ShadowSettings.from_json(record["shadow"]) if suns else ShadowSettings()
+    shadow = ShadowSettings(**record["shadow"]) if suns else ShadowSettings()
     return PbrTextureResult(
         mesh,
         maps.to(device),

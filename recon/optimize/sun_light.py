@@ -14,7 +14,7 @@ GGX lobe) and lets a shadow map give it visibility.
 - reclaim_sun: the share of a sun that a Lambertian fit's order-2 SH light absorbed (the SH of
   a sun is a smooth lobe that mimics its irradiance but for the clamp): the map's linear band
   along the sun, moved into the sun, the sun's order-2 SH taken out of the map.
-- sun_visibility: shadow-map visibility of the light at surface points, drawn with recon's own
+- ShadowMap: shadow-map visibility of the light at surface points, drawn with recon's own
   rasterizer orthographically along the light (recon.effects.light_transport.OrthographicFrames,
   filtered_visibility: a slope-scaled bias and a 2 x 2 percentage-closer filter). The map is
   drawn without gradient (a shadow edge moves in steps of a texel); gradients reach the points
@@ -49,23 +49,6 @@ class ShadowSettings:
     bias_texels: float = 2.0
     slope_bias_texels: float = 2.0
     softness_texels: float = 0.5
-
-    def to_json(self) -> dict:
-        return {
-            "resolution": self.resolution,
-            "bias_texels": self.bias_texels,
-            "slope_bias_texels": self.slope_bias_texels,
-            "softness_texels": self.softness_texels,
-        }
-
-    @staticmethod
-    def from_json(record: dict) -> ShadowSettings:
-        return ShadowSettings(
-            int(record["resolution"]),
-            float(record["bias_texels"]),
-            float(record["slope_bias_texels"]),
-            float(record["softness_texels"]),
-        )
 
 
 def split_sun(
@@ -163,22 +146,3 @@ class ShadowMap:
         )
         visible = filtered_visibility(self.depth, self.frames.to_ndc(points), bias[None], softness)
         return visible[0][:, None]
-
-
-def sun_visibility(
-    verts: torch.Tensor,
-    faces: torch.Tensor,
-    points: torch.Tensor,
-    normals: torch.Tensor,
-    direction_to_light: torch.Tensor,
-    settings: ShadowSettings,
-) -> torch.Tensor:
-    """Visibility [N, 1] in [0, 1] of a directional light from surface points.
-
-    verts [V, 3], faces [F, 3]: the occluding mesh (its shadow map, without gradient);
-    points [N, 3]: world points on it (differentiable: their depth along the light);
-    normals [N, 3]: unit normals there (for the slope-scaled bias);
-    direction_to_light [3]: toward the light (need not be unit).
-    """
-    shadow_map = ShadowMap.draw(verts, faces, direction_to_light, settings)
-    return shadow_map.visibility(points, normals, settings)

@@ -214,7 +214,7 @@ class Renderer:
             rotated into each view's OpenCV camera axes before the look-ups (the same axes as
             the Lambertian camera-frame light, Lighting.frame).
         directional_visibility: per directional light, packed visibility [N, 1] of the
-            buffers' covered pixels (recon.optimize.sun_light.sun_visibility) or None.
+            buffers' covered pixels (recon.optimize.sun_light.ShadowMap.visibility) or None.
         RenderOutput.albedo holds the base colour.
         """
         mesh, fragments = buffers.mesh, buffers.fragments

@@ -19,7 +19,7 @@ from recon.optimize.checkpoint import History
 from recon.optimize.geometry_stage import GeometryResult
 from recon.optimize.material_stage import pbr_light_record, run_pbr_texture_stage
 from recon.optimize.scene_model import LightModel, psnr_from_mse
-from recon.optimize.sun_light import ShadowSettings, reclaim_sun, split_sun, sun_visibility
+from recon.optimize.sun_light import ShadowMap, ShadowSettings, reclaim_sun, split_sun
 from recon.render.environment import latlong_directions, prefilter_environment
 from recon.render.renderer import Renderer
 from recon.render.shading import DirectionalLight, sh_basis
@@ -47,6 +47,11 @@ def _ground_grid(count: int = 40) -> torch.Tensor:
     ticks = (torch.arange(count, dtype=torch.float32) + 0.5) / count * 2 - 1
     x, z = torch.meshgrid(ticks, ticks, indexing="ij")
     return torch.stack([x, torch.zeros_like(x), z], -1).reshape(-1, 3)
+
+
+def sun_visibility(verts, faces, points, normals, direction, settings) -> torch.Tensor:
+    """Visibility [N, 1] through the fit's path: a map drawn along the sun, then looked up."""
+    return ShadowMap.draw(verts, faces, direction, settings).visibility(points, normals, settings)
 
 
 def test_overhead_sun_shadows_the_occluders_share_of_the_ground():
