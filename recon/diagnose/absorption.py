@@ -137,9 +137,12 @@ def heldout_errors(
 @dataclass
 class AbsorptionCache:
     """What the two absorption passes of a diagnosis (alone, then on top of a given effect)
-    share: the training views rasterised once with the fitted geometry."""
+    and the later producers share: the training views rasterised once with the fitted geometry
+    (frozen), and the training views against the fitted model (training; also read by the
+    lobe evidence, recon.diagnose.lobe)."""
 
     frozen: FrozenTrainingViews | None = None
+    training: DiagnosisData | None = None
 
 
 @dataclass
@@ -261,10 +264,11 @@ def absorption_probes(
             if not given:
                 # Its regression holds a gain per view already (a per-view photometric effect
                 # on top changes nothing): computed once, unconditionally.
-                training = render_diagnosis_data(
-                    inputs.training, inputs.model, device, settings.band_pixels
-                )
-                control, squared, module = radial_absorption(training, data, settings)
+                if cache.training is None:
+                    cache.training = render_diagnosis_data(
+                        inputs.training, inputs.model, device, settings.band_pixels
+                    )
+                control, squared, module = radial_absorption(cache.training, data, settings)
                 _record(candidate, control, squared, module, given, settings)
             continue
         moving = facts.absorption == "geometry"

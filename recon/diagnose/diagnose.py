@@ -336,7 +336,13 @@ def which(
             absorption_probes(ranked, data, absorption, given=given, cache=cache)
         lap("conditional_absorption")
     evidence_inputs = EvidenceInputs(
-        data, probe, inputs.heldout, inputs.training, inputs.model, relight and relight[0]
+        data,
+        probe,
+        inputs.heldout,
+        inputs.training,
+        inputs.model,
+        relight and relight[0],
+        cache.training,
     )
     gather(PRODUCERS, evidence_inputs, ranked, settings)
     lap("producers")

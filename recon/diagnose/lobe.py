@@ -43,7 +43,7 @@ from typing import TYPE_CHECKING
 import torch
 
 from recon.config.run_config import DiagnoseConfig
-from recon.diagnose.data import DiagnosisData, box_erode, render_diagnosis_data
+from recon.diagnose.data import DiagnosisData, box_erode
 from recon.diagnose.pixel_table import view_directions
 from recon.diagnose.records import Candidate, Evidence
 from recon.effects.light_transport import dominant_light, fibonacci_directions
@@ -285,8 +285,6 @@ def lobe_producer(
     wanted = [name for name in settings.decision.lobe_allowance if name in names]
     if not settings.lobe.enabled or not wanted or len(inputs.training.cameras) == 0:
         return []
-    device = inputs.model.mesh.verts.device
-    training = render_diagnosis_data(inputs.training, inputs.model, device, settings.band_pixels)
-    parts = [training, inputs.data]
+    parts = [inputs.training_views(settings.band_pixels), inputs.data]
     evidence = [lobe_evidence(parts, name, settings) for name in wanted]
     return [item for item in evidence if item is not None]

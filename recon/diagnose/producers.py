@@ -16,7 +16,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from recon.config.run_config import DiagnoseConfig
-from recon.diagnose.data import DiagnosisData, FittedModel
+from recon.diagnose.data import DiagnosisData, FittedModel, render_diagnosis_data
 from recon.diagnose.records import Candidate, Evidence
 from recon.diagnose.which import EffectProbe
 from recon.io.datasets import CaptureSet
@@ -33,6 +33,8 @@ class EvidenceInputs:
         where the dataset has it).
     model: the fitted model (material, light, the fit's own effects).
     relight: the relight split against the model under its own light, or None.
+    training_data: the training views against the fitted model when an earlier step rendered
+        them (training_views() renders them otherwise, once).
     """
 
     data: DiagnosisData
@@ -41,6 +43,16 @@ class EvidenceInputs:
     training: CaptureSet
     model: FittedModel
     relight: DiagnosisData | None = None
+    training_data: DiagnosisData | None = None
+
+    def training_views(self, band_pixels: int) -> DiagnosisData:
+        """The training views against the fitted model (rendered on first use)."""
+        if self.training_data is None:
+            device = self.model.mesh.verts.device
+            self.training_data = render_diagnosis_data(
+                self.training, self.model, device, band_pixels
+            )
+        return self.training_data
 
 
 EvidenceProducer = Callable[[EvidenceInputs, list[Candidate], DiagnoseConfig], list[Evidence]]
