@@ -123,3 +123,20 @@ def test_a_recovered_distortion_is_judged_by_its_flow_over_the_object():
     assert by_flow.details["distinguishable_pixels"] > 0.05
     assert by_flow.details["judged"] == {"k1": k1, "k2": k2}
     assert "recovered radial distortion" in by_flow.reason
+
+
+def test_white_balance_identifiability_is_the_colour_noise_not_the_change_found():
+    # The same data either way: only the smallest change the agreement's test can name decides,
+    # against the reference change; a cast common to every view is always named unknowable.
+    from recon.diagnose.identifiability import white_balance_evidence
+
+    options = IdentifiabilityConfig()
+    reference = options.white_balance_reference_spread
+    clear = white_balance_evidence(0.5 * reference, 0.01, 8, options)
+    hidden = white_balance_evidence(2.0 * reference, 0.08, 8, options)
+    assert clear.passed and not hidden.passed
+    assert hidden.reason.startswith("white_balance is not identifiable from this data, because")
+    assert "colour noise (8.0 %" in hidden.reason
+    for item in (clear, hidden):
+        assert "common to every view is absorbed by the albedo" in item.reason
+        assert item.threshold == reference
