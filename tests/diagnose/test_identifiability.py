@@ -36,16 +36,19 @@ def test_a_tone_curve_under_one_light_is_not_identifiable():
     assert curve.kind == "identifiability" and not curve.passed
     assert curve.reason.startswith("response_curve is not identifiable from this data, because")
     assert "bracketed exposures or a second light" in curve.reason
-    # Known exposures barely apart do not help; a bracket, a relight split or a light that
-    # turns with the camera does.
+    # Known exposures barely apart do not help; a bracket or a relight split does.
     small = CaptureConditions(exposure_gains=torch.tensor([1.0, 1.1, 0.95]))
     assert not by_candidate(identifiability_evidence(data, small))["response_curve"].passed
     bracket = CaptureConditions(exposure_gains=torch.tensor([1.0, 2.0, 0.5]))
     assert by_candidate(identifiability_evidence(data, bracket))["response_curve"].passed
     relight = CaptureConditions(relight=True)
     assert by_candidate(identifiability_evidence(data, relight))["response_curve"].passed
+    # A light that turns with the camera is fitted with the scene: (albedo x shading)^g is
+    # albedo^g x shading^g, which the fit absorbs whole (the real capture's turntable).
     turning = replace(data, lighting=replace(data.lighting, frame="camera"))
-    assert by_candidate(identifiability_evidence(turning))["response_curve"].passed
+    curve = by_candidate(identifiability_evidence(turning))["response_curve"]
+    assert not curve.passed and "turns with the camera" in curve.reason
+    assert curve.details["camera_frame_light"] is True
 
 
 def test_vignetting_needs_the_corners_or_a_flat_field():
