@@ -114,6 +114,7 @@ class EffectProbe:
         self.base_output = self.scene_output
         self.view_indices = torch.arange(len(data.cameras), device=data.observed.device)
         self._surface_points: torch.Tensor | None = None
+        self._surface_pixels: torch.Tensor | None = None
         # The fit's own effects are part of the model: global ones keep the fit's parameters,
         # per-view ones are fitted on the first half of each held-out view's blocks, once.
         self.model_effects: list[ModelEffect] = []
@@ -177,7 +178,9 @@ class EffectProbe:
         order: each pixel samples the cached render where its surface point's flow came from."""
         batch, height, width, _ = color.shape
         points = self.surface_points()
-        before = self.data.cameras.project_to_pixels(points)
+        if self._surface_pixels is None:  # where the data's cameras see them: fixed
+            self._surface_pixels = self.data.cameras.project_to_pixels(points)
+        before = self._surface_pixels
         after = cameras.project_to_pixels(points)
         source = before - (after - before)  # backward warp, flow evaluated at the target pixel
         scale = torch.tensor([width, height], dtype=source.dtype, device=source.device)
