@@ -238,12 +238,14 @@ def _placebo_reduction(
     residual = pixels.residual
     explained = torch.zeros_like(residual)
     if per_view:
-        bases = placebo_bases(pixels, size, per_view, geometric, settings, generator)
+        # In float64 once (the fits and the prediction below read it; .double() is then free).
+        bases = placebo_bases(pixels, size, per_view, geometric, settings, generator).double()
         # Every view's own fit at once (the views' normal equations are independent).
         theta = _per_view_least_squares(bases, residual, pixels.first, pixels.view, data.view_count)
         explained += torch.einsum("np,pnc->nc", theta[pixels.view], bases.double())
     if shared:
         bases = placebo_bases(pixels, size, shared, geometric, settings, generator, shared=True)
+        bases = bases.double()
         theta = _least_squares(bases, residual - explained, pixels.first)
         explained += torch.einsum("p,pnc->nc", theta, bases.double())
     test = ~pixels.first
