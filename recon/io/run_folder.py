@@ -169,6 +169,12 @@ class RunPaths:
         return self.light_folder / "environment.exr"
 
     @property
+    def fitted_environment_with_suns(self) -> Path:
+        """The pbr fit's environment with its suns (fit.pbr.sun_lights) added as texels, for
+        renderers that take one map; written only when the fit has suns."""
+        return self.light_folder / "environment_with_suns.exr"
+
+    @property
     def renders(self) -> Path:
         """Held-out views: target, render, error."""
         return self.root / "renders"

@@ -26,7 +26,7 @@ import torch.nn.functional as F
 
 from recon.errors import ReconError
 from recon.render.brdf import ggx_distribution, roughness_to_alpha
-from recon.render.shading import sh_basis, sh_irradiance
+from recon.render.shading import DirectionalLight, sh_basis, sh_irradiance
 
 _WEIGHT_CACHE: dict[tuple, torch.Tensor] = {}
 _WEIGHT_CACHE_SIZE = 64
@@ -86,6 +86,34 @@ def sample_latlong_at(
         align_corners=False,
     )  # [1, C, 1, N]
     return sampled[0, :, 0].transpose(0, 1).reshape(*leading, channels)
+
+
+def add_suns(environment: torch.Tensor, suns: list[DirectionalLight]) -> torch.Tensor:
+    """The environment [h, w, C] with each sun (direction_to_light [3], irradiance [C]) added as
+    a bilinear splat of radiance over the four texels around its direction: the splat's integral
+    over solid angle is the sun's irradiance, so a renderer that reads only the map (the exported
+    EXR) receives the same light as the fit's separate, shadowed suns. Not differentiable."""
+    height, width, _ = environment.shape
+    combined = environment.detach().clone()
+    _, solid_angle = latlong_directions(height, width, environment.device, environment.dtype)
+    for sun in suns:
+        direction = F.normalize(sun.direction_to_light.detach().to(environment), dim=0)
+        theta, phi = direction_angles(direction)
+        row = float(theta) / math.pi * height - 0.5
+        column = float(phi) / (2 * math.pi) * width - 0.5
+        row_low, column_low = math.floor(row), math.floor(column)
+        row_share, column_share = row - row_low, column - column_low
+        for row_step, row_weight in ((0, 1 - row_share), (1, row_share)):
+            # Beyond the first or last row's centre the sun stays on that row (the pole cap).
+            target_row = min(max(row_low + row_step, 0), height - 1)
+            for column_step, column_weight in ((0, 1 - column_share), (1, column_share)):
+                target_column = (column_low + column_step) % width
+                weight = row_weight * column_weight
+                radiance = sun.irradiance.detach().to(environment) * weight
+                combined[target_row, target_column] += (
+                    radiance / solid_angle[target_row, target_column]
+                )
+    return combined
 
 
 def prefilter_weights(

@@ -67,8 +67,6 @@ def diagnosis_lines(diagnosis: Diagnosis) -> list[str]:
             f"half-way {flat['half_radius_falloff']:.3f} ({reading}; allowance "
             f"{flat['allowance']:.2f})"
         )
-    if gap.get("how_far_skipped"):
-        lines.append(f"no refit: {gap['how_far_skipped']}")
     for refit in diagnosis.refits:
         relight = (
             f" (relight split: {100 * refit['relight_closed_fraction']:.0f} %)"

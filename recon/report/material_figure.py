@@ -17,6 +17,7 @@ from recon.io.atomic import atomic_path
 from recon.io.images import linear_to_srgb
 from recon.mesh.mesh import Mesh
 from recon.optimize.material_stage import PbrTextureResult
+from recon.render.environment import add_suns
 from recon.render.renderer import Renderer
 from recon.render.shading import Lighting
 
@@ -27,12 +28,15 @@ def material_panels(result: PbrTextureResult) -> list[tuple[str, np.ndarray, str
     """(title, image, colour map) of each channel, as shown: base colour [h, w, 3] (sRGB),
     roughness and metalness [h, w] (linear, 0 black .. 1 white, grey colour map), the normal
     map [h, w, 3] coded (n + 1) / 2 as normal-map files are (flat = (0.5, 0.5, 1)) when the
-    material has one, and the environment [he, we, 3] as radiance / (1 + radiance), sRGB-coded,
-    row 0 looking up."""
+    material has one, and the environment [he, we, 3] (with the fit's suns added, recon.render.environment.add_suns)
+    as radiance / (1 + radiance), sRGB-coded, row 0 looking up."""
     base = linear_to_srgb(result.mesh.texture.detach().cpu().clamp(0, 1)).numpy()
     material = result.material.detach().cpu()
     maps = material.clamp(0, 1).numpy()
-    environment = result.environment.detach().cpu().clamp_min(0)
+    environment = result.environment.detach().cpu()
+    if result.suns:
+        environment = add_suns(environment, result.suns)
+    environment = environment.clamp_min(0)
     environment = linear_to_srgb(environment / (1 + environment)).numpy()
     panels = [
         ("base colour", base, None),
@@ -42,7 +46,8 @@ def material_panels(result: PbrTextureResult) -> list[tuple[str, np.ndarray, str
     if material.shape[-1] == 5:
         coded = ((material[..., 2:5].clamp(-1, 1) + 1) / 2).numpy()
         panels.append(("normal map (tangent space)", coded, None))
-    panels.append(("environment (tone-mapped)", environment, None))
+    suns = f", {len(result.suns)} sun(s) added" if result.suns else ""
+    panels.append((f"environment (tone-mapped{suns})", environment, None))
     return panels
 
 

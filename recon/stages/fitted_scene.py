@@ -24,6 +24,7 @@ from recon.optimize.material_stage import PbrTextureResult, pbr_light_record, re
 from recon.optimize.normalize import SceneTransform
 from recon.optimize.scene_model import FitEffects
 from recon.optimize.texture_stage import TextureResult
+from recon.render.environment import add_suns
 from recon.render.shading import Lighting
 
 
@@ -71,7 +72,8 @@ def write_pbr_fit(
 ) -> dict:
     """Write a `pbr` fit: mesh/model.obj (+ base colour, roughness and metallic PNGs, map_Kd /
     map_Pr / map_Pm, and the normal map when fitted), mesh/model.glb (metallic-roughness
-    material), light/environment.exr (the fitted environment itself) and light/light.json (its
+    material), light/environment.exr (the fitted environment itself; with suns also
+    light/environment_with_suns.exr, the map with the suns added) and light/light.json (its
     order-2 SH, for Lambertian consumers, plus the pbr settings, the environment's file name and
     its frame). With a normalising transform the mesh goes to the dataset's own frame, as
     write_fitted_scene does; the environment needs no conversion (the transform has no
@@ -87,7 +89,12 @@ def write_pbr_fit(
     save_mesh(paths.fitted_glb, mesh, material_maps=maps)
     paths.light_folder.mkdir(parents=True, exist_ok=True)
     atomic_write_json(paths.fitted_light, pbr_light_record(result, paths.fitted_environment.name))
-    write_exr(paths.fitted_environment, result.environment.detach().cpu())
+    environment = result.environment.detach().cpu()
+    write_exr(paths.fitted_environment, environment)
+    if result.suns:
+        # environment.exr stays sun-free (the fit reads it back beside light.json's suns); the
+        # combined map is the one light other renderers can take.
+        write_exr(paths.fitted_environment_with_suns, add_suns(environment, result.suns))
     return {
         "faces": int(mesh.faces.shape[0]),
         "vertices": int(mesh.verts.shape[0]),

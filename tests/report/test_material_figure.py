@@ -8,6 +8,7 @@ import torch
 from PIL import Image
 
 from recon.optimize.material_stage import PbrTextureResult, light_from_environment
+from recon.render.shading import DirectionalLight
 from recon.report.material_figure import material_figure, material_panels
 from tests.material_scenes import textured_quad
 
@@ -86,3 +87,14 @@ def test_the_roughness_comparison_shows_both_maps_and_their_difference():
     assert np.mean(np.abs(error[covered] - 0.1) < 0.005) > 0.9
     assert np.abs(error[covered] - 0.1).max() < 0.03
     assert "(mean 0.100)" in panels[2][0]
+
+
+def test_the_environment_panel_shows_the_fits_suns():
+    result = _result(normal_map=False)
+    plain = material_panels(result)[-1]
+    result.suns = [DirectionalLight(torch.tensor([0.0, -1.0, 0.0]), torch.full((3,), 5.0))]
+    with_sun = material_panels(result)[-1]
+    assert "1 sun(s) added" in with_sun[0] and "sun" not in plain[0]
+    # The sun points down, so only the last row (row 0 looks up) brightens.
+    assert (with_sun[1][-1] > plain[1][-1] + 0.1).any()
+    np.testing.assert_allclose(with_sun[1][:-1], plain[1][:-1], atol=1e-6)

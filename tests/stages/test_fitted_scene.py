@@ -13,6 +13,8 @@ from recon.io.images import read_exr
 from recon.io.meshes import load_material_maps
 from recon.io.run_folder import RunPaths
 from recon.optimize.material_stage import PbrTextureResult, light_from_environment
+from recon.render.environment import latlong_directions
+from recon.render.shading import DirectionalLight
 from recon.stages.fitted_scene import load_fitted_effects, load_pbr_fit, write_pbr_fit
 from tests.material_scenes import textured_quad
 
@@ -94,3 +96,33 @@ def test_no_effects_file_means_no_effects_and_a_broken_one_is_named(tmp_path) ->
     paths.fitted_effects.write_text("{not json")
     with pytest.raises(ReconError, match="effects.json"):
         load_fitted_effects(paths, torch.device("cpu"))
+
+
+def test_a_fit_with_suns_writes_a_combined_environment_and_reads_back_the_plain_one(tmp_path):
+    mesh, maps = textured_quad()
+    environment = torch.full((8, 16, 3), 0.25)
+    sun = DirectionalLight(torch.tensor([0.3, 0.8, -0.5]), torch.tensor([3.0, 2.5, 2.0]))
+    result = PbrTextureResult(
+        mesh, maps, environment, light_from_environment(environment), 0.5, 4, suns=[sun]
+    )
+    paths = RunPaths(tmp_path)
+    write_pbr_fit(paths, result)
+    combined = read_exr(paths.fitted_environment_with_suns)[..., :3]
+    _, solid_angle = latlong_directions(8, 16)
+    added = ((combined - environment) * solid_angle[..., None]).sum(dim=(0, 1))
+    torch.testing.assert_close(added, sun.irradiance, rtol=1e-4, atol=1e-4)
+    # The plain map is what the fit reads back: the suns come from light.json, not twice.
+    loaded = load_pbr_fit(paths)
+    torch.testing.assert_close(loaded.environment, environment)
+    assert len(loaded.suns) == 1
+
+
+def test_a_fit_without_suns_writes_no_combined_environment(tmp_path):
+    mesh, maps = textured_quad()
+    environment = torch.ones(4, 8, 3)
+    paths = RunPaths(tmp_path)
+    write_pbr_fit(
+        paths,
+        PbrTextureResult(mesh, maps, environment, light_from_environment(environment), 0.5, 4),
+    )
+    assert not paths.fitted_environment_with_suns.exists()
