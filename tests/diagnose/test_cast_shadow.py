@@ -141,3 +141,25 @@ def test_views_without_shadows_give_nothing_and_no_sun_gives_no_evidence(scene):
     data = _views(scene)
     data.lighting = Lighting.constant(0.5)  # no directional sun: nothing to test against
     assert cast_shadow_evidence(data, "shadows", SETTINGS) is None
+
+
+def test_the_producer_is_registered_and_reads_the_relight_split_only(scene):
+    from dataclasses import replace
+
+    from recon.diagnose.cast_shadow import cast_shadow_producer
+    from recon.diagnose.data import FittedModel
+    from recon.diagnose.producers import PRODUCERS, EvidenceInputs
+
+    assert cast_shadow_producer in PRODUCERS
+    relight = _views(scene, shadow_from=SUN)
+    model = FittedModel(relight.mesh, relight.lighting)
+    candidates = [Candidate("shadows"), Candidate("exposure")]
+    # No relight split: nothing measured (the held-out views under the fitted light carry a
+    # cast shadow baked into the albedo, not in their residual).
+    without = EvidenceInputs(relight, None, None, None, model)
+    assert cast_shadow_producer(without, candidates, SETTINGS) == []
+    inputs = EvidenceInputs(relight, None, None, None, model, relight=relight)
+    evidence = cast_shadow_producer(inputs, candidates, SETTINGS)
+    assert [item.candidate for item in evidence] == ["shadows"] and evidence[0].passed
+    disabled = replace(SETTINGS, cast_shadow=replace(SETTINGS.cast_shadow, enabled=False))
+    assert cast_shadow_producer(inputs, candidates, disabled) == []
