@@ -16,7 +16,7 @@ import trimesh
 
 from recon.camera import orbit_cameras
 from recon.config.run_config import CastShadowConfig, DiagnoseConfig
-from recon.diagnose.cast_shadow import cast_shadow_evidence, cast_shadow_statistic
+from recon.diagnose.cast_shadow import cast_shadow_evidence
 from recon.diagnose.data import build_diagnosis_data
 from recon.diagnose.decision import decide
 from recon.diagnose.records import Candidate
@@ -111,11 +111,12 @@ def _decided(data) -> Candidate:
 
 
 def test_the_relight_suns_cast_shadows_are_named(scene):
-    measured = cast_shadow_statistic(_views(scene, shadow_from=SUN), SETTINGS)
+    data = _views(scene, shadow_from=SUN)
+    candidate = _decided(data)
+    measured = candidate.evidence_of("cast_shadow").details
     assert measured["p_value"] < 0.01 and measured["correlation"] > 0.3, measured
     # The missing term is the whole of the sun's light in the shadow: a coefficient near 1.
     assert 0.5 < measured["strength"] < 1.5, measured
-    candidate = _decided(_views(scene, shadow_from=SUN))
     assert candidate.significant and candidate.decided_by == "cast_shadow", candidate.why
     assert "placebo directions" in candidate.why
 
