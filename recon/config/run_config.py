@@ -1035,8 +1035,13 @@ class IdentifiabilityConfig:
     surface_cells: int = setting(
         3, "Cells per axis of the grid over the object for the radius spread."
     )
+    white_balance_reference_spread: float = setting(
+        0.05,
+        "Per-view white-balance change judged (RMS log gain of red and blue over green; 5 %, an auto white balance wandering some 600 K around daylight): identifiable when the agreement's test names a change this small over the fit's per-view colour noise.",
+    )
 
     def __post_init__(self) -> None:
+        check_range(self.white_balance_reference_spread, "white_balance_reference_spread", low=0.0)
         check_range(self.minimum_exposure_ratio, "minimum_exposure_ratio", low=1.0)
         check_range(self.corner_radius, "corner_radius", low=0.0, high=2.0)
         check_range(self.minimum_radius_spread, "minimum_radius_spread", low=0.0, high=2.0)
