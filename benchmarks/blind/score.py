@@ -18,6 +18,7 @@ from pathlib import Path
 
 import matplotlib
 import matplotlib.pyplot as plt
+import torch
 
 from benchmarks.blind.cases import REAL_SCENE, BlindCase, scene_group
 from benchmarks.blind.decide import code_thresholds, redecide_with, significant_effects
@@ -26,6 +27,7 @@ from recon.effects.registry import MODEL_EFFECTS
 from recon.errors import ReconError
 from recon.io.atomic import atomic_path, atomic_write_json, atomic_write_text
 from recon.io.run_folder import RunPaths
+from recon.report.report import recovered_parameters
 from recon.sweep.scoring import NONE, parameter_errors
 
 matplotlib.use("Agg")
@@ -33,6 +35,8 @@ matplotlib.use("Agg")
 PARAMETER_OWNER = {
     "exposure_ratio_median": "exposure",
     "exposure_ratio_max": "exposure",
+    "exposure_ratio_median_vs_untouched": "exposure",
+    "exposure_ratio_max_vs_untouched": "exposure",
     "vignetting_corner_falloff": "vignetting",
     "vignetting_half_radius_falloff": "vignetting",
     "response_gamma_absolute": "response_curve",
@@ -60,23 +64,76 @@ SMALLEST_EFFECT_SHARE = 0.1
 def with_clean_references(records: list[dict]) -> list[dict]:
     """records (load_collected's) with 'clean_heldout_mse': the held-out MSE its refits are
     measured on (gap.heldout_mse) of the clean case of the same world, scene and seed, where
-    that case was diagnosed with a refit mode (else None). The clean case is the one with
-    nothing withheld (a glossy scene's keeps its specular)."""
-    clean = {}
+    that case was diagnosed with a refit mode (else None); and 'clean_exposure': the per-view
+    exposure ratios the clean case's diagnosis read on the same views ({"source", "ratios"},
+    or None). The clean case is the one with nothing withheld (a glossy scene's keeps its
+    specular)."""
+    clean, exposure = {}, {}
     for record in records:
         case = case_of(record)
         if not case.withheld:  # the untouched case (a glossy scene's keeps its specular)
-            value = record["diagnosis"]["gap"].get("heldout_mse")
-            clean[(case.world, case.scene, case.seed)] = value
+            key = (case.world, case.scene, case.seed)
+            clean[key] = record["diagnosis"]["gap"].get("heldout_mse")
+            exposure[key] = exposure_reading(record["diagnosis"])
     return [
         {
             **record,
             "clean_heldout_mse": clean.get(
                 (record["case"]["world"], record["case"]["scene"], record["case"]["seed"])
             ),
+            "clean_exposure": exposure.get(
+                (record["case"]["world"], record["case"]["scene"], record["case"]["seed"])
+            ),
         }
         for record in records
     ]
+
+
+def exposure_reading(diagnosis: dict) -> dict | None:
+    """The per-view exposure ratios a diagnosis recovered, significant or not, with where they
+    come from ("refit": training views; otherwise held-out views); None without them."""
+    if "candidates" not in diagnosis:  # a stored diagnosis of the legacy layout
+        return None
+    for effect, source, parameters in recovered_parameters(diagnosis, significant_only=False):
+        if effect == "exposure" and parameters.get("ratios"):
+            return {
+                "source": "refit" if source == "refit" else "heldout",
+                "ratios": parameters["ratios"],
+            }
+    return None
+
+
+def exposure_errors_vs_untouched(
+    diagnosis: dict, truth_record: dict, clean: dict | None
+) -> dict[str, float]:
+    """The injected exposure's recovery measured against the untouched photos' own reading.
+
+    A per-view gain read off a fit is the injected exposure times whatever per-view gain the
+    untouched data already shows against the fitted model (the real capture's, with a fixed
+    exposure, reads up to 14 % per view: a glossy object's highlights under a diffuse fit).
+    Dividing the case's recovered ratios by the clean case's (same views, same estimator)
+    leaves the injected part: injection-recovery. Both normalised by their geometric mean, as
+    the absolute measure is (recon.sweep.scoring.parameter_errors). Empty where either reading
+    or the truth is missing, or the readings come from different views."""
+    reading = exposure_reading(diagnosis)
+    if reading is None or clean is None or reading["source"] != clean["source"]:
+        return {}
+    split = "train" if reading["source"] == "refit" else "test"
+    realised = {
+        item["name"]: item["parameters"] for item in truth_record.get("realised", {}).get(split, [])
+    }
+    true_ratios = realised.get("exposure", {}).get("ratios")
+    model, untouched = reading["ratios"], clean["ratios"]
+    if not true_ratios or not (len(true_ratios) == len(model) == len(untouched)):
+        return {}
+    model_log = torch.tensor(model, dtype=torch.float64).log()
+    model_log = model_log - torch.tensor(untouched, dtype=torch.float64).log()
+    true_log = torch.tensor(true_ratios, dtype=torch.float64).log()
+    relative = (model_log - model_log.mean() - (true_log - true_log.mean())).exp() - 1
+    return {
+        "exposure_ratio_median_vs_untouched": float(relative.abs().median()),
+        "exposure_ratio_max_vs_untouched": float(relative.abs().max()),
+    }
 
 
 def gap_closed_of_effect(refit: dict | None, clean: float | None) -> float | None:
@@ -185,7 +242,12 @@ def score_one(record: dict, thresholds: dict[str, float], calibrated_on: list[st
         "fit_seconds": record["fit_seconds"],
         "diagnose_seconds": record["diagnose_seconds"],
         "diagnosis_share_of_fit": record["diagnose_seconds"] / fit_seconds,
-        "parameter_error": parameter_errors(diagnosis, record["truth_record"]),
+        "parameter_error": {
+            **parameter_errors(diagnosis, record["truth_record"]),
+            **exposure_errors_vs_untouched(
+                diagnosis, record["truth_record"], record.get("clean_exposure")
+            ),
+        },
         "calibrated_on": calibrated_on,
         "run_folder": record["run_folder"],
     }

@@ -207,14 +207,22 @@ class MotionBlur(WorldEffect):
         ),
     }
 
+    # The smallest median path length the sampler draws, in pixels of the image itself. A
+    # path centred on a pixel reaches its neighbours' centres (both sides) at 2 px; shorter, the
+    # bilinear kernel keeps most of its weight in the centre tap (0.7 at the 0.95 px that the
+    # scaled range gave at 48 px: a blur the fit's texture absorbs). The low end of the 128 px
+    # range, as the defocus floor is (decision 0202).
+    SMALLEST_SAMPLED_LENGTH_PX = 2.0
+
     @classmethod
     def sample_strength(cls, generator: torch.Generator, cameras: Cameras | None = None) -> dict:
-        """median length 2-5 px at 128 px (scaled with the image), spread 0.2-0.5, turn <= 20-60
-        degrees."""
+        """median length 2-5 px at 128 px (scaled with the image, at least 2 px), spread 0.2-0.5,
+        turn <= 20-60 degrees."""
         (height, width), _ = nominal_geometry(cameras)
         scale = min(height, width) / 128.0
+        length = max(sample_uniform(generator, 2.0, 5.0) * scale, cls.SMALLEST_SAMPLED_LENGTH_PX)
         return {
-            "length_px": round_float(sample_uniform(generator, 2.0, 5.0) * scale),
+            "length_px": round_float(length),
             "length_spread": round_float(sample_uniform(generator, 0.2, 0.5)),
             "curvature_deg": round_float(sample_uniform(generator, 20.0, 60.0)),
         }

@@ -18,7 +18,9 @@ green); its null is the same covariance with the views of one half permuted (the
 The decision (recon.diagnose.decision, row 'agreement') names the candidate when the shared
 spread clears diagnose.decision.agreement_allowance and the p-value is below
 diagnose.decision.agreement_alpha. A white balance constant over views has no shared spread:
-the albedo absorbs it, which the identifiability check says (recon.diagnose.identifiability).
+the albedo absorbs it. How large a per-view change the test can name on this data (the halves'
+colour noise against the permutation null) is the identifiability check's
+(recon.diagnose.identifiability.white_balance_evidence).
 """
 
 from __future__ import annotations
@@ -57,23 +59,62 @@ def colour_gains(data: DiagnosisData, weight: torch.Tensor) -> torch.Tensor:
     return ratios - ratios.mean(dim=0, keepdim=True)
 
 
+def split_gains(data: DiagnosisData) -> tuple[torch.Tensor, torch.Tensor]:
+    """The per-view colour gains [B, 4] of the first and second halves of every split (red and
+    blue over green, left | right then top | bottom), each centred over views."""
+    first, second = [], []
+    for one, other in half_masks(data):
+        first.append(colour_gains(data, one))
+        second.append(colour_gains(data, other))
+    return torch.cat(first, dim=1), torch.cat(second, dim=1)
+
+
+def spread_statistics(data: DiagnosisData, permutations: int, seed: int, alpha: float) -> dict:
+    """The agreement's statistics over the held-out views:
+
+    spread: the per-view colour change both halves share, sqrt of their covariance over views
+      (an RMS log gain; 0 when negative); correlation and p_value: their correlation and the
+      share of view permutations of one half reaching it; views: B.
+    noise: the RMS log gain by which one half's per-view colour misses the view's own, from the
+      halves' difference (a white balance is the same in both halves and cancels in it): the
+      fit's local colour misfit as the per-view gains see it.
+    detectable: the smallest per-view colour change the test names on this data: a change of
+      RMS s over noise n gives halves that correlate by s^2 / (s^2 + n^2), and the test needs the
+      (1 - alpha) quantile r of the permutation null, so s = n sqrt(r / (1 - r)).
+    """
+    one, other = split_gains(data)
+    covariance = float((one * other).mean())
+    scale = ((one * one).sum() * (other * other).sum()).sqrt().clamp_min(1e-30)
+    correlation = float((one * other).sum() / scale)
+    null = permuted_correlations(one, other, permutations, seed)
+    p_value = float((1 + (null >= correlation).sum()) / (1 + null.numel()))
+    noise = float((one - other).pow(2).mean().sqrt()) / 2**0.5
+    critical = min(float(torch.quantile(null.double(), 1.0 - alpha)), 1.0 - 1e-9)
+    detectable = noise * (max(critical, 0.0) / (1.0 - critical)) ** 0.5
+    return {
+        "spread": max(covariance, 0.0) ** 0.5,
+        "correlation": correlation,
+        "p_value": p_value,
+        "views": int(one.shape[0]),
+        "noise": noise,
+        "critical_correlation": critical,
+        "detectable": detectable,
+    }
+
+
 def shared_spread(
     data: DiagnosisData, permutations: int, seed: int
 ) -> tuple[float, float, float, int]:
     """(shared spread, correlation, permutation p-value, views): the per-view colour gains of the
     halves of every split, their covariance over views as an RMS log gain (0 when negative), its
     correlation and the share of view permutations of one half reaching it."""
-    first, second = [], []
-    for one, other in half_masks(data):
-        first.append(colour_gains(data, one))
-        second.append(colour_gains(data, other))
-    one, other = torch.cat(first, dim=1), torch.cat(second, dim=1)  # [B, 4]
-    covariance = float((one * other).mean())
-    scale = ((one * one).sum() * (other * other).sum()).sqrt().clamp_min(1e-30)
-    correlation = float((one * other).sum() / scale)
-    null = permuted_correlations(one, other, permutations, seed)
-    p_value = float((1 + (null >= correlation).sum()) / (1 + null.numel()))
-    return max(covariance, 0.0) ** 0.5, correlation, p_value, int(one.shape[0])
+    statistics = spread_statistics(data, permutations, seed, alpha=0.01)
+    return (
+        statistics["spread"],
+        statistics["correlation"],
+        statistics["p_value"],
+        statistics["views"],
+    )
 
 
 def agreement_evidence(data: DiagnosisData, name: str, settings: DiagnoseConfig) -> Evidence:
@@ -81,9 +122,11 @@ def agreement_evidence(data: DiagnosisData, name: str, settings: DiagnoseConfig)
     (the threshold and passed are the decision config's; recon.diagnose.decision re-derives
     them)."""
     decision = settings.decision
-    spread, correlation, p_value, views = shared_spread(
-        data, settings.nulls.permutations, settings.nulls.seed
+    statistics = spread_statistics(
+        data, settings.nulls.permutations, settings.nulls.seed, decision.agreement_alpha
     )
+    spread, correlation = statistics["spread"], statistics["correlation"]
+    p_value, views = statistics["p_value"], statistics["views"]
     threshold = max(decision.agreement_minimum, decision.agreement_allowance.get(name, 0.0))
     passed = spread > threshold and p_value < decision.agreement_alpha
     reason = (
@@ -103,5 +146,8 @@ def agreement_evidence(data: DiagnosisData, name: str, settings: DiagnoseConfig)
             "p_value": p_value,
             "views": views,
             "splits": ["left-right", "top-bottom"],
+            "noise": statistics["noise"],
+            "critical_correlation": statistics["critical_correlation"],
+            "detectable": statistics["detectable"],
         },
     )

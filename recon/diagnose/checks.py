@@ -17,8 +17,8 @@ built-in evidence; the decision table (recon.diagnose.decision) says what each k
 - identifiability (recon.diagnose.identifiability): a tone curve with no second intensity of any
   surface point, a falloff measured short of the corners or absorbable by the albedo, a lens
   distortion a per-view pose correction reproduces (judged at its recovered size when it
-  cleared), a directional blur with edges one way only, a white balance whose views share no
-  colour change (a cast common to every view is the albedo's): details["capture"] says what would
+  cleared), a directional blur with edges one way only, a white balance whose change from view
+  to view hides in the fit's per-view colour noise: details["capture"] says what would
   settle it; the decision makes a miss "not identifiable from this data, because ..." and a
   cleared candidate confusable with a named effect ambiguous.
 - metadata (recon.diagnose.metadata_check): the recovered exposure against EXIF exposure when
@@ -153,10 +153,14 @@ def identifiability_producer(
     agreement = (
         by_name["white_balance"].evidence_of("agreement") if "white_balance" in names else None
     )
-    if agreement is not None:
-        # Judged by the agreement's shared colour spread (a cast common to every view is none).
+    if agreement is not None and "detectable" in agreement.details:
+        # Judged by the smallest per-view change the agreement's test names on this data (the
+        # fit's per-view colour noise), not by the change it found.
         condition = white_balance_evidence(
-            agreement.statistic, agreement.threshold, int(agreement.details.get("views", 0))
+            float(agreement.details["detectable"]),
+            float(agreement.details["noise"]),
+            int(agreement.details.get("views", 0)),
+            options,
         )
         evidence.append(_as_condition(condition))
     return evidence

@@ -21,6 +21,10 @@ agreement     clear         a per-view colour gain shared by separate halves of 
 lobe          clear         the view-to-view residual (training and held-out views) follows a
                             highlight's lobe under the fitted light beyond placebo lights
                             (recon.diagnose.lobe); ranks after clearing residual evidence
+cast_shadow   clear         the relight split's residual is darker where the fitted mesh
+                            shadows the relight sun, beyond placebo directions
+                            (recon.diagnose.cast_shadow); measured on other data than the
+                            held-out residual (independent)
 fingerprint   name          the visibility fingerprint names the effect (ranks after the above)
 null          raise bar     a failed null from the run (placebo, permutation, split half)
                             keeps the clearing rows from making the candidate significant
@@ -30,8 +34,10 @@ specificity   veto          a failed check says the signature is not the candida
                             vetoed candidate's rank, when the vetoed one had cleared; a
                             candidate decided on other data than the held-out residual
                             (flat_field, relight: ``Rule.independent``) is not vetoed by it
-identifiability  qualify    a failed check on a candidate that did not clear: "not
-                            identifiable from this data, because ..." (not a silent miss); on
+identifiability  qualify    a failed check on a candidate that did not clear, or that cleared
+                            and was vetoed by specificity alone: "not identifiable from this
+                            data, because ..." (not a silent miss, nor a claim that it is not
+                            there; the veto's mismatch is still named); on
                             one that cleared and whose condition names a confusable effect
                             (details["confused_with"]): significant but ambiguous, "A or B:
                             not separable from this data, because ..."; otherwise the
@@ -102,6 +108,13 @@ def _lobe_clears(evidence: Evidence, threshold: float, config: DecisionConfig) -
     """The lobe correlates above the allowance, and more than placebo lights' lobes do."""
     p_value = evidence.details.get("p_value", 1.0)
     return evidence.statistic > threshold and p_value < config.lobe_alpha
+
+
+def _cast_shadow_clears(evidence: Evidence, threshold: float, config: DecisionConfig) -> bool:
+    """The relight residual follows the relight sun's shadow above the floor, and more than
+    placebo directions' shadows do."""
+    p_value = evidence.details.get("p_value", 1.0)
+    return evidence.statistic > threshold and p_value < config.cast_shadow_alpha
 
 
 def _agrees(evidence: Evidence, threshold: float, config: DecisionConfig) -> bool:
@@ -214,6 +227,15 @@ DECISION_TABLE: tuple[Rule, ...] = (
         parameters_from=("lobe", "absorption", "probe"),
     ),
     Rule(
+        "cast_shadow",
+        "clear",
+        measured=True,
+        threshold=lambda effect, config: config.cast_shadow_minimum,
+        passes=_cast_shadow_clears,
+        parameters_from=("cast_shadow",),
+        independent=True,
+    ),
+    Rule(
         "fingerprint",
         "name",
         threshold=lambda effect, config: config.visibility_share_minimum,
@@ -301,8 +323,17 @@ def decide(candidate: Candidate, config: DecisionConfig) -> Candidate:
         capture = condition.details.get("capture")
         settle = f"; {capture} would make it identifiable" if capture else ""
         confusable = _confusable(condition)
-        if status == "vetoed":
-            pass  # the signature is another cause's (named in its place): that is the answer
+        if status == "vetoed" and all(item.kind == "specificity" for item in vetoes):
+            # Cleared, but its residual's pattern is also a mismatch's, and the data cannot
+            # identify the effect anyway: neither "it is X" nor "it is not X" holds. (The
+            # mismatch is still named in its place; a capture record's veto stays a veto.)
+            status = "not_identifiable"
+            why = (
+                f"not identifiable from this data, because {condition.reason}{settle}; "
+                f"and {vetoes[0].reason}"
+            )
+        elif status == "vetoed":
+            pass  # the capture's record says the camera did not do it: that is the answer
         elif status != "significant":
             # A miss the data could not have avoided: say so instead of a silent miss.
             status = "not_identifiable"
@@ -414,7 +445,8 @@ def _name_mismatches(candidates: list[Candidate], config: DecisionConfig) -> lis
     place (ranked as the vetoed candidate would have been)."""
     by_name = {candidate.name: candidate for candidate in candidates}
     for candidate in list(candidates):
-        if candidate.status != "vetoed":
+        cleared_by = _first_cleared(candidate)
+        if candidate.status not in ("vetoed", "not_identifiable") or cleared_by is None:
             continue
         for veto in _role_evidence(candidate, "veto"):
             instead = veto.details.get("instead")
@@ -425,7 +457,7 @@ def _name_mismatches(candidates: list[Candidate], config: DecisionConfig) -> lis
                 mismatch = by_name[instead] = Candidate(instead)
                 candidates.append(mismatch)
             cleared = replace(candidate, significant=True, status="significant")
-            rank = list(rank_key(replace(cleared, decided_by=_first_cleared(candidate).kind)))
+            rank = list(rank_key(replace(cleared, decided_by=cleared_by.kind)))
             mismatch.add(
                 Evidence(
                     kind="specificity",

@@ -201,13 +201,23 @@ def flat_field_evidence(
 
 
 def mark_radial_coverage(
-    candidates: list[Candidate], refits: list[dict], radius: float, flat_field: dict | None
+    candidates: list[Candidate],
+    refits: list[dict],
+    radius: float,
+    flat_field: dict | None,
+    corner_radius: float = 0.0,
 ) -> None:
     """Add covered_radius to every radial falloff's parameters (candidates' evidence and
     refits), so a corner falloff reads as what it is: measured up to that radius, extrapolated
     beyond. With flat-field frames the corner and half-way falloffs are the frames'
     measurement (the fitted polynomial's stay beside them as model_*), the measured radius is
-    the corners' and object_radius keeps the object's."""
+    the corners' and object_radius keeps the object's.
+
+    Without frames, where the object reaches less than corner_radius (the identifiability
+    condition, diagnose.identifiability.corner_radius), the polynomial's corner value is an
+    extrapolation, not a measurement (on the real capture, covered to 0.60, it read -5.1 for a
+    true 0.60): it is reported as extrapolated_corner_falloff only, and the falloff at the
+    covered radius (covered_falloff, from the polynomial's a and b) beside it."""
     radial = {name for name in MODEL_EFFECTS if diagnosis_facts(name).radial_falloff}
     parameter_sets = [
         evidence.details["parameters"]
@@ -229,6 +239,8 @@ def mark_radial_coverage(
         seen.add(id(parameters))
         parameters["covered_radius"] = round(radius, 4)
         if flat_field is None:
+            if radius < corner_radius:
+                _withhold_extrapolation(parameters, radius)
             continue
         for key in ("corner_falloff", "half_radius_falloff"):
             if key in parameters:
@@ -237,6 +249,17 @@ def mark_radial_coverage(
         parameters["falloff_source"] = "flat_field"
         parameters["object_radius"] = round(radius, 4)
         parameters["covered_radius"] = 1.0
+
+
+def _withhold_extrapolation(parameters: dict, radius: float) -> None:
+    """Move an extrapolated corner falloff aside and add the falloff at the covered radius
+    (the Vignetting polynomial 1 + r^2 (a + b (r^2 - 0.75)))."""
+    if "corner_falloff" in parameters:
+        parameters["extrapolated_corner_falloff"] = parameters.pop("corner_falloff")
+    if "a" in parameters and "b" in parameters:
+        squared = radius * radius
+        value = 1 + squared * (parameters["a"] + parameters["b"] * (squared - 0.75))
+        parameters["covered_falloff"] = round(float(value), 6)
 
 
 def radial_model(diagnosis: Diagnosis) -> dict | None:
@@ -416,7 +439,13 @@ def diagnose_run(
         timings["refit_seconds"] = round(
             time.perf_counter() - started - timings["diagnose_seconds"], 2
         )
-    mark_radial_coverage(ranked, refits, covered_radius(data), gap.get("flat_field"))
+    mark_radial_coverage(
+        ranked,
+        refits,
+        covered_radius(data),
+        gap.get("flat_field"),
+        settings.identifiability.corner_radius,
+    )
     decide_all(ranked, settings.decision)  # parameters are the deciding evidence's: again
     diagnosis = Diagnosis(
         gap=gap,

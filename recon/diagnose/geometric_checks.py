@@ -35,12 +35,21 @@ def geometric_specificity_producer(
 
 def _vetoed(candidate: Candidate, settings: DiagnoseConfig) -> bool:
     """Whether the decision, with the evidence gathered so far, vetoes the candidate (decided
-    on a copy: the decision table says which evidence a veto overturns)."""
+    on a copy: the decision table says which evidence a veto overturns). A veto on data that
+    cannot identify the candidate reads "not identifiable" (recon.diagnose.decision): it is
+    no cause either, so it counts as vetoed here."""
     if not any(
         RULES.get(item.kind) and RULES[item.kind].role == "veto" for item in candidate.evidence
     ):
         return False
-    return decide(deepcopy(candidate), settings.decision).status == "vetoed"
+    decided = decide(deepcopy(candidate), settings.decision)
+    if decided.status == "vetoed":
+        return True
+    failed_veto = any(
+        item.counts and item.kind in RULES and RULES[item.kind].role == "veto" and not item.passed
+        for item in decided.evidence
+    )
+    return decided.status == "not_identifiable" and failed_veto
 
 
 def restore_unconditioned_producer(

@@ -43,8 +43,9 @@ def diagnosed(data) -> Candidate:
     )
     agreement = agreement_evidence(data, "white_balance", SETTINGS)
     candidate.add(agreement)
+    details = agreement.details
     condition = white_balance_evidence(
-        agreement.statistic, agreement.threshold, agreement.details["views"]
+        details["detectable"], details["noise"], details["views"], SETTINGS.identifiability
     )
     candidate.add(_as_condition(condition))
     return decide(candidate, SETTINGS.decision)
@@ -62,15 +63,34 @@ def test_a_white_balance_that_varies_across_views_is_named_through_a_large_misfi
     assert "separate halves" in candidate.why
 
 
-def test_a_constant_white_balance_or_none_is_reported_not_identifiable():
+def test_a_constant_white_balance_or_none_is_not_named_and_only_the_common_cast_is_unknowable():
+    # A grey misfit: the views' colours are measured well, so a per-view change would show; the
+    # constant cast (or none) is no per-view change. Identifiability is the data's, not the
+    # effect's: it passes, and says that a cast common to every view is the albedo's.
     for gains in (white_balance(0.06, varying=False), None):
         data = misfit(gains)
         spread, _, _, _ = shared_spread(data, 300, 0)
         assert spread < SETTINGS.decision.agreement_allowance["white_balance"]
         candidate = diagnosed(data)
         assert not candidate.significant
-        assert candidate.status == "not_identifiable", candidate.why
-        assert "absorbed by the albedo" in candidate.why and "grey card" in candidate.why
+        assert candidate.status == "not_significant", candidate.why
+        condition = candidate.evidence_of("identifiability")
+        assert condition.passed, condition.reason
+        assert "absorbed by the albedo" in condition.reason and "grey card" in condition.reason
+
+
+def test_a_white_balance_hidden_in_colour_noise_is_reported_not_identifiable():
+    # Colour patches of the albedo error: the halves of each view disagree in colour by more
+    # than the per-view change of a 1 % white balance, which the test then cannot name.
+    data = albedo_error_views(seed=2, error=0.8, channel_gains=white_balance(0.01, varying=True))
+    candidate = diagnosed(data)
+    agreement = candidate.evidence_of("agreement")
+    assert agreement.details["detectable"] > SETTINGS.identifiability.white_balance_reference_spread
+    assert agreement.details["noise"] > 0.01
+    condition = candidate.evidence_of("identifiability")
+    assert not condition.passed
+    assert "colour noise" in condition.reason and "grey card" in condition.reason
+    assert not candidate.evidence_of("agreement").passed
 
 
 def test_a_local_colour_misfit_is_not_a_white_balance():

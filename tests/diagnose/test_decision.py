@@ -233,11 +233,28 @@ def test_a_miss_the_data_cannot_avoid_says_not_identifiable_and_the_capture():
     assert verdict_of(ranking) == (
         "no significant unmodelled effect; not identifiable from this data: response_curve"
     )
-    # A vetoed candidate stays vetoed: its signature is another cause's, named in its place.
+    # Cleared but vetoed by its signature, on data that cannot identify it (the real capture:
+    # the object never leaves the centre and the light turns with the camera): not a silent
+    # "not there" but not identifiable, with both reasons; the veto's mismatch is still named.
     falloff = candidate("vignetting", probe=(0.3, 0.4))
-    falloff.add(Evidence("specificity", "vignetting", 0.5, 0.01, False, "follows n.v"))
+    veto = {"instead": "view_dependent_reflectance"}
+    falloff.add(Evidence("specificity", "vignetting", 0.5, 0.01, False, "follows n.v", veto))
     falloff.add(condition("vignetting", "the corner falloff is an extrapolation"))
-    assert decide(falloff, CONFIG).status == "vetoed" and falloff.why == "follows n.v"
+    ranking = decide_all([falloff], CONFIG)
+    assert falloff.status == "not_identifiable" and not falloff.significant
+    assert falloff.why == (
+        "not identifiable from this data, because the corner falloff is an extrapolation; "
+        "and follows n.v"
+    )
+    assert [item.name for item in ranking if item.significant] == ["view_dependent_reflectance"]
+    # The same veto where the data can identify it stays a veto; so does a capture record's.
+    identifiable = candidate("vignetting", probe=(0.3, 0.4))
+    identifiable.add(Evidence("specificity", "vignetting", 0.5, 0.01, False, "follows n.v"))
+    assert decide(identifiable, CONFIG).status == "vetoed"
+    recorded = candidate("exposure", probe=(0.3, 0.4))
+    recorded.add(Evidence("metadata", "exposure", 0.5, 0.0, False, "EXIF disagrees"))
+    recorded.add(condition("exposure", "one gain per view"))
+    assert decide(recorded, CONFIG).status == "vetoed" and recorded.why == "EXIF disagrees"
 
 
 def test_a_cleared_candidate_confusable_with_a_named_effect_is_significant_but_ambiguous():

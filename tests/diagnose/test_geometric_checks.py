@@ -48,3 +48,35 @@ def test_a_blur_measured_on_top_of_a_vetoed_distortion_is_named():
     verdict = verdict_of(ranked)
     assert "lens_distortion" not in verdict.split(";")[0]
     assert ranked[0].name == "motion_blur", [(item.name, item.status) for item in ranked]
+
+
+def test_a_distortion_vetoed_where_the_data_cannot_identify_it_counts_as_vetoed():
+    """On a centred object a distortion is vetoed by its signature and also not identifiable:
+    the decision reads "not identifiable", and the blur measured on top of it must still get
+    its probe alone back (the own world's teapot defocus case went unnamed without this)."""
+    import math
+
+    from recon.diagnose.geometric_checks import _vetoed
+    from recon.diagnose.records import Candidate, Evidence
+
+    def distortion(identifiable: bool) -> Candidate:
+        candidate = Candidate("lens_distortion")
+        candidate.add(
+            Evidence(
+                "probe", "lens_distortion", 0.1, math.nan, False, "probe", {"interval": [0.1, 0.2]}
+            )
+        )
+        candidate.add(
+            Evidence("specificity", "lens_distortion", -0.01, 0.05, False, "defocus_blur's")
+        )
+        candidate.add(
+            Evidence("identifiability", "lens_distortion", 0.1, 0.5, identifiable, "a zoom")
+        )
+        return candidate
+
+    assert _vetoed(distortion(identifiable=True), SETTINGS)
+    assert _vetoed(distortion(identifiable=False), SETTINGS)
+    quiet = Candidate("lens_distortion")
+    quiet.add(Evidence("probe", "lens_distortion", 0.0, math.nan, False, "probe", {}))
+    quiet.add(Evidence("identifiability", "lens_distortion", 0.1, 0.5, False, "a zoom"))
+    assert not _vetoed(quiet, SETTINGS)  # not identifiable, but nothing vetoed it

@@ -36,16 +36,19 @@ def test_a_tone_curve_under_one_light_is_not_identifiable():
     assert curve.kind == "identifiability" and not curve.passed
     assert curve.reason.startswith("response_curve is not identifiable from this data, because")
     assert "bracketed exposures or a second light" in curve.reason
-    # Known exposures barely apart do not help; a bracket, a relight split or a light that
-    # turns with the camera does.
+    # Known exposures barely apart do not help; a bracket or a relight split does.
     small = CaptureConditions(exposure_gains=torch.tensor([1.0, 1.1, 0.95]))
     assert not by_candidate(identifiability_evidence(data, small))["response_curve"].passed
     bracket = CaptureConditions(exposure_gains=torch.tensor([1.0, 2.0, 0.5]))
     assert by_candidate(identifiability_evidence(data, bracket))["response_curve"].passed
     relight = CaptureConditions(relight=True)
     assert by_candidate(identifiability_evidence(data, relight))["response_curve"].passed
+    # A light that turns with the camera is fitted with the scene: (albedo x shading)^g is
+    # albedo^g x shading^g, which the fit absorbs whole (the real capture's turntable).
     turning = replace(data, lighting=replace(data.lighting, frame="camera"))
-    assert by_candidate(identifiability_evidence(turning))["response_curve"].passed
+    curve = by_candidate(identifiability_evidence(turning))["response_curve"]
+    assert not curve.passed and "turns with the camera" in curve.reason
+    assert curve.details["camera_frame_light"] is True
 
 
 def test_vignetting_needs_the_corners_or_a_flat_field():
@@ -123,3 +126,20 @@ def test_a_recovered_distortion_is_judged_by_its_flow_over_the_object():
     assert by_flow.details["distinguishable_pixels"] > 0.05
     assert by_flow.details["judged"] == {"k1": k1, "k2": k2}
     assert "recovered radial distortion" in by_flow.reason
+
+
+def test_white_balance_identifiability_is_the_colour_noise_not_the_change_found():
+    # The same data either way: only the smallest change the agreement's test can name decides,
+    # against the reference change; a cast common to every view is always named unknowable.
+    from recon.diagnose.identifiability import white_balance_evidence
+
+    options = IdentifiabilityConfig()
+    reference = options.white_balance_reference_spread
+    clear = white_balance_evidence(0.5 * reference, 0.01, 8, options)
+    hidden = white_balance_evidence(2.0 * reference, 0.08, 8, options)
+    assert clear.passed and not hidden.passed
+    assert hidden.reason.startswith("white_balance is not identifiable from this data, because")
+    assert "colour noise (8.0 %" in hidden.reason
+    for item in (clear, hidden):
+        assert "common to every view is absorbed by the albedo" in item.reason
+        assert item.threshold == reference

@@ -210,3 +210,39 @@ def test_the_clean_reference_is_the_untouched_case_of_the_same_scene_and_seed(tm
     assert summary["median_closed_of_effect"] == pytest.approx(0.75)
     assert summary["median_closed_of_effect_true"] == pytest.approx(0.75)
     assert summary["refits_scored"] == 1 and summary["refits_no_gap"] == 0
+
+
+def test_an_injected_exposure_is_measured_against_the_untouched_photos_own_reading():
+    """The untouched real photos read per-view gains against the fit (a glossy object under a
+    diffuse model); the injected exposure's recovery divides them out (same views, same
+    estimator), while the absolute measure keeps them."""
+    from benchmarks.blind.score import exposure_errors_vs_untouched, exposure_reading
+    from recon.sweep.scoring import parameter_errors
+
+    def diagnosis(ratios):
+        return {
+            "candidates": [
+                {
+                    "name": "exposure",
+                    "significant": True,
+                    "decided_by": "probe",
+                    "parameters": {"ratios": ratios},
+                }
+            ],
+            "refits": [],
+        }
+
+    own = [1.1, 0.9, 1.0, 1.0]  # what the untouched photos read (their exposure is fixed)
+    injected = [0.5, 1.0, 2.0, 1.0]
+    truth = {"realised": {"test": [{"name": "exposure", "parameters": {"ratios": injected}}]}}
+    case = diagnosis([a * b for a, b in zip(own, injected, strict=True)])
+    clean = exposure_reading(diagnosis(own))
+    assert clean == {"source": "heldout", "ratios": own}
+    errors = exposure_errors_vs_untouched(case, truth, clean)
+    assert errors["exposure_ratio_max_vs_untouched"] == pytest.approx(0.0, abs=1e-9)
+    assert parameter_errors(case, truth)["exposure_ratio_max"] > 0.09
+    # Readings from different views (a refit's training views) are not compared.
+    refitted = {**case, "refits": [{"parameters": {"exposure": {"ratios": [1.0] * 4}}}]}
+    assert exposure_errors_vs_untouched(refitted, truth, clean) == {}
+    assert exposure_errors_vs_untouched(case, truth, None) == {}
+    assert exposure_reading({"ranking": []}) is None

@@ -358,3 +358,25 @@ def test_motion_blur_zero_length_is_the_identity() -> None:
     capture = make_capture(images)
     MotionBlur({"length_px": 0.0}).apply(capture, torch.Generator())
     assert torch.equal(capture.images, images)
+
+
+@pytest.mark.parametrize("size", [32, 48, 64, 128])
+def test_a_sampled_motion_blur_on_a_small_image_leaves_the_centre_tap_under_half(
+    size: int,
+) -> None:
+    # Scaled with the image, the 128 px range drew 0.95 px at 48 px: a kernel with 70 % of its
+    # weight in the centre tap. The floor keeps the median path at 2 px or more.
+    from data_synth.effects.optics import rasterise_trajectories, trajectory_points
+
+    cameras = orbit_cameras(2, (size, size))
+    for seed in range(6):
+        generator = torch.Generator().manual_seed(seed)
+        length = MotionBlur.sample_strength(generator, cameras)["length_px"]
+        assert length >= MotionBlur.SMALLEST_SAMPLED_LENGTH_PX
+        points = trajectory_points(
+            torch.tensor([length]), torch.tensor([0.3]), torch.tensor([0.0]), 16
+        )
+        assert float(rasterise_trajectories(points).max()) < 0.5
+    # The floor only raises small images: at 128 px the draws stay in the old 2-5 px range.
+    if size == 128:
+        assert length <= 5.0
