@@ -890,12 +890,22 @@ class DecisionConfig:
         0.01,
         "Level of the lobe's placebo-light test (the share of placebo lights reaching the fitted light's correlation): conventional, not tuned.",
     )
+    cast_shadow_minimum: float = setting(
+        0.05,
+        "Floor of the cast-shadow evidence (recon.diagnose.cast_shadow): how far the partial correlation of the relight residual with the relight sun's shadow from the fitted mesh must exceed the placebo directions' 95th percentile (docs/decisions/0203-diagnosis-interreflection-shadows.md).",
+    )
+    cast_shadow_alpha: float = setting(
+        0.01,
+        "Level of the cast-shadow evidence's placebo-direction test (the share of placebo directions reaching the relight sun's correlation): conventional, not tuned.",
+    )
 
     def __post_init__(self) -> None:
         check_range(self.agreement_minimum, "agreement_minimum", low=0.0, high=1.0)
         check_range(self.agreement_alpha, "agreement_alpha", low=0.0, high=1.0)
         check_range(self.lobe_minimum, "lobe_minimum", low=0.0, high=1.0)
         check_range(self.lobe_alpha, "lobe_alpha", low=0.0, high=1.0)
+        check_range(self.cast_shadow_minimum, "cast_shadow_minimum", low=0.0, high=1.0)
+        check_range(self.cast_shadow_alpha, "cast_shadow_alpha", low=0.0, high=1.0)
         for name in ("minimum_share", "absorption_minimum_share", "regression_minimum_share"):
             check_range(getattr(self, name), name, low=0.0, high=1.0)
         for name in ("relight_allowance", "flat_field_allowance", "visibility_share_minimum"):
@@ -1110,6 +1120,39 @@ class LobeConfig:
 
 
 @dataclass
+class CastShadowConfig:
+    """The cast-shadow evidence (recon.diagnose.cast_shadow): the relight split's residual
+    against the relight sun's shadow from the fitted mesh, against placebo directions."""
+
+    placebo_lights: int = setting(
+        200,
+        "Directions of the Fibonacci sphere tried as placebo suns (those near the relight sun are left out).",
+    )
+    placebo_separation_degrees: float = setting(
+        45.0,
+        "Least angle between a placebo direction and the relight sun: nearer ones share its shadows.",
+    )
+    map_resolution: int = setting(
+        128, "Texels a side of each direction's shadow map of the fitted mesh."
+    )
+    minimum_pixels: int = setting(
+        200, "Interior relight pixels below which no cast-shadow evidence is measured."
+    )
+    maximum_pixels: int = setting(
+        20000,
+        "Interior relight pixels the evidence uses at most, an even stride through them: its cost is pixels x directions.",
+    )
+    enabled: bool = setting(True, "Measure the cast-shadow evidence for the shadows candidate.")
+
+    def __post_init__(self) -> None:
+        for name in ("placebo_lights", "map_resolution", "minimum_pixels", "maximum_pixels"):
+            check_range(getattr(self, name), name, low=1)
+        check_range(
+            self.placebo_separation_degrees, "placebo_separation_degrees", low=0.0, high=180.0
+        )
+
+
+@dataclass
 class DiagnoseConfig:
     """The gap diagnosis (recon diagnose): which candidates, how each kind of evidence is
     measured, how far the refits go, and the decision's allowances."""
@@ -1228,6 +1271,10 @@ class DiagnoseConfig:
     lobe: LobeConfig = setting(
         factory=LobeConfig,
         doc="The lobe evidence: the view-to-view residual against a highlight under the fitted light.",
+    )
+    cast_shadow: CastShadowConfig = setting(
+        factory=CastShadowConfig,
+        doc="The cast-shadow evidence: the relight split's residual against the relight sun's shadow from the fitted mesh.",
     )
 
     def __post_init__(self) -> None:

@@ -127,14 +127,21 @@ class DiagnosisData:
 def box_dilate(mask: torch.Tensor, radius: int) -> torch.Tensor:
     """Binary dilation of masks [B, 1, H, W] (float 0/1) by a (2 radius + 1)^2 square, as
     max_pool2d with that window, stride 1 and padding radius gives it, at a fraction of its
-    cost on the CPU: two one-dimensional box sums (a 384 px diagnosis dilates dozens of such
-    masks)."""
+    cost on the CPU: the square is separable, and along each axis the dilation is the OR of
+    the mask shifted by 1..radius pixels either way (in place on booleans; a 384 px diagnosis
+    dilates dozens of such masks, a pooling pass cost several times as much)."""
     if radius <= 0:
         return mask
-    size = 2 * radius + 1
-    rows = torch.nn.functional.avg_pool2d(mask, (1, size), stride=1, padding=(0, radius))
-    both = torch.nn.functional.avg_pool2d(rows, (size, 1), stride=1, padding=(radius, 0))
-    return (both > 0).to(mask.dtype)
+
+    def along(values: torch.Tensor, dim: int) -> torch.Tensor:
+        grown = values.clone()
+        size = values.shape[dim]
+        for shift in range(1, min(radius, size - 1) + 1):
+            grown.narrow(dim, shift, size - shift).logical_or_(values.narrow(dim, 0, size - shift))
+            grown.narrow(dim, 0, size - shift).logical_or_(values.narrow(dim, shift, size - shift))
+        return grown
+
+    return along(along(mask > 0, 3), 2).to(mask.dtype)
 
 
 def box_erode(mask: torch.Tensor, radius: int) -> torch.Tensor:

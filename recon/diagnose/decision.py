@@ -21,6 +21,10 @@ agreement     clear         a per-view colour gain shared by separate halves of 
 lobe          clear         the view-to-view residual (training and held-out views) follows a
                             highlight's lobe under the fitted light beyond placebo lights
                             (recon.diagnose.lobe); ranks after clearing residual evidence
+cast_shadow   clear         the relight split's residual is darker where the fitted mesh
+                            shadows the relight sun, beyond placebo directions
+                            (recon.diagnose.cast_shadow); measured on other data than the
+                            held-out residual (independent)
 fingerprint   name          the visibility fingerprint names the effect (ranks after the above)
 null          raise bar     a failed null from the run (placebo, permutation, split half)
                             keeps the clearing rows from making the candidate significant
@@ -104,6 +108,13 @@ def _lobe_clears(evidence: Evidence, threshold: float, config: DecisionConfig) -
     """The lobe correlates above the allowance, and more than placebo lights' lobes do."""
     p_value = evidence.details.get("p_value", 1.0)
     return evidence.statistic > threshold and p_value < config.lobe_alpha
+
+
+def _cast_shadow_clears(evidence: Evidence, threshold: float, config: DecisionConfig) -> bool:
+    """The relight residual follows the relight sun's shadow above the floor, and more than
+    placebo directions' shadows do."""
+    p_value = evidence.details.get("p_value", 1.0)
+    return evidence.statistic > threshold and p_value < config.cast_shadow_alpha
 
 
 def _agrees(evidence: Evidence, threshold: float, config: DecisionConfig) -> bool:
@@ -214,6 +225,15 @@ DECISION_TABLE: tuple[Rule, ...] = (
         threshold=lobe_threshold,
         passes=_lobe_clears,
         parameters_from=("lobe", "absorption", "probe"),
+    ),
+    Rule(
+        "cast_shadow",
+        "clear",
+        measured=True,
+        threshold=lambda effect, config: config.cast_shadow_minimum,
+        passes=_cast_shadow_clears,
+        parameters_from=("cast_shadow",),
+        independent=True,
     ),
     Rule(
         "fingerprint",

@@ -60,6 +60,13 @@ def _columns(effects: list[ModelEffect], view_count: int) -> list[_Column]:
     return columns
 
 
+def counted_pixels(weight: torch.Tensor, shape: torch.Size) -> torch.Tensor:
+    """[N] flat indices over B * H * W (ascending) of the pixels with weight [B, H, W, 1] > 0
+    in images of shape [B, H, W, C]: the pixels a GaussNewtonProblem counts."""
+    flat_weight = weight.expand(*shape[:-1], 1).reshape(-1)
+    return torch.nonzero(flat_weight > 0).squeeze(1)
+
+
 class GaussNewtonProblem:
     """Weighted least squares sum(weight * (render() - observed)^2) over the parameters of
     `effects` (the ones to fit; render may apply others too), each view's per-view parameters
@@ -67,6 +74,9 @@ class GaussNewtonProblem:
 
     render: () -> [B, H, W, C] image of the frozen scene with the effects' current parameters.
     observed: [B, H, W, C]; weight: [B, H, W, 1] (0 outside the pixels that count).
+    render_counted: () -> [N, C] the same image at the counted pixels only (counted(render()),
+        in that order), where the caller can render those alone for less (pixelwise effects);
+        every render of the solver then goes through it.
     """
 
     def __init__(
@@ -75,6 +85,7 @@ class GaussNewtonProblem:
         render: Callable[[], torch.Tensor],
         observed: torch.Tensor,
         weight: torch.Tensor,
+        render_counted: Callable[[], torch.Tensor] | None = None,
     ) -> None:
         self.render = render
         self.view_count = observed.shape[0]
@@ -87,7 +98,7 @@ class GaussNewtonProblem:
         # and the loss are kept at those pixels alone, view after view.
         self.channels = observed.shape[-1]
         flat_weight = weight.expand(*observed.shape[:-1], 1).reshape(-1)
-        self._counted = torch.nonzero(flat_weight > 0).squeeze(1)  # [N] over B * H * W
+        self._counted = counted_pixels(weight, observed.shape)  # [N] over B * H * W
         self._counted_weight = flat_weight[self._counted][:, None]  # [N, 1]
         pixels_per_view = observed[0, ..., 0].numel()
         self._view_counts = torch.bincount(
@@ -95,6 +106,19 @@ class GaussNewtonProblem:
             minlength=self.view_count,
         ).tolist()
         self.observed = self.counted(observed)
+        self._render_counted = render_counted
+
+    @property
+    def counted_index(self) -> torch.Tensor:
+        """[N] flat indices over B * H * W of the counted pixels (ascending)."""
+        return self._counted
+
+    def render_at_counted(self) -> torch.Tensor:
+        """render() at the counted pixels [N, C] (through render_counted where given)."""
+        with torch.no_grad():
+            if self._render_counted is not None:
+                return self._render_counted()
+            return self.counted(self.render())
 
     def counted(self, image: torch.Tensor) -> torch.Tensor:
         """The counted pixels [N, C] of an image [B, H, W, C] (views in order)."""
@@ -120,19 +144,26 @@ class GaussNewtonProblem:
     # -- pieces ----------------------------------------------------------------------------
     def loss(self, image: torch.Tensor | None = None) -> float:
         """The weighted squared error of an image [B, H, W, C] (default: render())."""
+        values = self.render_at_counted() if image is None else self.counted(image)
+        return self._loss(values)
+
+    def _loss(self, values: torch.Tensor) -> float:
+        """The weighted squared error of the counted pixels' values [N, C]."""
         with torch.no_grad():
-            image = self.render() if image is None else image
-            return float(((self.counted(image) - self.observed) ** 2 * self._counted_weight).sum())
+            return float(((values - self.observed) ** 2 * self._counted_weight).sum())
 
     def jacobian(self, base: torch.Tensor) -> torch.Tensor:
         """[columns, N, C] forward differences of the image at the counted pixels, one column at
         a time; base: render() [B, H, W, C] at the current parameters."""
-        base = self.counted(base)
+        return self._jacobian(self.counted(base))
+
+    def _jacobian(self, base: torch.Tensor) -> torch.Tensor:
+        """jacobian from the counted pixels' values [N, C] at the current parameters."""
         changes = []
         with torch.no_grad():
             for column in self.columns:
                 self._move_column(column, column.step)
-                changes.append((self.counted(self.render()) - base) / column.step)
+                changes.append((self.render_at_counted() - base) / column.step)
                 self._move_column(column, -column.step)
         return torch.stack(changes)
 
@@ -184,13 +215,14 @@ class GaussNewtonProblem:
         Gauss-Newton step predicts, g^T (J^T J)^-1 g / loss with g = J^T r (nothing moves)."""
         if not self.columns:
             return 0.0
-        if start_image is None:
-            with torch.no_grad():
-                start_image = self.render()
-        matrix, vector = self.normal_equations(
-            self.jacobian(start_image), self.observed - self.counted(start_image)
-        )
-        return self._predicted(matrix, vector, self.loss(start_image))
+        start = self._start_values(start_image)
+        matrix, vector = self.normal_equations(self._jacobian(start), self.observed - start)
+        return self._predicted(matrix, vector, self._loss(start))
+
+    def _start_values(self, start_image: torch.Tensor | None) -> torch.Tensor:
+        """The counted pixels [N, C] of start_image, else of a render at the current
+        parameters."""
+        return self.render_at_counted() if start_image is None else self.counted(start_image)
 
     # -- the solver --------------------------------------------------------------------------
     def fit(self, iterations: int, start_image: torch.Tensor | None = None) -> dict:
@@ -201,30 +233,25 @@ class GaussNewtonProblem:
         if not self.columns or iterations <= 0:
             loss = self.loss()
             return {"score": 0.0, "initial_loss": loss, "final_loss": loss}
-        if start_image is None:
-            with torch.no_grad():
-                start_image = self.render()
-        base = start_image
-        loss = self.loss(base)
+        # Everything below works on the counted pixels' values [N, C] alone.
+        base = self._start_values(start_image)
+        loss = self._loss(base)
         initial_loss = loss
-        jacobian = self.jacobian(base)
-        matrix, vector = self.normal_equations(jacobian, self.observed - self.counted(base))
+        jacobian = self._jacobian(base)
+        matrix, vector = self.normal_equations(jacobian, self.observed - base)
         score = self._predicted(matrix, vector, initial_loss)
         damping = INITIAL_DAMPING
         for iteration in range(iterations):
             delta = self.solve(matrix, vector, damping)
             self._add(delta)
-            with torch.no_grad():
-                candidate = self.render()
-            candidate_loss = self.loss(candidate)
+            candidate = self.render_at_counted()
+            candidate_loss = self._loss(candidate)
             if candidate_loss < loss:
                 loss, base = candidate_loss, candidate
                 damping *= DAMPING_DOWN
                 if iteration + 1 < iterations:
-                    jacobian = self.jacobian(base)
-                    matrix, vector = self.normal_equations(
-                        jacobian, self.observed - self.counted(base)
-                    )
+                    jacobian = self._jacobian(base)
+                    matrix, vector = self.normal_equations(jacobian, self.observed - base)
             else:
                 self._add(-delta)
                 damping *= DAMPING_UP

@@ -146,29 +146,36 @@ def placebo_bases(
     per view."""
     batch, height, width = size
     views = 1 if shared else batch
+    cells = settings.nulls.field_cells
     # Two fields per parameter are drawn (a displacement's x and y); a gain uses the first only,
     # so the second is drawn (the same random stream either way) but not upsampled.
     components = 2 if geometric else 1
-    keep = (torch.arange(count * views * 2) % 2) < components
-    fields = smooth_fields(
-        count * views * 2, height, width, settings.nulls.field_cells, generator, keep
-    )
-    fields = fields.view(count, views, 2, height, width)[:, :, :components]
+    grid = torch.randn(count * views * 2, 1, cells, cells, generator=generator)
+    kept = grid.view(count, views, 2, cells, cells)[:, :, :components]
+    fields = torch.nn.functional.interpolate(
+        kept.reshape(-1, 1, cells, cells), size=(height, width), mode="bilinear", align_corners=True
+    )  # [count * views * components, 1, H, W]
+    # Read at the region's pixels only: one flat gather per parameter (field index, then pixel).
     view = torch.zeros_like(pixels.view) if shared else pixels.view
-    # [N, count, components]
-    values = fields.permute(1, 3, 4, 0, 2)[view, pixels.row, pixels.column]
-    values = values.permute(1, 0, 2).contiguous()  # [count, N, components]
+    pixel = pixels.row * width + pixels.column
+    offsets = torch.arange(components)[:, None] * (height * width)
+    index = (view * components * height * width)[None] + offsets + pixel[None]  # [components, N]
+    values = fields.view(count, -1).index_select(1, index.reshape(-1))
+    values = values.view(count, components, -1)  # [count, components, N]
     # A placebo must mean nothing: without its mean over the view's object (weighted by the
     # render's energy), a random gain field is partly a uniform gain (an exposure), and a
     # random displacement field partly a shift (a pose change).
     weight = (pixels.rendered**2).sum(-1)
     total = torch.zeros(batch).index_add_(0, pixels.view, weight).clamp_min(1e-30)
     for component in range(components):
-        sums = torch.zeros(count, batch).index_add_(1, pixels.view, values[..., component] * weight)
-        values[..., component] -= (sums / total)[:, pixels.view]
+        sums = torch.zeros(count, batch).index_add_(1, pixels.view, values[:, component] * weight)
+        values[:, component] -= (sums / total)[:, pixels.view]
     if not geometric:
-        return values[..., :1] * pixels.rendered[None]
-    return values[..., :1] * pixels.gradient_x[None] + values[..., 1:] * pixels.gradient_y[None]
+        return values[:, 0, :, None] * pixels.rendered[None]
+    return (
+        values[:, 0, :, None] * pixels.gradient_x[None]
+        + values[:, 1, :, None] * pixels.gradient_y[None]
+    )
 
 
 def _least_squares(bases: torch.Tensor, target: torch.Tensor, fit: torch.Tensor) -> torch.Tensor:
@@ -177,6 +184,34 @@ def _least_squares(bases: torch.Tensor, target: torch.Tensor, fit: torch.Tensor)
     gram = chosen @ chosen.T
     gram = gram + 1e-9 * gram.diagonal().mean().clamp_min(1e-30) * torch.eye(len(bases))
     return torch.linalg.solve(gram, chosen @ target[fit].flatten())
+
+
+def _per_view_least_squares(
+    bases: torch.Tensor, target: torch.Tensor, fit: torch.Tensor, view: torch.Tensor, views: int
+) -> torch.Tensor:
+    """Coefficients [B, P] of bases [P, N, 3] that fit target [N, 3] on the pixels fit [N],
+    each view on its own pixels (view [N], in view order as nonzero lists them): _least_squares
+    of every view, with the normal equations of each view's block of pixels and one batched
+    solve (zero for a view without fitting pixels)."""
+    parameters = bases.shape[0]
+    counts = torch.bincount(view, minlength=views)
+    if bool((view[1:] < view[:-1]).any()):
+        raise ValueError("_per_view_least_squares: pixels must be in view order")
+    chosen = bases.double() * fit[None, :, None]  # zero outside the fitting half
+    gram = torch.zeros(views, parameters, parameters, dtype=torch.float64)
+    moment = torch.zeros(views, parameters, dtype=torch.float64)
+    blocks = zip(chosen.split(counts.tolist(), 1), target.split(counts.tolist(), 0), strict=True)
+    for index, (block, block_target) in enumerate(blocks):
+        flat = block.reshape(parameters, -1)
+        gram[index] = flat @ flat.T
+        moment[index] = flat @ block_target.reshape(-1)
+    ridge = 1e-9 * gram.diagonal(dim1=1, dim2=2).mean(-1).clamp_min(1e-30)
+    gram = gram + ridge[:, None, None] * torch.eye(parameters, dtype=torch.float64)
+    fitted = torch.bincount(view[fit], minlength=views) > 0
+    theta = torch.zeros(views, parameters, dtype=torch.float64)
+    if bool(fitted.any()):
+        theta[fitted] = torch.linalg.solve(gram[fitted], moment[fitted][..., None])[..., 0]
+    return theta
 
 
 def placebo_reduction(
@@ -203,16 +238,14 @@ def _placebo_reduction(
     residual = pixels.residual
     explained = torch.zeros_like(residual)
     if per_view:
-        bases = placebo_bases(pixels, size, per_view, geometric, settings, generator)
-        for view in range(data.view_count):
-            here = pixels.view == view
-            if not bool((here & pixels.first).any()):
-                continue
-            local = bases[:, here]
-            theta = _least_squares(local, residual[here], pixels.first[here])
-            explained[here] += torch.einsum("p,pnc->nc", theta, local.double())
+        # In float64 once (the fits and the prediction below read it; .double() is then free).
+        bases = placebo_bases(pixels, size, per_view, geometric, settings, generator).double()
+        # Every view's own fit at once (the views' normal equations are independent).
+        theta = _per_view_least_squares(bases, residual, pixels.first, pixels.view, data.view_count)
+        explained += torch.einsum("np,pnc->nc", theta[pixels.view], bases.double())
     if shared:
         bases = placebo_bases(pixels, size, shared, geometric, settings, generator, shared=True)
+        bases = bases.double()
         theta = _least_squares(bases, residual - explained, pixels.first)
         explained += torch.einsum("p,pnc->nc", theta, bases.double())
     test = ~pixels.first

@@ -64,12 +64,14 @@ PRODUCERS: list[EvidenceProducer] = []
 
 def _register_checks() -> None:
     """Issue 20's checks (recon.diagnose.checks), imported late: they read EvidenceInputs."""
+    from recon.diagnose.cast_shadow import cast_shadow_producer
     from recon.diagnose.checks import CHECK_PRODUCERS
     from recon.diagnose.geometric_checks import GEOMETRIC_PRODUCERS
     from recon.diagnose.lobe import lobe_producer
 
     # The lobe first: the specificity checks see specular's verdict with it.
     PRODUCERS.append(lobe_producer)
+    PRODUCERS.append(cast_shadow_producer)
     PRODUCERS.extend(CHECK_PRODUCERS)
     PRODUCERS.extend(GEOMETRIC_PRODUCERS)
 

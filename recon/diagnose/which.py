@@ -19,6 +19,7 @@ For every candidate effect module (recon.effects), starting from the fitted scen
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import replace
 
 import torch
@@ -27,7 +28,7 @@ from tqdm import tqdm
 from recon.config.run_config import DiagnoseConfig
 from recon.diagnose.data import DiagnosisData
 from recon.diagnose.decision import decide, decide_all, rank_key
-from recon.diagnose.gauss_newton import GaussNewtonProblem
+from recon.diagnose.gauss_newton import GaussNewtonProblem, counted_pixels
 from recon.diagnose.records import Candidate, Evidence
 from recon.effects.base import ModelEffect
 from recon.effects.forward import (
@@ -50,6 +51,39 @@ def block_halves(
     first = ((rows[:, None] + columns[None, :]) % 2 == 0).float()
     first = first[None, :, :, None].expand(batch, height, width, 1)
     return first, 1 - first
+
+
+class PixelPacking:
+    """Chosen pixels of a [B, H, W, C] batch held per view as a [B, M, 1, C] batch (M: the most
+    pixels any view has; the rest zeros), so a pixelwise image effect (ModelEffect.pixelwise),
+    applied to the packed batch with its per-view parameters, gives its image at those pixels
+    alone.
+
+    index: [N] flat indices over B * H * W, ascending; shape: (B, H, W).
+    """
+
+    def __init__(self, index: torch.Tensor, shape: tuple[int, int, int]) -> None:
+        batch, height, width = shape
+        self.index = index
+        self.batch = batch
+        self.view = torch.div(index, height * width, rounding_mode="floor")
+        counts = torch.bincount(self.view, minlength=batch)
+        starts = torch.cumsum(counts, 0) - counts
+        self.slot = torch.arange(index.numel(), device=index.device) - starts[self.view]
+        self.width = int(counts.max()) if index.numel() else 0
+        self.packed_index = self.view * self.width + self.slot  # [N] over B * M
+
+    def pack(self, image: torch.Tensor) -> torch.Tensor:
+        """[B, M, 1, C] of the chosen pixels of image [B, H, W, C]."""
+        channels = image.shape[-1]
+        values = image.reshape(-1, channels).index_select(0, self.index)
+        packed = image.new_zeros(self.batch * self.width, channels)
+        packed[self.packed_index] = values
+        return packed.view(self.batch, self.width, 1, channels)
+
+    def unpack(self, packed: torch.Tensor) -> torch.Tensor:
+        """[N, C] the chosen pixels' values of a packed batch [B, M, 1, C] (index's order)."""
+        return packed.reshape(-1, packed.shape[-1]).index_select(0, self.packed_index)
 
 
 class EffectProbe:
@@ -80,6 +114,7 @@ class EffectProbe:
         self.base_output = self.scene_output
         self.view_indices = torch.arange(len(data.cameras), device=data.observed.device)
         self._surface_points: torch.Tensor | None = None
+        self._surface_pixels: torch.Tensor | None = None
         # The fit's own effects are part of the model: global ones keep the fit's parameters,
         # per-view ones are fitted on the first half of each held-out view's blocks, once.
         self.model_effects: list[ModelEffect] = []
@@ -93,8 +128,13 @@ class EffectProbe:
                 first, _ = block_halves(
                     batch, height, width, data.observed.device, self.settings.block_pixels
                 )
+                weight = first * data.region
                 GaussNewtonProblem(
-                    per_view, lambda: self.render([]), data.observed, first * data.region
+                    per_view,
+                    lambda: self.render([]),
+                    data.observed,
+                    weight,
+                    render_counted=self.counted_render([], weight),
                 ).fit(self.settings.gauss_newton_iterations)
             for module in self.model_effects:
                 module.requires_grad_(False)
@@ -138,7 +178,9 @@ class EffectProbe:
         order: each pixel samples the cached render where its surface point's flow came from."""
         batch, height, width, _ = color.shape
         points = self.surface_points()
-        before = self.data.cameras.project_to_pixels(points)
+        if self._surface_pixels is None:  # where the data's cameras see them: fixed
+            self._surface_pixels = self.data.cameras.project_to_pixels(points)
+        before = self._surface_pixels
         after = cameras.project_to_pixels(points)
         source = before - (after - before)  # backward warp, flow evaluated at the target pixel
         scale = torch.tensor([width, height], dtype=source.dtype, device=source.device)
@@ -148,6 +190,32 @@ class EffectProbe:
             stacked, grid, mode="bilinear", padding_mode="zeros", align_corners=False
         ).permute(0, 2, 3, 1)
         return warped[..., : color.shape[-1]], warped[..., color.shape[-1] :]
+
+    def counted_render(
+        self, effects: list[ModelEffect], weight: torch.Tensor
+    ) -> Callable[[], torch.Tensor] | None:
+        """A render of the scene with the model's and the given effects at the pixels with
+        weight [B, H, W, 1] > 0 only ([N, C], gauss_newton.counted_pixels' order), for a
+        GaussNewtonProblem's render_counted; None unless every effect is pixelwise
+        (ModelEffect.pixelwise: then each pixel's value is the full render's, at a fraction of
+        its cost)."""
+        everything = self.model_effects + effects
+        if not everything or not all(
+            module.stage == "image" and module.pixelwise for module in everything
+        ):
+            return None
+        observed = self.data.observed
+        packing = PixelPacking(counted_pixels(weight, observed.shape), observed.shape[:3])
+        color = packing.pack(self.scene_output.color)
+        alpha = packing.pack(self.scene_output.alpha)
+
+        def render() -> torch.Tensor:
+            image, _ = apply_image_effects(
+                everything, color, alpha, self.data.cameras, self.view_indices
+            )
+            return packing.unpack(image)
+
+        return render
 
     def render(self, effect: ModelEffect | list[ModelEffect]) -> torch.Tensor:
         """Premultiplied colour [B, H, W, 3] of the scene (the fitted model, its own effects
@@ -283,8 +351,13 @@ def fit_on_halves(
     trainable = effects if trainable is None else trainable
     score = 0.0
     if effects:
+        weight = first * data.region
         problem = GaussNewtonProblem(
-            trainable, lambda: probe.render(effects), data.observed, first * data.region
+            trainable,
+            lambda: probe.render(effects),
+            data.observed,
+            weight,
+            render_counted=probe.counted_render(effects, weight),
         )
         at_identity = all(effect.is_identity() for effect in effects)
         start_image = probe.base_output.color if at_identity else None

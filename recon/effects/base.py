@@ -59,6 +59,10 @@ class ModelEffect(torch.nn.Module):
     pins_a_view: ClassVar[bool] = False
     # Per-parameter multipliers of the learning rate, for parameters of different scales.
     learning_rate_scales: ClassVar[dict[str, float]] = {}
+    # An image effect that maps each pixel's colour and alpha by its view's parameters alone (no
+    # neighbours, no image position): it may be applied to any subset of a view's pixels, which
+    # the diagnosis' probes use to render only the pixels their fit counts.
+    pixelwise: ClassVar[bool] = False
 
     def __init__(
         self,

@@ -338,7 +338,7 @@ class Shadows(ModelEffect):
     name = "shadows"
     diagnosis = DiagnosisFacts(
         family="light_transport",
-        evidence=("fingerprint",),
+        evidence=("fingerprint", "cast_shadow"),
         fingerprint_side="blocked",
         confusable=("interreflection",),
         identifiable_when="views under a second light, or a mesh that shadows itself",

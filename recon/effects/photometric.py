@@ -40,6 +40,7 @@ class Exposure(ModelEffect):
         gain_signature=True,
     )
     stage = "image"
+    pixelwise = True
     per_view = True
     pins_a_view = True
     default_learning_rate = 0.02
@@ -84,6 +85,7 @@ class WhiteBalance(ModelEffect):
         gain_signature=True,
     )
     stage = "image"
+    pixelwise = True
     per_view = True
     pins_a_view = True
     default_learning_rate = 0.02
@@ -230,6 +232,7 @@ class ResponseCurve(ModelEffect):
         gain_signature=True,
     )
     stage = "image"
+    pixelwise = True
     per_view = False
     default_learning_rate = 0.03
     default_lock_fraction = 0.2

@@ -157,3 +157,32 @@ def test_a_step_that_raises_the_loss_is_undone():
     problem = GaussNewtonProblem([exposure], adversarial_render, observed, alpha)
     problem.fit(iterations=3)
     assert torch.all(exposure.log_gain == 0)
+
+
+def test_a_counted_render_gives_the_same_fit():
+    """render_counted (the render at the counted pixels alone) leaves the solver's steps as
+    they are: the same parameters and losses as rendering whole images."""
+    image, alpha = base_images()
+    weight = alpha.clone()
+    weight[:, ::2] = 0.0
+    observed = image * torch.tensor([1.1, 0.9, 1.0, 1.05])[:, None, None, None]
+    results = []
+    for counted in (False, True):
+        exposure = make_effect("exposure", view_count=VIEWS, pinned_view=None)
+        problem = GaussNewtonProblem(
+            [exposure], lambda e=exposure: render_with([e], image, alpha), observed, weight
+        )
+        if counted:
+            problem = GaussNewtonProblem(
+                [exposure],
+                lambda e=exposure: render_with([e], image, alpha),
+                observed,
+                weight,
+                render_counted=lambda e=exposure, p=problem: p.counted(
+                    render_with([e], image, alpha)
+                ),
+            )
+        results.append((problem.fit(iterations=3), exposure.log_gain.detach().clone()))
+    (plain, plain_gains), (counted, counted_gains) = results
+    assert torch.equal(plain_gains, counted_gains)
+    assert plain["final_loss"] == counted["final_loss"] < 0.01 * plain["initial_loss"]

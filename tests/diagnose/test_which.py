@@ -113,3 +113,37 @@ def test_probe_evidence_is_decided_from_the_config():
     decide(candidate, DecisionConfig())
     assert candidate.significant and candidate.parameters == {"ratios": [1.0, 1.2]}
     assert not decide(candidate, DecisionConfig(minimum_share=0.5)).significant
+
+
+def test_pixel_packing_round_trips_the_chosen_pixels():
+    from recon.diagnose.which import PixelPacking
+
+    generator = torch.Generator().manual_seed(1)
+    image = torch.rand(3, 5, 4, 2, generator=generator)
+    index = torch.tensor([0, 7, 19, 25, 26, 45, 59])  # views 0, 1 and 2 (20 pixels each)
+    packing = PixelPacking(index, (3, 5, 4))
+    packed = packing.pack(image)
+    assert packed.shape == (3, 3, 1, 2)  # view 0 holds three of the pixels, the most
+    assert torch.equal(packing.unpack(packed), image.reshape(-1, 2)[index])
+
+
+def test_counted_render_of_pixelwise_effects_is_the_full_render_at_the_counted_pixels():
+    from recon.diagnose.gauss_newton import GaussNewtonProblem
+    from recon.diagnose.which import block_halves
+
+    data = observed_scene(blur=False)
+    probe = EffectProbe(data)
+    generator = torch.Generator().manual_seed(2)
+    effects = [probe_effect(name, VIEWS, "cpu") for name in ("exposure", "response_curve")]
+    with torch.no_grad():
+        for parameter in (p for effect in effects for p in effect.parameters()):
+            parameter.copy_(0.2 * torch.randn(parameter.shape, generator=generator))
+    first, _ = block_halves(VIEWS, SIZE, SIZE, "cpu", 4)
+    weight = first * data.region
+    render = probe.counted_render(effects, weight)
+    problem = GaussNewtonProblem(effects, lambda: probe.render(effects), data.observed, weight)
+    with torch.no_grad():
+        full = problem.counted(probe.render(effects))
+    assert torch.allclose(render(), full, rtol=1e-6, atol=1e-7)
+    # Vignetting depends on where a pixel is: no shortcut.
+    assert probe.counted_render([probe_effect("vignetting", VIEWS, "cpu")], weight) is None

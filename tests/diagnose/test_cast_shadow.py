@@ -1,0 +1,166 @@
+"""The cast-shadow evidence (recon.diagnose.cast_shadow): relight views that carry the relight
+sun's cast shadows, which recon's renderer leaves out, are named shadows; nothing else is.
+
+Built to fool it: views darkened in the mesh's concavities (the environment's occlusion, which
+correlates with the shadow of any direction), views shadowed by a sun the relight light does not
+hold (a cast shadow, but not of the known light) and views without shadows (noise only).
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+import trimesh
+
+from recon.camera import orbit_cameras
+from recon.config.run_config import CastShadowConfig, DiagnoseConfig
+from recon.diagnose.cast_shadow import cast_shadow_evidence
+from recon.diagnose.data import build_diagnosis_data
+from recon.diagnose.decision import decide
+from recon.diagnose.records import Candidate
+from recon.effects import EffectContext, Shadows
+from recon.effects.light_transport import vertex_occlusion
+from recon.mesh.mesh import Mesh
+from recon.render.interpolate import interpolate_packed
+from recon.render.rasterize import scatter_to_image
+from recon.render.renderer import Renderer
+from recon.render.shading import DirectionalLight, Lighting
+
+SETTINGS = DiagnoseConfig(cast_shadow=CastShadowConfig(placebo_lights=200, map_resolution=96))
+SUN = (0.4, 1.0, 0.3)
+
+
+@pytest.fixture(autouse=True)
+def single_thread():
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
+def _sun_light(direction: tuple[float, float, float]) -> Lighting:
+    lighting = Lighting.constant(0.35)
+    toward = torch.nn.functional.normalize(torch.tensor(direction), dim=0)
+    lighting.directional.append(DirectionalLight(toward, torch.tensor([2.5, 2.4, 2.2])))
+    return lighting
+
+
+def two_spheres_on_a_slab():
+    """Two spheres over a ground slab, colourful, seen from 6 views at 40 x 40: (mesh,
+    cameras)."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    parts = []
+    for x, z in ((-0.35, 0.2), (0.4, -0.25)):
+        sphere = trimesh.creation.icosphere(subdivisions=2, radius=0.3)
+        sphere.apply_translation([x, 0.35, z])
+        parts.append(sphere)
+    ground = trimesh.creation.box(extents=[2.0, 0.1, 2.0]).subdivide().subdivide().subdivide()
+    ground.apply_translation([0.0, -0.3, 0.0])
+    merged = trimesh.util.concatenate([*parts, ground])
+    verts = torch.tensor(merged.vertices, dtype=torch.float32)
+    colours = 0.5 + 0.3 * torch.stack(
+        [torch.sin(3 * verts[:, 0] + 1), torch.cos(4 * verts[:, 2]), torch.sin(2 * verts[:, 0])], -1
+    )
+    mesh = Mesh(verts, torch.tensor(merged.faces), vertex_colors=colours)
+    cameras = orbit_cameras(6, (40, 40), distance=3.2, elevation_deg=40)
+    torch.set_num_threads(previous)
+    return mesh, cameras
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return two_spheres_on_a_slab()
+
+
+def _views(scene, shadow_from=None, occlusion_darkening: float = 0.0, seed: int = 0):
+    """Relight views under the sun SUN against the shadow-free model: the world's views carry
+    the cast shadows of a sun along shadow_from (None: none) and/or a darkening by
+    occlusion_darkening x the mesh's occlusion."""
+    mesh, cameras = scene
+    lighting = _sun_light(SUN)
+    with torch.no_grad():
+        output = Renderer().render(mesh, cameras, lighting)
+        observed = output.color
+        if shadow_from is not None:
+            shadows = Shadows(map_resolution=128)
+            shadows.strength.fill_(1.0)
+            context = EffectContext(mesh, _sun_light(shadow_from), cameras)
+            shadowed = shadows(Renderer().render(mesh, cameras, _sun_light(shadow_from)), context)
+            # The shadow of that sun, carried over to the relight light's views.
+            observed = observed - (
+                Renderer().render(mesh, cameras, _sun_light(shadow_from)).color - shadowed.color
+            )
+        if occlusion_darkening:
+            occlusion = vertex_occlusion(mesh.verts, mesh.faces)
+            fragments = output.fragments
+            packed = interpolate_packed(occlusion[:, None], fragments, mesh.faces)
+            image = scatter_to_image(packed, fragments.covered_index, len(cameras), 40, 40)
+            observed = observed * (1 - occlusion_darkening * image)
+    generator = torch.Generator().manual_seed(seed)
+    observed = observed + 0.003 * torch.randn(observed.shape, generator=generator)
+    return build_diagnosis_data(observed, output.alpha, output, cameras, lighting, mesh)
+
+
+def _decided(data) -> Candidate:
+    candidate = Candidate("shadows")
+    candidate.add(cast_shadow_evidence(data, "shadows", SETTINGS))
+    return decide(candidate, SETTINGS.decision)
+
+
+def test_the_relight_suns_cast_shadows_are_named(scene):
+    data = _views(scene, shadow_from=SUN)
+    candidate = _decided(data)
+    measured = candidate.evidence_of("cast_shadow").details
+    assert measured["p_value"] < 0.01 and measured["correlation"] > 0.3, measured
+    # The missing term is the whole of the sun's light in the shadow: a coefficient near 1.
+    assert 0.5 < measured["strength"] < 1.5, measured
+    assert candidate.significant and candidate.decided_by == "cast_shadow", candidate.why
+    assert "placebo directions" in candidate.why
+
+
+def test_darkened_concavities_are_not_cast_shadows(scene):
+    candidate = _decided(_views(scene, occlusion_darkening=0.6))
+    assert not candidate.significant, candidate.why
+
+
+def test_shadows_of_another_sun_are_not_the_relight_suns(scene):
+    # A cast shadow, but of a sun 90 degrees away from the one the relight light holds.
+    other = (-0.3, 0.4, 1.0)
+    toward = torch.nn.functional.normalize(torch.tensor(SUN), dim=0)
+    away = torch.nn.functional.normalize(torch.tensor(other), dim=0)
+    assert math.degrees(math.acos(float(toward @ away))) > 60
+    candidate = _decided(_views(scene, shadow_from=other))
+    assert not candidate.significant, candidate.why
+
+
+def test_views_without_shadows_give_nothing_and_no_sun_gives_no_evidence(scene):
+    candidate = _decided(_views(scene, seed=1))
+    assert not candidate.significant, candidate.why
+    data = _views(scene)
+    data.lighting = Lighting.constant(0.5)  # no directional sun: nothing to test against
+    assert cast_shadow_evidence(data, "shadows", SETTINGS) is None
+
+
+def test_the_producer_is_registered_and_reads_the_relight_split_only(scene):
+    from dataclasses import replace
+
+    from recon.diagnose.cast_shadow import cast_shadow_producer
+    from recon.diagnose.data import FittedModel
+    from recon.diagnose.producers import PRODUCERS, EvidenceInputs
+
+    assert cast_shadow_producer in PRODUCERS
+    relight = _views(scene, shadow_from=SUN)
+    model = FittedModel(relight.mesh, relight.lighting)
+    candidates = [Candidate("shadows"), Candidate("exposure")]
+    # No relight split: nothing measured (the held-out views under the fitted light carry a
+    # cast shadow baked into the albedo, not in their residual).
+    without = EvidenceInputs(relight, None, None, None, model)
+    assert cast_shadow_producer(without, candidates, SETTINGS) == []
+    inputs = EvidenceInputs(relight, None, None, None, model, relight=relight)
+    evidence = cast_shadow_producer(inputs, candidates, SETTINGS)
+    assert [item.candidate for item in evidence] == ["shadows"] and evidence[0].passed
+    disabled = replace(SETTINGS, cast_shadow=replace(SETTINGS.cast_shadow, enabled=False))
+    assert cast_shadow_producer(inputs, candidates, disabled) == []
