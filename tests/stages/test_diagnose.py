@@ -208,7 +208,10 @@ def test_the_fits_own_effects_are_part_of_the_model(tmp_path):
     diagnosis = stage.run_diagnosis(modelled, config, torch.device("cpu"), "none", candidates)
     assert diagnosis.model["effects"] == ["exposure"]
     assert [item.name for item in diagnosis.candidates] == ["white_balance"]
-    assert diagnosis.verdict == "no significant unmodelled effect", diagnosis.candidates
+    # White balance may add "not identifiable from this data" (this tiny fit's colour noise
+    # hides a small cast, decision 0202), but it must not be significant.
+    assert diagnosis.significant == [], diagnosis.candidates
+    assert diagnosis.verdict.startswith("no significant unmodelled effect"), diagnosis.verdict
     # The model's render holds the per-view gains (fitted on each held-out view's first half):
     # its held-out gap is below that of the same fit rendered without its effects.
     without = stage.load_diagnosis_data(modelled, "test", config)
