@@ -42,7 +42,12 @@ import torch
 
 from recon.config.run_config import DiagnoseConfig
 from recon.diagnose.data import DiagnosisData
-from recon.diagnose.lobe import LUMINANCE, interior_pixels, project_out
+from recon.diagnose.lobe import (
+    LUMINANCE,
+    interior_pixels,
+    placebo_excess_evidence,
+    project_out,
+)
 from recon.diagnose.pixel_table import view_directions
 from recon.diagnose.records import Candidate, Evidence
 from recon.effects.light_transport import (
@@ -182,23 +187,20 @@ def cast_shadow_evidence(
     if measured is None:
         return None
     decision = settings.decision
-    threshold = decision.cast_shadow_minimum
-    statistic = float(measured["correlation"]) - float(measured["placebo_quantile"])
-    passed = statistic > threshold and measured["p_value"] < decision.cast_shadow_alpha
     reason = (
         f"{name}: the relight views are darker than the render where the fitted mesh shadows "
         f"the relight sun (r = {measured['correlation']:.3f} over {measured['views']} views, "
         f"p = {measured['p_value']:.2g} against {measured['placebo_lights']} placebo "
         "directions); its excess over the placebo directions' 95th percentile"
     )
-    return Evidence(
-        kind=KIND,
-        candidate=name,
-        statistic=statistic,
-        threshold=threshold,
-        passed=passed,
-        reason=reason,
-        details={**measured, "parameters": {"strength": measured["strength"]}},
+    return placebo_excess_evidence(
+        KIND,
+        name,
+        measured,
+        decision.cast_shadow_minimum,
+        decision.cast_shadow_alpha,
+        reason,
+        {"strength": measured["strength"]},
     )
 
 

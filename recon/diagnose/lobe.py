@@ -250,11 +250,6 @@ def lobe_evidence(
         return None
     decision = settings.decision
     threshold = max(decision.lobe_minimum, decision.lobe_allowance.get(name, 0.0))
-    # The correlation's excess over the placebo lights' 95th percentile: what the fitted light
-    # explains beyond what any light explains of this fit's view-to-view residual (a 20 dB
-    # fit's misfit correlates with every lobe more than a 36 dB fit's does).
-    statistic = float(measured["correlation"]) - float(measured["placebo_quantile"])
-    passed = statistic > threshold and measured["p_value"] < decision.lobe_alpha
     reason = (
         f"{name}: the residual follows a highlight's lobe under the fitted light from view to "
         f"view (exponent {measured['exponent']:g}, r = {measured['correlation']:.3f} over "
@@ -262,17 +257,35 @@ def lobe_evidence(
         f"{measured['placebo_lights']} placebo lights); its excess over the placebo lights' "
         "95th percentile"
     )
+    parameters = {"strength": measured["strength"], "exponent": measured["exponent"]}
+    return placebo_excess_evidence(
+        KIND, name, measured, threshold, decision.lobe_alpha, reason, parameters
+    )
+
+
+def placebo_excess_evidence(
+    kind: str,
+    name: str,
+    measured: dict,
+    threshold: float,
+    alpha: float,
+    reason: str,
+    parameters: dict,
+) -> Evidence:
+    """Evidence whose statistic is a correlation's excess over its placebo directions' 95th
+    percentile (measured: correlation, placebo_quantile, p_value): what the predicted pattern
+    explains beyond what any placebo explains of this fit's residual, so that a 20 dB fit's
+    misfit, which correlates with every pattern more than a 36 dB fit's does, sets its own bar.
+    It passes above threshold with p below alpha."""
+    statistic = float(measured["correlation"]) - float(measured["placebo_quantile"])
     return Evidence(
-        kind=KIND,
+        kind=kind,
         candidate=name,
         statistic=statistic,
         threshold=threshold,
-        passed=passed,
+        passed=statistic > threshold and measured["p_value"] < alpha,
         reason=reason,
-        details={
-            **measured,
-            "parameters": {"strength": measured["strength"], "exponent": measured["exponent"]},
-        },
+        details={**measured, "parameters": parameters},
     )
 
 
