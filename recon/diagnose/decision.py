@@ -104,17 +104,15 @@ def lobe_threshold(effect: str, config: DecisionConfig) -> float:
     return max(config.lobe_minimum, config.lobe_allowance.get(effect, 0.0))
 
 
-def _lobe_clears(evidence: Evidence, threshold: float, config: DecisionConfig) -> bool:
-    """The lobe correlates above the allowance, and more than placebo lights' lobes do."""
-    p_value = evidence.details.get("p_value", 1.0)
-    return evidence.statistic > threshold and p_value < config.lobe_alpha
+def _beats_placebos(alpha: Callable[[DecisionConfig], float]) -> Callable[..., bool]:
+    """A rule's passes for a placebo-excess evidence (lobe, cast shadow): the statistic clears
+    its threshold and the measured pattern beats its placebo directions at the level alpha."""
 
+    def passes(evidence: Evidence, threshold: float, config: DecisionConfig) -> bool:
+        p_value = evidence.details.get("p_value", 1.0)
+        return evidence.statistic > threshold and p_value < alpha(config)
 
-def _cast_shadow_clears(evidence: Evidence, threshold: float, config: DecisionConfig) -> bool:
-    """The relight residual follows the relight sun's shadow above the floor, and more than
-    placebo directions' shadows do."""
-    p_value = evidence.details.get("p_value", 1.0)
-    return evidence.statistic > threshold and p_value < config.cast_shadow_alpha
+    return passes
 
 
 def _agrees(evidence: Evidence, threshold: float, config: DecisionConfig) -> bool:
@@ -223,7 +221,7 @@ DECISION_TABLE: tuple[Rule, ...] = (
         "clear",
         measured=True,
         threshold=lobe_threshold,
-        passes=_lobe_clears,
+        passes=_beats_placebos(lambda config: config.lobe_alpha),
         parameters_from=("lobe", "absorption", "probe"),
     ),
     Rule(
@@ -231,7 +229,7 @@ DECISION_TABLE: tuple[Rule, ...] = (
         "clear",
         measured=True,
         threshold=lambda effect, config: config.cast_shadow_minimum,
-        passes=_cast_shadow_clears,
+        passes=_beats_placebos(lambda config: config.cast_shadow_alpha),
         parameters_from=("cast_shadow",),
         independent=True,
     ),

@@ -44,6 +44,7 @@ import torch
 
 from recon.config.run_config import DiagnoseConfig
 from recon.diagnose.data import DiagnosisData, box_erode
+from recon.diagnose.decision import lobe_threshold
 from recon.diagnose.pixel_table import view_directions
 from recon.diagnose.records import Candidate, Evidence
 from recon.effects.light_transport import dominant_light, fibonacci_directions
@@ -249,7 +250,7 @@ def lobe_evidence(
     if measured is None:
         return None
     decision = settings.decision
-    threshold = max(decision.lobe_minimum, decision.lobe_allowance.get(name, 0.0))
+    threshold = lobe_threshold(name, decision)
     reason = (
         f"{name}: the residual follows a highlight's lobe under the fitted light from view to "
         f"view (exponent {measured['exponent']:g}, r = {measured['correlation']:.3f} over "
