@@ -35,6 +35,7 @@ import torch
 from recon.config.run_config import DiagnoseConfig
 from recon.diagnose.agreement import agreement_evidence
 from recon.diagnose.decision import DECISION_TABLE
+from recon.diagnose.geometric_specificity import could_clear
 from recon.diagnose.identifiability import (
     CaptureConditions,
     lens_distortion_evidence,
@@ -79,13 +80,14 @@ def null_producer(
     inputs: EvidenceInputs, candidates: list[Candidate], settings: DiagnoseConfig
 ) -> list[Evidence]:
     """Placebo nulls (and split-half agreement of per-view gains) for the candidates whose
-    probe alone clears its allowance."""
+    probe could clear under any calibration (its lower bound above the floor of every probe
+    allowance, recon.diagnose.geometric_specificity.could_clear): a calibration that names it
+    finds its null in the stored evidence. A failed null takes only the probe out of the
+    decision (recon.diagnose.decision), so it is measured whatever else cleared."""
     evidence = []
     for candidate in candidates:
         probe = candidate.evidence_of("probe")
-        if candidate.name not in MODEL_EFFECTS or probe is None or not _cleared(candidate, "probe"):
-            continue
-        if any(_cleared(candidate, kind) for kind in OTHER_CLEARING):
+        if candidate.name not in MODEL_EFFECTS or not could_clear(probe, settings):
             continue
         interval = probe.interval or (probe.statistic, probe.statistic)
         reduction = float(probe.details.get("reduction", interval[0]))
