@@ -34,10 +34,11 @@ import torch
 
 from recon.config.run_config import DiagnoseConfig
 from recon.diagnose.agreement import agreement_evidence
-from recon.diagnose.decision import DECISION_TABLE
+from recon.diagnose.decision import DECISION_TABLE, probe_threshold
 from recon.diagnose.geometric_specificity import could_clear
 from recon.diagnose.identifiability import (
     CaptureConditions,
+    defocus_blur_evidence,
     lens_distortion_evidence,
     motion_blur_evidence,
     response_curve_evidence,
@@ -152,6 +153,10 @@ def identifiability_producer(
         )
     if "motion_blur" in names:
         evidence.append(_as_condition(motion_blur_evidence(inputs.data, options)))
+    if "defocus_blur" in names:
+        allowance = probe_threshold("defocus_blur", settings.decision)
+        condition = defocus_blur_evidence(inputs.data, options, allowance)
+        evidence.append(_as_condition(condition))
     agreement = (
         by_name["white_balance"].evidence_of("agreement") if "white_balance" in names else None
     )

@@ -78,6 +78,7 @@ from typing import Any, Literal
 
 from recon.config.run_config import DecisionConfig, DiagnoseConfig
 from recon.diagnose.geometric_judgement import rejudge
+from recon.diagnose.identifiability import judge_expected_share
 from recon.diagnose.records import Candidate, Diagnosis, Evidence
 from recon.effects.registry import diagnosis_facts
 
@@ -189,6 +190,20 @@ def _rejudge_geometric(evidence: Evidence, config: DecisionConfig) -> Evidence:
     return rejudge(evidence, lambda effect: probe_threshold(effect, config))
 
 
+def _rejudge_expected_share(evidence: Evidence, config: DecisionConfig) -> Evidence:
+    """An identifiability condition judged by the share of the held-out error the effect's
+    reference strength would remove (details["judged_against"] == "probe") judged again with
+    the config's probe allowance; other conditions keep their producer's verdict."""
+    if evidence.details.get("judged_against") != "probe":
+        return evidence
+    share = float(evidence.details["expected_share"])
+    allowance = probe_threshold(evidence.candidate, config)
+    return replace(
+        judge_expected_share(evidence.candidate, share, allowance, evidence.details),
+        void=evidence.void,
+    )
+
+
 DECISION_TABLE: tuple[Rule, ...] = (
     Rule(
         "flat_field",
@@ -273,7 +288,7 @@ DECISION_TABLE: tuple[Rule, ...] = (
         parameters_from=("specificity", "probe"),
         revise=_rejudge_geometric,
     ),
-    Rule("identifiability", "qualify"),
+    Rule("identifiability", "qualify", revise=_rejudge_expected_share),
     Rule("metadata", "veto"),
 )
 RULES: dict[str, Rule] = {rule.kind: rule for rule in DECISION_TABLE}
