@@ -8,16 +8,18 @@ built-in evidence; the decision table (recon.diagnose.decision) says what each k
   separate halves of each view clears the candidate even where it is a small share of a large
   misfit (a local colour misfit differs between the halves).
 
-- null (recon.diagnose.nulls): for a candidate that only its probe made significant, the
-  probe's held-out reduction against placebo effects of its size on this run (and, for the
-  per-view gains, split-half agreement); a failed one keeps the probe from clearing.
+- null (recon.diagnose.nulls): for every candidate whose probe could clear under some
+  calibration (its lower bound above minimum_share), the probe's held-out reduction against
+  placebo effects of its size on this run (and, for the per-view gains, split-half
+  agreement); a failed one keeps the probe from clearing where it clears.
 - specificity (recon.diagnose.specificity): a gain-like candidate whose gain follows a
   confusable domain is vetoed; details["instead"] names the base-model mismatch (e.g.
   view_dependent_reflectance) when that domain is a mismatch's and the held-out pixels agree.
 - identifiability (recon.diagnose.identifiability): a tone curve with no second intensity of any
   surface point, a falloff measured short of the corners or absorbable by the albedo, a lens
   distortion a per-view pose correction reproduces (judged at its recovered size when it
-  cleared), a directional blur with edges one way only, a white balance whose change from view
+  cleared), a directional blur with edges one way only, a defocus of the reference radius
+  that would not clear its probe's allowance over the fit's own misfit, a white balance whose change from view
   to view hides in the fit's per-view colour noise: details["capture"] says what would
   settle it; the decision makes a miss "not identifiable from this data, because ..." and a
   cleared candidate confusable with a named effect ambiguous.
@@ -53,15 +55,6 @@ from recon.effects.registry import MODEL_EFFECTS
 
 if TYPE_CHECKING:  # producers imports this module to register the checks
     from recon.diagnose.producers import EvidenceInputs
-
-# Clearing evidence besides the probe: a candidate they made significant is not the probe's
-# claim, so the probe's null does not apply to it.
-OTHER_CLEARING = ("absorption", "relight", "flat_field", "fingerprint", "agreement")
-
-
-def _cleared(candidate: Candidate, kind: str) -> bool:
-    evidence = candidate.evidence_of(kind)
-    return evidence is not None and evidence.counts and evidence.passed
 
 
 def agreement_producer(

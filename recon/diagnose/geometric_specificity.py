@@ -13,7 +13,8 @@ other (the signature that is the candidate's own):
 - a motion blur is a per-view smear with no radial structure: on top of it a lens distortion
   has nothing left to remove, while the blur still removes error on top of the distortion.
 
-The check, for each candidate T that cleared and each effect C it is most often confused with
+The check, for each candidate T whose probe could clear under some calibration (its lower bound
+above minimum_share, ``could_clear``) and each effect C it is most often confused with
 (``CONFUSERS``; the issue's list: lens distortion named for a motion blur, a response curve or
 interreflection; blurs and pose errors with spurious lens distortion): the probes of T and C
 fitted jointly on the first half of each held-out view's pixel blocks (the probes' own
