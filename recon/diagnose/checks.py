@@ -148,7 +148,8 @@ def identifiability_producer(
         evidence.append(_as_condition(motion_blur_evidence(inputs.data, options)))
     if "defocus_blur" in names:
         allowance = probe_threshold("defocus_blur", settings.decision)
-        condition = defocus_blur_evidence(inputs.data, options, allowance)
+        explained = _strongest_other_probe(candidates, "defocus_blur")
+        condition = defocus_blur_evidence(inputs.data, options, allowance, explained)
         evidence.append(_as_condition(condition))
     agreement = (
         by_name["white_balance"].evidence_of("agreement") if "white_balance" in names else None
@@ -164,6 +165,24 @@ def identifiability_producer(
         )
         evidence.append(_as_condition(condition))
     return evidence
+
+
+def _strongest_other_probe(candidates: list[Candidate], name: str) -> float:
+    """The largest held-out reduction (point estimate, alone) of the other candidates' probes:
+    the part of the misfit that is another effect's, not the fit's own."""
+    best = 0.0
+    for candidate in candidates:
+        probe = candidate.evidence_of("probe")
+        if candidate.name == name or probe is None or not probe.counts:
+            continue
+        alone = probe.details.get("alone")
+        details = (
+            alone.get("details", {})
+            if probe.details.get("conditional_on") and alone
+            else probe.details
+        )
+        best = max(best, float(details.get("reduction") or 0.0))
+    return best
 
 
 def _recovered_distortion(

@@ -394,7 +394,9 @@ def _blurred(images: torch.Tensor, kernel: torch.Tensor) -> torch.Tensor:
     return out.reshape(batch, channels, height, width).permute(0, 2, 3, 1)
 
 
-def blur_share(data: DiagnosisData, radius: float) -> tuple[float, float, float]:
+def blur_share(
+    data: DiagnosisData, radius: float, explained: float = 0.0
+) -> tuple[float, float, float]:
     """What a defocus of the given radius would add to this fit's held-out misfit, as a share
     of the error a probe recovering it exactly would remove: (share, outline share, outline
     pixels per view).
@@ -402,7 +404,9 @@ def blur_share(data: DiagnosisData, radius: float) -> tuple[float, float, float]
     The blur's change of the render, E (over the diagnosis region), against the fit's misfit R
     there: share = E / (E + R). The outline share counts only the render's coverage edge, the
     part no texture can absorb (the fit learns its texture from blurred views, so inside the
-    object it absorbs part of the blur)."""
+    object it absorbs part of the blur). explained: the share of R another candidate's probe
+    removes (the blur's probe is then measured on top of it, recon.diagnose.which), left out
+    of the misfit."""
     if radius <= 0:
         return 0.0, 0.0, 0.0
     kernel = pillbox_kernel(radius)
@@ -410,7 +414,9 @@ def blur_share(data: DiagnosisData, radius: float) -> tuple[float, float, float]
     alpha = data.rendered_alpha.double()
     outline = ((_blurred(alpha, kernel) - alpha).abs() > 1e-3).double() * region
     change = (_blurred(data.rendered, kernel) - data.rendered.double()) ** 2 * region
-    misfit = float((data.residual.double() ** 2 * region).sum())
+    misfit = float((data.residual.double() ** 2 * region).sum()) * (
+        1 - min(max(explained, 0.0), 1.0)
+    )
     energy, edge = float(change.sum()), float((change * outline).sum())
     return (
         energy / max(energy + misfit, 1e-30),
@@ -420,17 +426,19 @@ def blur_share(data: DiagnosisData, radius: float) -> tuple[float, float, float]
 
 
 def defocus_blur_evidence(
-    data: DiagnosisData, options: IdentifiabilityConfig, allowance: float
+    data: DiagnosisData, options: IdentifiabilityConfig, allowance: float, explained: float = 0.0
 ) -> Evidence:
     """A defocus blur is identifiable when a blur of options.reference_blur_radius would
     remove more of this fit's held-out error than the probe's allowance (``allowance``):
-    otherwise the fit's own misfit hides a blur that size, whatever the probe does. The
+    otherwise the fit's own misfit hides a blur that size, whatever the probe does (explained:
+    the share of the misfit the strongest other candidate's probe removes, blur_share). The
     estimate (blur_share, scaled by options.blur_estimate_factor, what the probe removed over
     it on synthetic blurs) is judged again with each calibration's allowance
     (recon.diagnose.decision, ``details["judged_against"]``)."""
     radius = options.reference_blur_radius
-    estimate, outline_share, outline = blur_share(data, radius)
+    estimate, outline_share, outline = blur_share(data, radius, explained)
     details = {
+        "explained_by_others": explained,
         "expected_share": min(1.0, options.blur_estimate_factor * estimate),
         "estimated_share": estimate,
         "outline_share": outline_share,

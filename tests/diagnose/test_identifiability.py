@@ -170,6 +170,9 @@ def test_a_small_defocus_hidden_by_the_fits_misfit_is_not_identifiable():
     assert not blurred.passed and blurred.statistic < allowance, blurred.reason
     assert "the fit's own misfit hides a blur this size" in blurred.reason
     assert "views in focus" in blurred.details["capture"]
+    # The misfit another candidate explains (its probe's reduction) is not the fit's own: with
+    # nearly all of it explained, the same blur would show.
+    assert defocus_blur_evidence(hidden, options, allowance, explained=0.999).passed
     json.dumps(blurred.to_json())
     # A radius inside the centre pixel is the identity: nothing to identify.
     assert blur_share(close, 0.4)[0] == 0.0
