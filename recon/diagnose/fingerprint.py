@@ -120,6 +120,38 @@ class VisibilityFingerprint:
     def evidence(self, candidate: str) -> FingerprintEvidence:
         return FingerprintEvidence(self, candidate)
 
+    def identifiability(self, candidate: str, config: DecisionConfig) -> Evidence | None:
+        """A failed identifiability condition when the albedo holds a self-shadowing pattern
+        (the slope's bootstrap interval above 0) that placebo lights explain as well as the
+        fitted one (p at or above fingerprint_alpha): baked light transport of this light, or
+        an albedo or fitted mesh that is darker in concavities under any light, which one light
+        cannot tell apart. None when the fingerprint is untestable, shows no such pattern, or
+        beats its placebo lights."""
+        testable = self.placebo_lights > 0 and self.coverage >= config.fingerprint_minimum_coverage
+        if not testable or self.interval[0] <= 0 or self.p_value < config.fingerprint_alpha:
+            return None
+        return Evidence(
+            kind="identifiability",
+            candidate=candidate,
+            statistic=self.p_value,
+            threshold=math.nan,
+            passed=False,
+            reason=(
+                f"the fitted albedo is darker where the fitted mesh hides light (slope "
+                f"{self.slope:.2f}, interval {self.interval[0]:.2f} to {self.interval[1]:.2f}), "
+                f"but as much under placebo lights turned elsewhere (p = {self.p_value:.2g} "
+                f"against {self.placebo_lights}): baked light transport or an albedo darker in "
+                "concavities, which one light cannot tell apart"
+            ),
+            details={
+                "capture": "views under a second, known light whose sun the object shadows "
+                "itself (a relight split)",
+                "slope": self.slope,
+                "interval": list(self.interval),
+                "p_value": self.p_value,
+            },
+        )
+
     def to_json(self, config: DecisionConfig) -> dict:
         return {
             "share": self.share,

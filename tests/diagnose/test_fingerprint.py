@@ -16,7 +16,9 @@ from data_synth.shapes import torus
 from recon.camera import orbit_cameras
 from recon.config.run_config import DecisionConfig, DiagnoseConfig
 from recon.diagnose.data import build_diagnosis_data
+from recon.diagnose.decision import decide
 from recon.diagnose.fingerprint import visibility_fingerprint
+from recon.diagnose.records import Candidate
 from recon.effects.light_transport import (
     rotated_light_visibility,
     rotation_between,
@@ -92,6 +94,7 @@ def test_clean_albedo_has_no_fingerprint(scene):
     assert abs(fingerprint.slope) < 0.1 and fingerprint.share < 0.1, fingerprint
     assert fingerprint.p_value > 0.1
     assert fingerprint.names(DECISION) is None
+    assert fingerprint.identifiability("shadows", DECISION) is None
 
 
 def test_baked_shadows_are_named_shadows_not_interreflection(scene):
@@ -102,6 +105,7 @@ def test_baked_shadows_are_named_shadows_not_interreflection(scene):
     assert fingerprint.p_value < DECISION.fingerprint_alpha
     assert fingerprint.names(DECISION) == "shadows"
     assert not fingerprint.evidence("interreflection").passed_under(DECISION)
+    assert fingerprint.identifiability("shadows", DECISION) is None
 
 
 def test_partly_filled_shadows_are_named_interreflection(scene):
@@ -133,6 +137,13 @@ def test_an_albedo_darker_in_concavities_under_any_light_is_not_named(scene):
     assert fingerprint.slope > DECISION.shadow_share  # the old rule named shadows here
     assert fingerprint.excess < 0 and fingerprint.p_value > 0.1, fingerprint
     assert fingerprint.names(DECISION) is None
+    # Not a silent miss: one light cannot tell it from baked shadows, and the verdict says so.
+    shadows = Candidate("shadows")
+    shadows.add(fingerprint.evidence("shadows").record())
+    shadows.add(fingerprint.identifiability("shadows", DECISION))
+    decide(shadows, DECISION)
+    assert shadows.status == "not_identifiable" and not shadows.significant
+    assert "cannot tell apart" in shadows.why and "second, known light" in shadows.why
 
 
 def test_an_even_light_has_no_placebo_and_names_nothing(scene):
