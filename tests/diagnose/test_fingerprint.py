@@ -19,12 +19,7 @@ from recon.diagnose.data import build_diagnosis_data
 from recon.diagnose.decision import decide
 from recon.diagnose.fingerprint import visibility_fingerprint
 from recon.diagnose.records import Candidate
-from recon.effects.light_transport import (
-    rotated_light_visibility,
-    rotation_between,
-    vertex_light_visibility,
-    vertex_occlusion,
-)
+from recon.effects.light_transport import vertex_light_visibility, vertex_occlusion
 from recon.render.renderer import Renderer
 from recon.render.shading import DirectionalLight, Lighting
 
@@ -69,18 +64,6 @@ def fingerprint_with(scene, darkening: torch.Tensor, lighting: Lighting | None =
 def fingerprint_of(scene, baked_exponent: float):
     """The fingerprint of an albedo with share^exponent of the self-shadowing baked in."""
     return fingerprint_with(scene, scene[2] ** baked_exponent)
-
-
-def test_a_turned_light_is_the_light_turned():
-    mesh = torus(resolution=16)
-    lighting = sky_and_sun()
-    identity = torch.eye(3, dtype=torch.float64)[None]
-    same = rotated_light_visibility(mesh.verts, mesh.faces, lighting, identity)[0]
-    assert torch.allclose(same, vertex_light_visibility(mesh.verts, mesh.faces, lighting))
-    up, side = torch.tensor([0.0, 1.0, 0.0]), torch.tensor([1.0, 0.0, 0.0])
-    turn = rotation_between(up, side)
-    assert torch.allclose(turn @ up.double(), side.double(), atol=1e-12)
-    assert torch.allclose(rotation_between(up, -up) @ up.double(), -up.double(), atol=1e-12)
 
 
 def test_the_torus_shadows_itself(scene):
