@@ -138,8 +138,8 @@ class VisibilityFingerprint:
             passed=False,
             reason=(
                 f"the fitted albedo is darker where the fitted mesh hides light (slope "
-                f"{self.slope:.2f}, interval {self.interval[0]:.2f} to {self.interval[1]:.2f}), "
-                f"but as much under placebo lights turned elsewhere (p = {self.p_value:.2g} "
+                f"{self.slope:.2f}, interval {self.interval[0]:.2f} to {self.interval[1]:.2f}) "
+                f"and as much under placebo lights turned elsewhere (p = {self.p_value:.2g} "
                 f"against {self.placebo_lights}): baked light transport or an albedo darker in "
                 "concavities, which one light cannot tell apart"
             ),
