@@ -1106,6 +1106,14 @@ class LobeConfig:
         20000,
         "Interior object pixels (over all views) the lobe evidence uses at most, an even stride through them: its cost is pixels x placebo lights x exponents.",
     )
+    shading_degree: int = setting(
+        2,
+        "Spherical-harmonic degree (0 to 2) of the shading error the same in every view (the render times a function of the normal) projected out before the lobe is correlated: a misfit of the light or the albedo's shading that a coarse surface cell does not absorb (docs/decisions/0208-response-specular.md).",
+    )
+    image_derivatives: bool = setting(
+        True,
+        "Project out, per view, the render's image gradients and Laplacian (a misalignment's or a blur's first-order change) before the lobe is correlated (docs/decisions/0208-response-specular.md).",
+    )
 
     def __post_init__(self) -> None:
         if not self.exponents or any(value <= 0 for value in self.exponents):
@@ -1117,6 +1125,7 @@ class LobeConfig:
         check_range(
             self.placebo_separation_degrees, "placebo_separation_degrees", low=0.0, high=180.0
         )
+        check_range(self.shading_degree, "shading_degree", low=0, high=2)
 
 
 @dataclass

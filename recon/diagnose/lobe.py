@@ -83,10 +83,12 @@ def project_out(
     cell: torch.Tensor,
     view: torch.Tensor,
     rendered: torch.Tensor,
+    extra: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """values [N, K] with the nuisance space (an offset per cell, a gain on rendered [N] per
-    view) projected out exactly (Frisch-Waugh: cell means out, then the per-view gain columns
-    with their cell means out by least squares); returns [N, K]."""
+    view, and the columns of extra [N, E] if given) projected out exactly (Frisch-Waugh: cell
+    means out, then the other columns with their cell means out by least squares); returns
+    [N, K]."""
     cells = int(cell.max()) + 1 if cell.numel() else 0
     views = int(view.max()) + 1 if view.numel() else 0
     count = torch.zeros(cells, dtype=values.dtype).index_add_(0, cell, torch.ones_like(rendered))
@@ -99,10 +101,13 @@ def project_out(
 
     gains = torch.zeros(values.shape[0], views, dtype=values.dtype)
     gains[torch.arange(values.shape[0]), view] = rendered.to(values.dtype)
+    if extra is not None:
+        gains = torch.cat([gains, extra.to(values.dtype)], dim=1)
     gains = without_cell_means(gains)
     out = without_cell_means(values)
     gram = gains.T @ gains
-    ridge = 1e-9 * gram.diagonal().mean().clamp_min(1e-30) * torch.eye(views, dtype=gram.dtype)
+    size = gram.shape[0]
+    ridge = 1e-9 * gram.diagonal().mean().clamp_min(1e-30) * torch.eye(size, dtype=gram.dtype)
     return out - gains @ torch.linalg.solve(gram + ridge, gains.T @ out)
 
 
@@ -134,14 +139,64 @@ def _pixels(data: DiagnosisData) -> dict[str, torch.Tensor]:
     points, to_camera = view_directions(data)
     normals = torch.nn.functional.normalize(data.normals.double(), dim=-1)
     view = torch.arange(data.view_count)[:, None, None].expand_as(keep)
+    derivatives = image_derivatives(rendered)
     return {
         "residual": residual[keep],
         "rendered": rendered[keep],
+        "derivatives": derivatives[keep],
         "view": view[keep],
         "points": points.double()[keep],
         "normals": normals[keep],
         "to_camera": to_camera.double()[keep],
     }
+
+
+def image_derivatives(luminance: torch.Tensor) -> torch.Tensor:
+    """[B, H, W, 3] the image gradients (d/dx, d/dy, central differences) and the Laplacian of
+    [B, H, W] images (zero at the border): to first order, what a small shift or blur of the
+    render changes."""
+    padded = torch.nn.functional.pad(luminance[:, None], (1, 1, 1, 1), mode="replicate")[:, 0]
+    centre = padded[:, 1:-1, 1:-1]
+    left, right = padded[:, 1:-1, :-2], padded[:, 1:-1, 2:]
+    up, down = padded[:, :-2, 1:-1], padded[:, 2:, 1:-1]
+    return torch.stack(
+        [(right - left) / 2, (down - up) / 2, left + right + up + down - 4 * centre], -1
+    )
+
+
+def normal_functions(normals: torch.Tensor, degree: int) -> torch.Tensor:
+    """[N, K] the real spherical-harmonic polynomials of unit normals [N, 3] of degrees 1 to
+    degree (at most 2; K = 3 or 8; [N, 0] for degree 0), unnormalised."""
+    x, y, z = normals.unbind(-1)
+    columns = []
+    if degree >= 1:
+        columns += [x, y, z]
+    if degree >= 2:
+        columns += [x * y, y * z, x * z, x * x - y * y, 3 * z * z - 1]
+    if not columns:
+        return normals.new_zeros(normals.shape[0], 0)
+    return torch.stack(columns, -1)
+
+
+def nuisance_columns(
+    view: torch.Tensor,
+    rendered: torch.Tensor,
+    normals: torch.Tensor,
+    derivatives: torch.Tensor,
+    settings,
+) -> torch.Tensor:
+    """[N, E] what else leaves a residual the lobe could correlate with, projected out beside
+    the cell offsets and view gains: a shading error the same in every view (the render times
+    a function of the normal, diagnose.lobe.shading_degree) and, per view, the render's image
+    gradients and Laplacian (a misalignment's or blur's first-order change,
+    diagnose.lobe.image_derivatives). A highlight is neither: it follows the half-vector."""
+    columns = [rendered[:, None] * normal_functions(normals, settings.shading_degree)]
+    if settings.image_derivatives:
+        views = int(view.max()) + 1 if view.numel() else 0
+        per_view = torch.zeros(view.shape[0], views, 3, dtype=derivatives.dtype)
+        per_view[torch.arange(view.shape[0]), view] = derivatives
+        columns.append(per_view.flatten(1))
+    return torch.cat(columns, dim=1)
 
 
 def _light_per_pixel(data: DiagnosisData, direction: torch.Tensor, view: torch.Tensor):
@@ -199,6 +254,7 @@ def lobe_statistic(
     residual, rendered = joined("residual")[keep], joined("rendered")[keep]
     normals, to_camera = joined("normals")[keep], joined("to_camera")[keep]
     cell = surface_cells(joined("points")[keep], lobe.cells_per_axis)
+    extra = nuisance_columns(view, rendered, normals, joined("derivatives")[keep], lobe)
     exponents = list(lobe.exponents)
 
     def light_rows(candidate: torch.Tensor) -> torch.Tensor:
@@ -211,7 +267,7 @@ def lobe_statistic(
     separation = math.cos(math.radians(lobe.placebo_separation_degrees))
     placebos = placebos[(placebos @ direction) < separation]
     directions = torch.cat([direction[None], placebos])
-    residual_p = project_out(residual[:, None], cell, view, rendered)[:, 0]
+    residual_p = project_out(residual[:, None], cell, view, rendered, extra)[:, 0]
     scores = []
     # Projection is linear: the lights' lobes are projected in chunks (memory).
     for chunk in directions.split(LIGHTS_PER_CHUNK):
@@ -219,7 +275,7 @@ def lobe_statistic(
             [lobe_features(normals, to_camera, light_rows(item), exponents) for item in chunk],
             dim=1,
         )
-        projected = project_out(features, cell, view, rendered)
+        projected = project_out(features, cell, view, rendered, extra)
         for index in range(chunk.shape[0]):
             block = projected[:, index * len(exponents) : (index + 1) * len(exponents)]
             scores.append(_best_correlation(residual_p, block))

@@ -113,3 +113,56 @@ def test_the_producer_is_registered_and_measures_training_and_heldout_views_toge
     assert evidence[0].details["views"] == 15 and evidence[0].passed, evidence[0].reason
     disabled = replace(SETTINGS, lobe=replace(SETTINGS.lobe, enabled=False))
     assert lobe_producer(inputs, candidates, disabled) == []
+
+
+def _blurred(observed: torch.Tensor, output) -> torch.Tensor:
+    """A defocus-like blur of the observed views: two passes of a 3x3 binomial kernel."""
+    image = observed.permute(0, 3, 1, 2)
+    kernel = torch.tensor([[1.0, 2.0, 1.0], [2.0, 4.0, 2.0], [1.0, 2.0, 1.0]]) / 16
+    kernel = kernel[None, None].repeat(image.shape[1], 1, 1, 1)
+    for _ in range(2):
+        padded = torch.nn.functional.pad(image, (1, 1, 1, 1), mode="replicate")
+        image = torch.nn.functional.conv2d(padded, kernel, groups=image.shape[1])
+    return image.permute(0, 2, 3, 1)
+
+
+def test_the_nuisance_columns_are_a_shading_error_and_per_view_image_derivatives():
+    from recon.diagnose.lobe import image_derivatives, normal_functions, nuisance_columns
+
+    ramp = torch.arange(5, dtype=torch.float64)[None, None, :].expand(2, 4, 5)
+    derivatives = image_derivatives(ramp)
+    # A ramp along x: gradient 1 inside (half a step at the replicated border), no y gradient,
+    # no curvature inside.
+    assert torch.allclose(derivatives[:, :, 1:-1, 0], torch.ones(2, 4, 3, dtype=torch.float64))
+    assert float(derivatives[..., 1].abs().max()) == 0.0
+    assert float(derivatives[:, :, 1:-1, 2].abs().max()) == 0.0
+    normals = torch.nn.functional.normalize(torch.randn(7, 3, dtype=torch.float64), dim=-1)
+    assert normal_functions(normals, 2).shape == (7, 8)
+    assert normal_functions(normals, 0).shape == (7, 0)
+    view = torch.tensor([0, 0, 1, 1, 1, 0, 1])
+    columns = nuisance_columns(
+        view,
+        torch.ones(7, dtype=torch.float64),
+        normals,
+        torch.randn(7, 3, dtype=torch.float64),
+        LobeConfig(shading_degree=1),
+    )
+    # 3 shading columns, then 3 per view; a view's columns are zero on the other view's pixels.
+    assert columns.shape == (7, 3 + 2 * 3)
+    assert float(columns[view == 1][:, 3:6].abs().max()) == 0.0
+    assert float(columns[view == 0][:, 6:].abs().max()) == 0.0
+
+
+def test_a_blurred_lambertian_object_gives_no_lobe_a_glossy_one_still_does():
+    # Built to fool it: a blur changes the shading where it curves, under the fitted light only
+    # (placebo lights do not reproduce it); without the per-view image derivatives projected
+    # out, that light-specific view-to-view residual reads as a lobe.
+    settings = DiagnoseConfig(lobe=LobeConfig(placebo_lights=120))
+    blurred, _ = glossy_torus_views(views=12, size=40, specular=0.0, transform=_blurred)
+    evidence = lobe_evidence([blurred], "specular", settings)
+    assert not evidence.passed, evidence.reason
+    glossy, _ = glossy_torus_views(
+        views=12, size=40, specular=0.3, shininess=30.0, transform=_blurred
+    )
+    measured = lobe_statistic([glossy], settings)
+    assert measured["p_value"] < 0.01 and measured["correlation"] > 0.5, measured
