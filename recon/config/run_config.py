@@ -887,8 +887,8 @@ class DecisionConfig:
         "Floor of every lobe allowance: an excess correlation of 0.02 over the placebo lights' 95th percentile.",
     )
     lobe_alpha: float = setting(
-        0.01,
-        "Level of the lobe's placebo-light test (the share of placebo lights reaching the fitted light's correlation): conventional, not tuned.",
+        0.05,
+        "Level of the lobe's placebo-light test (the share of placebo lights reaching the fitted light's correlation): the level of the 95th percentile its excess is measured over, not tuned; at 0.01 it asked to beat every one of ~170 placebo lights (docs/decisions/0208-response-specular.md).",
     )
     cast_shadow_minimum: float = setting(
         0.05,
@@ -1106,13 +1106,9 @@ class LobeConfig:
         20000,
         "Interior object pixels (over all views) the lobe evidence uses at most, an even stride through them: its cost is pixels x placebo lights x exponents.",
     )
-    shading_degree: int = setting(
-        2,
-        "Spherical-harmonic degree (0 to 2) of the shading error the same in every view (the render times a function of the normal) projected out before the lobe is correlated: a misfit of the light or the albedo's shading that a coarse surface cell does not absorb (docs/decisions/0208-response-specular.md).",
-    )
-    image_derivatives: bool = setting(
+    blur_nuisance: bool = setting(
         True,
-        "Project out, per view, the render's image gradients and Laplacian (a misalignment's or a blur's first-order change) before the lobe is correlated (docs/decisions/0208-response-specular.md).",
+        "Project out, per view, the render's image Laplacian (a blur's first-order change, which follows the fitted light but not the half-vector) before the lobe is correlated (docs/decisions/0208-response-specular.md).",
     )
 
     def __post_init__(self) -> None:
@@ -1125,7 +1121,6 @@ class LobeConfig:
         check_range(
             self.placebo_separation_degrees, "placebo_separation_degrees", low=0.0, high=180.0
         )
-        check_range(self.shading_degree, "shading_degree", low=0, high=2)
 
 
 @dataclass

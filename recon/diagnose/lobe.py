@@ -139,11 +139,11 @@ def _pixels(data: DiagnosisData) -> dict[str, torch.Tensor]:
     points, to_camera = view_directions(data)
     normals = torch.nn.functional.normalize(data.normals.double(), dim=-1)
     view = torch.arange(data.view_count)[:, None, None].expand_as(keep)
-    derivatives = image_derivatives(rendered)
+    laplacian = image_laplacian(rendered)
     return {
         "residual": residual[keep],
         "rendered": rendered[keep],
-        "derivatives": derivatives[keep],
+        "laplacian": laplacian[keep],
         "view": view[keep],
         "points": points.double()[keep],
         "normals": normals[keep],
@@ -151,52 +151,23 @@ def _pixels(data: DiagnosisData) -> dict[str, torch.Tensor]:
     }
 
 
-def image_derivatives(luminance: torch.Tensor) -> torch.Tensor:
-    """[B, H, W, 3] the image gradients (d/dx, d/dy, central differences) and the Laplacian of
-    [B, H, W] images (zero at the border): to first order, what a small shift or blur of the
-    render changes."""
+def image_laplacian(luminance: torch.Tensor) -> torch.Tensor:
+    """[B, H, W] the 5-point Laplacian of [B, H, W] images (borders replicated): to first
+    order, what a small blur of the render changes (a blur by a kernel of variance s^2 adds
+    s^2 / 2 times it)."""
     padded = torch.nn.functional.pad(luminance[:, None], (1, 1, 1, 1), mode="replicate")[:, 0]
     centre = padded[:, 1:-1, 1:-1]
-    left, right = padded[:, 1:-1, :-2], padded[:, 1:-1, 2:]
-    up, down = padded[:, :-2, 1:-1], padded[:, 2:, 1:-1]
-    return torch.stack(
-        [(right - left) / 2, (down - up) / 2, left + right + up + down - 4 * centre], -1
-    )
+    neighbours = padded[:, 1:-1, :-2] + padded[:, 1:-1, 2:] + padded[:, :-2, 1:-1]
+    return neighbours + padded[:, 2:, 1:-1] - 4 * centre
 
 
-def normal_functions(normals: torch.Tensor, degree: int) -> torch.Tensor:
-    """[N, K] the real spherical-harmonic polynomials of unit normals [N, 3] of degrees 1 to
-    degree (at most 2; K = 3 or 8; [N, 0] for degree 0), unnormalised."""
-    x, y, z = normals.unbind(-1)
-    columns = []
-    if degree >= 1:
-        columns += [x, y, z]
-    if degree >= 2:
-        columns += [x * y, y * z, x * z, x * x - y * y, 3 * z * z - 1]
-    if not columns:
-        return normals.new_zeros(normals.shape[0], 0)
-    return torch.stack(columns, -1)
-
-
-def nuisance_columns(
-    view: torch.Tensor,
-    rendered: torch.Tensor,
-    normals: torch.Tensor,
-    derivatives: torch.Tensor,
-    settings,
-) -> torch.Tensor:
-    """[N, E] what else leaves a residual the lobe could correlate with, projected out beside
-    the cell offsets and view gains: a shading error the same in every view (the render times
-    a function of the normal, diagnose.lobe.shading_degree) and, per view, the render's image
-    gradients and Laplacian (a misalignment's or blur's first-order change,
-    diagnose.lobe.image_derivatives). A highlight is neither: it follows the half-vector."""
-    columns = [rendered[:, None] * normal_functions(normals, settings.shading_degree)]
-    if settings.image_derivatives:
-        views = int(view.max()) + 1 if view.numel() else 0
-        per_view = torch.zeros(view.shape[0], views, 3, dtype=derivatives.dtype)
-        per_view[torch.arange(view.shape[0]), view] = derivatives
-        columns.append(per_view.flatten(1))
-    return torch.cat(columns, dim=1)
+def blur_columns(view: torch.Tensor, laplacian: torch.Tensor) -> torch.Tensor:
+    """[N, B] the render's Laplacian [N] of each view, one column per view (zero on the other
+    views' pixels): a blur's first-order change, with its own strength in every view."""
+    views = int(view.max()) + 1 if view.numel() else 0
+    columns = torch.zeros(view.shape[0], views, dtype=laplacian.dtype)
+    columns[torch.arange(view.shape[0]), view] = laplacian
+    return columns
 
 
 def _light_per_pixel(data: DiagnosisData, direction: torch.Tensor, view: torch.Tensor):
@@ -254,7 +225,9 @@ def lobe_statistic(
     residual, rendered = joined("residual")[keep], joined("rendered")[keep]
     normals, to_camera = joined("normals")[keep], joined("to_camera")[keep]
     cell = surface_cells(joined("points")[keep], lobe.cells_per_axis)
-    extra = nuisance_columns(view, rendered, normals, joined("derivatives")[keep], lobe)
+    # A blur changes the shading where it curves, under the fitted light only (placebo lights
+    # do not reproduce it): its first-order change is projected out with the nuisances.
+    extra = blur_columns(view, joined("laplacian")[keep]) if lobe.blur_nuisance else None
     exponents = list(lobe.exponents)
 
     def light_rows(candidate: torch.Tensor) -> torch.Tensor:

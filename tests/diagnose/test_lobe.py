@@ -116,53 +116,45 @@ def test_the_producer_is_registered_and_measures_training_and_heldout_views_toge
 
 
 def _blurred(observed: torch.Tensor, output) -> torch.Tensor:
-    """A defocus-like blur of the observed views: two passes of a 3x3 binomial kernel."""
+    """A small defocus-like blur of the observed views: a 3x3 binomial kernel (variance 0.5 px^2
+    per axis)."""
     image = observed.permute(0, 3, 1, 2)
     kernel = torch.tensor([[1.0, 2.0, 1.0], [2.0, 4.0, 2.0], [1.0, 2.0, 1.0]]) / 16
     kernel = kernel[None, None].repeat(image.shape[1], 1, 1, 1)
-    for _ in range(2):
-        padded = torch.nn.functional.pad(image, (1, 1, 1, 1), mode="replicate")
-        image = torch.nn.functional.conv2d(padded, kernel, groups=image.shape[1])
-    return image.permute(0, 2, 3, 1)
+    padded = torch.nn.functional.pad(image, (1, 1, 1, 1), mode="replicate")
+    return torch.nn.functional.conv2d(padded, kernel, groups=image.shape[1]).permute(0, 2, 3, 1)
 
 
-def test_the_nuisance_columns_are_a_shading_error_and_per_view_image_derivatives():
-    from recon.diagnose.lobe import image_derivatives, normal_functions, nuisance_columns
+def test_the_blur_nuisance_is_the_render_laplacian_of_each_view_on_its_own_pixels():
+    from recon.diagnose.lobe import blur_columns, image_laplacian
 
-    ramp = torch.arange(5, dtype=torch.float64)[None, None, :].expand(2, 4, 5)
-    derivatives = image_derivatives(ramp)
-    # A ramp along x: gradient 1 inside (half a step at the replicated border), no y gradient,
-    # no curvature inside.
-    assert torch.allclose(derivatives[:, :, 1:-1, 0], torch.ones(2, 4, 3, dtype=torch.float64))
-    assert float(derivatives[..., 1].abs().max()) == 0.0
-    assert float(derivatives[:, :, 1:-1, 2].abs().max()) == 0.0
-    normals = torch.nn.functional.normalize(torch.randn(7, 3, dtype=torch.float64), dim=-1)
-    assert normal_functions(normals, 2).shape == (7, 8)
-    assert normal_functions(normals, 0).shape == (7, 0)
-    view = torch.tensor([0, 0, 1, 1, 1, 0, 1])
-    columns = nuisance_columns(
-        view,
-        torch.ones(7, dtype=torch.float64),
-        normals,
-        torch.randn(7, 3, dtype=torch.float64),
-        LobeConfig(shading_degree=1),
+    rows, columns = torch.meshgrid(
+        torch.arange(6, dtype=torch.float64), torch.arange(7, dtype=torch.float64), indexing="ij"
     )
-    # 3 shading columns, then 3 per view; a view's columns are zero on the other view's pixels.
-    assert columns.shape == (7, 3 + 2 * 3)
-    assert float(columns[view == 1][:, 3:6].abs().max()) == 0.0
-    assert float(columns[view == 0][:, 6:].abs().max()) == 0.0
+    # x^2 + 2 y^2: Laplacian 2 + 4 = 6 inside (the replicated border bends it).
+    laplacian = image_laplacian((columns**2 + 2 * rows**2)[None].expand(2, 6, 7))
+    assert torch.allclose(laplacian[:, 1:-1, 1:-1], torch.full((2, 4, 5), 6.0, dtype=torch.float64))
+    # A gaussian blur of variance s^2 adds s^2 / 2 x the Laplacian to a smooth image.
+    view = torch.tensor([0, 0, 1, 1, 1, 0, 1])
+    values = torch.arange(1.0, 8.0, dtype=torch.float64)
+    per_view = blur_columns(view, values)
+    assert per_view.shape == (7, 2)
+    assert torch.equal(per_view.sum(1), values)
+    assert float(per_view[view == 1, 0].abs().max()) == 0.0
 
 
 def test_a_blurred_lambertian_object_gives_no_lobe_a_glossy_one_still_does():
     # Built to fool it: a blur changes the shading where it curves, under the fitted light only
-    # (placebo lights do not reproduce it); without the per-view image derivatives projected
-    # out, that light-specific view-to-view residual reads as a lobe.
+    # (placebo lights do not reproduce it), so without its first-order change projected out the
+    # light-specific view-to-view residual reads as a lobe.
     settings = DiagnoseConfig(lobe=LobeConfig(placebo_lights=120))
-    blurred, _ = glossy_torus_views(views=12, size=40, specular=0.0, transform=_blurred)
+    blurred, _ = glossy_torus_views(views=12, size=64, specular=0.0, transform=_blurred)
     evidence = lobe_evidence([blurred], "specular", settings)
     assert not evidence.passed, evidence.reason
+    unguarded = replace(settings, lobe=replace(settings.lobe, blur_nuisance=False))
+    assert lobe_evidence([blurred], "specular", unguarded).passed
     glossy, _ = glossy_torus_views(
-        views=12, size=40, specular=0.3, shininess=30.0, transform=_blurred
+        views=12, size=64, specular=0.3, shininess=30.0, transform=_blurred
     )
     measured = lobe_statistic([glossy], settings)
     assert measured["p_value"] < 0.01 and measured["correlation"] > 0.5, measured
