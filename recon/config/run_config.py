@@ -1280,6 +1280,10 @@ class DiagnoseConfig:
         factory=CastShadowConfig,
         doc="The cast-shadow evidence: the relight split's residual against the relight sun's shadow from the fitted mesh.",
     )
+    relight_compressive_only: bool = setting(
+        True,
+        "The relight probe credits only a compressive curve (exponent below 1 on the shading ratio, what a camera's response does to highlights); an expanding one (a highlight under the relight sun that the diffuse fit lacks) removes nothing (docs/decisions/0208-response-specular.md).",
+    )
 
     def __post_init__(self) -> None:
         for name in (
