@@ -17,8 +17,11 @@ only: silhouette pixels carry the misalignment):
    f_e = max(0, n.l) (e + 8) / (8 pi) max(0, n.h)^e [N];
 2. both with the nuisances the fit could have absorbed or a camera could have made projected
    out: one offset per surface cell (a voxel grid over the object's surface points,
-   diagnose.lobe.cells_per_axis per axis: the albedo) and one gain per view on the render
-   (an exposure); an exact least-squares projection;
+   diagnose.lobe.cells_per_axis per axis: the albedo), one gain per view on the render
+   (an exposure) and one coefficient per view on the render's image Laplacian (a blur's
+   first-order change, diagnose.lobe.blur_nuisance: a blur changes the shading where it
+   curves, under the fitted light only, so placebo lights would not reproduce it); an exact
+   least-squares projection;
 3. the largest partial correlation of r with f_e over the exponents (a highlight adds light:
    only a positive one counts);
 4. its null: the same statistic with the light replaced by placebo lights
