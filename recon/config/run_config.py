@@ -883,8 +883,8 @@ class DecisionConfig:
         "Floor of every lobe allowance: an excess correlation of 0.02 over the placebo lights' 95th percentile.",
     )
     lobe_alpha: float = setting(
-        0.01,
-        "Level of the lobe's placebo-light test (the share of placebo lights reaching the fitted light's correlation): conventional, not tuned.",
+        0.05,
+        "Level of the lobe's placebo-light test (the share of placebo lights reaching the fitted light's correlation): the level of the 95th percentile its excess is measured over, not tuned; at 0.01 it asked to beat every one of ~170 placebo lights (docs/decisions/0208-response-specular.md).",
     )
     cast_shadow_minimum: float = setting(
         0.05,
@@ -1123,6 +1123,10 @@ class LobeConfig:
         20000,
         "Interior object pixels (over all views) the lobe evidence uses at most, an even stride through them: its cost is pixels x placebo lights x exponents.",
     )
+    blur_nuisance: bool = setting(
+        True,
+        "Project out, per view, the render's image Laplacian (a blur's first-order change, which follows the fitted light but not the half-vector) before the lobe is correlated (docs/decisions/0208-response-specular.md).",
+    )
 
     def __post_init__(self) -> None:
         if not self.exponents or any(value <= 0 for value in self.exponents):
@@ -1317,6 +1321,10 @@ class DiagnoseConfig:
     fingerprint: FingerprintConfig = setting(
         factory=FingerprintConfig,
         doc="The visibility fingerprint: the fitted albedo against the fitted mesh's self-shadowing, beyond placebo lights.",
+    )
+    relight_compressive_only: bool = setting(
+        True,
+        "The relight probe credits only a compressive curve (exponent below 1 on the shading ratio, what a camera's response does to highlights); an expanding one (a highlight under the relight sun that the diffuse fit lacks) removes nothing (docs/decisions/0208-response-specular.md).",
     )
 
     def __post_init__(self) -> None:
