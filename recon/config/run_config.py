@@ -1046,7 +1046,18 @@ class IdentifiabilityConfig:
         "Per-view white-balance change judged (RMS log gain of red and blue over green; 5 %, an auto white balance wandering some 600 K around daylight): identifiable when the agreement's test names a change this small over the fit's per-view colour noise.",
     )
 
+    reference_blur_radius: float = setting(
+        1.0,
+        "Defocus judged by the identifiability check (pillbox radius, pixels; 1 px: the smallest whose disk reaches the neighbouring pixels): would a blur this size clear the probe's allowance over this fit's misfit?",
+    )
+    blur_estimate_factor: float = setting(
+        2.3,
+        "What the defocus probe removes over the identifiability check's estimate (the reference blur's change of the render against the fit's misfit), the largest measured: 1.0-2.3 on the blind check's ten 1 px synthetic defocus cases (docs/decisions/0209-geometric-misses.md), so 'not identifiable' is said only below the allowance even then.",
+    )
+
     def __post_init__(self) -> None:
+        check_range(self.reference_blur_radius, "reference_blur_radius", low=0.0)
+        check_range(self.blur_estimate_factor, "blur_estimate_factor", low=0.0)
         check_range(self.white_balance_reference_spread, "white_balance_reference_spread", low=0.0)
         check_range(self.minimum_exposure_ratio, "minimum_exposure_ratio", low=1.0)
         check_range(self.corner_radius, "corner_radius", low=0.0, high=2.0)
