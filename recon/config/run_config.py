@@ -1276,6 +1276,14 @@ class DiagnoseConfig:
         factory=CastShadowConfig,
         doc="The cast-shadow evidence: the relight split's residual against the relight sun's shadow from the fitted mesh.",
     )
+    colour_erode_pixels: int = setting(
+        1,
+        "Pixels the agreement's per-view colour gains leave out inside the silhouettes of both the photo and the render (recon.diagnose.agreement): a silhouette pixel's colour ratio is the coverage misfit's.",
+    )
+    colour_dark_fraction: float = setting(
+        0.02,
+        "The agreement's per-view colour gains leave out pixels darker than this share of the view's brightest (photo or render): their colour ratios are noise.",
+    )
 
     def __post_init__(self) -> None:
         for name in (
@@ -1290,6 +1298,8 @@ class DiagnoseConfig:
         ):
             check_range(getattr(self, name), name, low=1)
         check_range(self.band_pixels, "band_pixels", low=0)
+        check_range(self.colour_erode_pixels, "colour_erode_pixels", low=0)
+        check_range(self.colour_dark_fraction, "colour_dark_fraction", low=0.0, high=1.0)
         check_range(self.regression_interior_margin, "regression_interior_margin", low=0)
         for name in (
             "relight_shadowed_share",

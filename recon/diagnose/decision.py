@@ -17,7 +17,8 @@ absorption    clear         the same for the absorption refit (unless voided)
 relight       clear         the same for the relight split's probe
 agreement     clear         a per-view colour gain shared by separate halves of each view
                             above its allowance, beyond permuted views (recon.diagnose.agreement);
-                            a specificity veto in the image position alone does not overturn it
+                            its halves split the image position, intensity, n.h and n.v, so a
+                            specificity veto in those domains alone does not overturn it
 lobe          clear         the view-to-view residual (training and held-out views) follows a
                             highlight's lobe under the fitted light beyond placebo lights
                             (recon.diagnose.lobe); ranks after clearing residual evidence
@@ -154,8 +155,8 @@ class Rule:
         pattern of the held-out residual, does not overturn it.
     settles: specificity domains (recon.diagnose.specificity) this evidence tests itself: a
         specificity veto whose failing domains (details["failing_domains"]) all lie among
-        them does not overturn it (the agreement's separate halves of each view share the
-        colour change: it is not a profile of the image position).
+        them does not overturn it (the agreement's halves of each view, split by image position,
+        intensity, n.h and n.v, share the colour change: it is no profile of those domains).
     """
 
     kind: str
@@ -214,7 +215,7 @@ DECISION_TABLE: tuple[Rule, ...] = (
         threshold=agreement_threshold,
         passes=_agrees,
         parameters_from=("probe",),
-        settles=("image_position",),
+        settles=("image_position", "intensity", "n_dot_h", "n_dot_v"),
     ),
     Rule(
         "lobe",
