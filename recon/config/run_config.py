@@ -1284,6 +1284,10 @@ class DiagnoseConfig:
         0.02,
         "The agreement's per-view colour gains leave out pixels darker than this share of the view's brightest (photo or render): their colour ratios are noise.",
     )
+    colour_highlight_powers: list[int] = setting(
+        factory=lambda: [1, 8],
+        doc="Powers p of n.h whose per-view mean (how much of a highlight's lobe a view shows: a broad and a narrow lobe) the agreement removes from the views' colour gains with their brightness, so that a coloured highlight is not a white balance (recon.diagnose.agreement.view_covariates).",
+    )
 
     def __post_init__(self) -> None:
         for name in (
@@ -1300,6 +1304,8 @@ class DiagnoseConfig:
         check_range(self.band_pixels, "band_pixels", low=0)
         check_range(self.colour_erode_pixels, "colour_erode_pixels", low=0)
         check_range(self.colour_dark_fraction, "colour_dark_fraction", low=0.0, high=1.0)
+        for power in self.colour_highlight_powers:
+            check_range(power, "colour_highlight_powers", low=1)
         check_range(self.regression_interior_margin, "regression_interior_margin", low=0)
         for name in (
             "relight_shadowed_share",

@@ -130,17 +130,65 @@ def colour_gains(
     return gains - gains.mean(dim=0, keepdim=True)
 
 
+def view_covariates(data: DiagnosisData, settings: DiagnoseConfig = DEFAULTS) -> torch.Tensor:
+    """Per-view quantities [B, K] a view's colour may follow without any white balance: the mean
+    of (n.h)^p over the view's interior pixels for each p of settings.colour_highlight_powers
+    (weighted by the rendered luminance: how much of a highlight's lobe the view shows, from the
+    fitted geometry and light alone, so an exposure does not move it), and the view's median
+    log ratio of observed over rendered green (how much brighter than the model the view is). A
+    coloured highlight (a metal's: gold's is gold) tints a view by how much of it the view
+    shows, so its per-view colour follows these; a camera's white balance does not."""
+    weight = interior(data, settings.colour_erode_pixels)[..., 0]
+    n_dot_h, _ = _angles(data)
+    n_dot_h = n_dot_h.clamp_min(0.0)
+    observed, rendered = data.observed.double(), data.rendered.double()
+    luminance = rendered.mean(dim=-1) * weight
+    total = luminance.sum(dim=(1, 2)).clamp_min(1e-30)
+    columns = [
+        (n_dot_h.pow(power) * luminance).sum(dim=(1, 2)) / total
+        for power in settings.colour_highlight_powers
+    ]
+    green = torch.log(observed[..., 1].clamp_min(1e-6)) - torch.log(
+        rendered[..., 1].clamp_min(1e-6)
+    )
+    brightness = torch.zeros(observed.shape[0], dtype=torch.float64)
+    for view in range(observed.shape[0]):
+        inside = weight[view] > 0
+        if inside.any():
+            brightness[view] = green[view][inside].median()
+    columns.append(brightness)
+    return torch.stack(columns, dim=1)
+
+
+def residual_projection(covariates: torch.Tensor) -> tuple[torch.Tensor, int]:
+    """The projection [B, B] onto what the views' centring and covariates [B, K] do not explain,
+    and the degrees of freedom it leaves (B minus the rank of [1, covariates]). With too few
+    views to spare (fewer than 3 left), only the centring."""
+    views = covariates.shape[0]
+    centred = covariates.double() - covariates.double().mean(dim=0, keepdim=True)
+    # Unit columns: the rank sees which covariates vary over views, whatever their units.
+    centred = centred / centred.norm(dim=0, keepdim=True).clamp_min(1e-30)
+    design = torch.cat([torch.ones(views, 1, dtype=torch.float64) / views**0.5, centred], dim=1)
+    rank = int(torch.linalg.matrix_rank(design, rtol=1e-6))
+    if views - rank < 3:
+        design, rank = torch.ones(views, 1, dtype=torch.float64), 1
+    projection = torch.eye(views, dtype=torch.float64) - design @ torch.linalg.pinv(design)
+    return projection, views - rank
+
+
 def split_gains(
     data: DiagnosisData, settings: DiagnoseConfig = DEFAULTS
-) -> tuple[torch.Tensor, torch.Tensor]:
+) -> tuple[torch.Tensor, torch.Tensor, int]:
     """The per-view colour gains [B, 2 x len(SPLITS)] of the first and second halves of every
-    split (red and blue over green), each centred over views, on the interior pixels."""
+    split (red and blue over green) on the interior pixels, with what the views' covariates
+    (view_covariates) explain removed, and the degrees of freedom left over views."""
     weight = interior(data, settings.colour_erode_pixels)
     first, second = [], []
     for one, other in half_masks(data, weight):
         first.append(colour_gains(data, one, settings.colour_dark_fraction))
         second.append(colour_gains(data, other, settings.colour_dark_fraction))
-    return torch.cat(first, dim=1), torch.cat(second, dim=1)
+    projection, freedom = residual_projection(view_covariates(data, settings))
+    return projection @ torch.cat(first, dim=1), projection @ torch.cat(second, dim=1), freedom
 
 
 def spread_statistics(
@@ -154,12 +202,13 @@ def spread_statistics(
     split) is weighted by 1 / its variance over views (both halves pooled: the same weights
     under any permutation of the views): a channel the object hardly reflects (the blue of a
     gold or brown object) has ratios ten times noisier than the others and would otherwise
-    decide alone.
+    decide alone. Moments over views are divided by the degrees of freedom the covariates
+    leave (split_gains), so that the spread is a per-view RMS whatever was removed.
 
     spread: the per-view colour change both halves share, sqrt of their weighted covariance
       over views (an RMS log gain; 0 when negative); correlation and p_value: the weighted
       correlation of the halves and the share of view permutations of one half reaching it;
-      views: B.
+      views: B; freedom: the degrees of freedom over views.
     noise: the weighted RMS log gain by which one half's per-view colour misses the view's own,
       from the halves' difference (a white balance is the same in both halves and cancels in
       it): the fit's colour misfit as the per-view gains see it.
@@ -167,12 +216,12 @@ def spread_statistics(
       RMS s over noise n gives halves that correlate by s^2 / (s^2 + n^2), and the test needs the
       (1 - alpha) quantile r of the permutation null, so s = n sqrt(r / (1 - r)).
     """
-    one, other = split_gains(data, settings)
-    variance = (one.pow(2).mean(dim=0) + other.pow(2).mean(dim=0)) / 2
+    one, other, freedom = split_gains(data, settings)
+    variance = (one.pow(2).sum(dim=0) + other.pow(2).sum(dim=0)) / (2 * freedom)
     weights = 1.0 / variance.clamp_min(1e-12)
     weights = weights / weights.sum()
-    covariance = float((weights * (one * other).mean(dim=0)).sum())
-    noise = float((weights * (one - other).pow(2).mean(dim=0) / 2).sum().sqrt())
+    covariance = float((weights * (one * other).sum(dim=0)).sum()) / freedom
+    noise = (float((weights * (one - other).pow(2).sum(dim=0)).sum()) / (2 * freedom)) ** 0.5
     scaled_one, scaled_other = one * weights.sqrt(), other * weights.sqrt()
     scale = (scaled_one.pow(2).sum() * scaled_other.pow(2).sum()).sqrt().clamp_min(1e-30)
     correlation = float((scaled_one * scaled_other).sum() / scale)
@@ -185,6 +234,7 @@ def spread_statistics(
         "correlation": correlation,
         "p_value": p_value,
         "views": int(one.shape[0]),
+        "freedom": freedom,
         "noise": noise,
         "critical_correlation": critical,
         "detectable": detectable,

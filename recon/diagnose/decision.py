@@ -155,7 +155,7 @@ class Rule:
         pattern of the held-out residual, does not overturn it.
     settles: specificity domains (recon.diagnose.specificity) this evidence tests itself: a
         specificity veto whose failing domains (details["failing_domains"]) all lie among
-        them does not overturn it (the agreement's halves of each view, split by image position,
+        them does not overturn a candidate this evidence passed for (whichever row decided it) (the agreement's halves of each view, split by image position,
         intensity, n.h and n.v, share the colour change: it is no profile of those domains).
     """
 
@@ -312,8 +312,18 @@ def decide(candidate: Candidate, config: DecisionConfig) -> Candidate:
         # Measured on other data (flat-field frames, the relight split): the held-out
         # residual's pattern (specificity) does not overturn it; the capture's record does.
         vetoes = [item for item in vetoes if item.kind != "specificity"]
-    if deciding is not None and RULES[deciding.kind].settles:
-        vetoes = [item for item in vetoes if not _settled(item, RULES[deciding.kind].settles)]
+    if deciding is not None:
+        # Any clearing evidence that passed and tests a domain itself settles a veto in it
+        # (the probe may clear first, the agreement's halves still tested those domains).
+        settled = {
+            domain
+            for item in _role_evidence(candidate, "clear")
+            if item.passed
+            for domain in RULES[item.kind].settles
+        }
+        settled |= set(RULES[deciding.kind].settles)
+        if settled:
+            vetoes = [item for item in vetoes if not _settled(item, tuple(sorted(settled)))]
     if vetoes and status == "significant":
         status, why = "vetoed", vetoes[0].reason
     unidentifiable = [item for item in _role_evidence(candidate, "qualify") if not item.passed]
