@@ -1288,6 +1288,13 @@ class DiagnoseConfig:
         factory=lambda: [1, 8],
         doc="Powers p of n.h whose per-view mean (how much of a highlight's lobe a view shows: a broad and a narrow lobe) the agreement removes from the views' colour gains with their brightness, so that a coloured highlight is not a white balance (recon.diagnose.agreement.view_covariates).",
     )
+    exposure_highlight_powers: list[int] = setting(
+        factory=lambda: [1, 4, 16, 64],
+        doc="Powers of n.h of the highlight lobe that the exposure's per-view gains are read apart from (recon.diagnose.camera_gain): from a broad lobe to a narrow one.",
+    )
+    exposure_gain_iterations: int = setting(
+        30, "Alternating least-squares steps of the exposure's highlight-free per-view gains."
+    )
 
     def __post_init__(self) -> None:
         for name in (
@@ -1306,6 +1313,9 @@ class DiagnoseConfig:
         check_range(self.colour_dark_fraction, "colour_dark_fraction", low=0.0, high=1.0)
         for power in self.colour_highlight_powers:
             check_range(power, "colour_highlight_powers", low=1)
+        for power in self.exposure_highlight_powers:
+            check_range(power, "exposure_highlight_powers", low=1)
+        check_range(self.exposure_gain_iterations, "exposure_gain_iterations", low=1)
         check_range(self.regression_interior_margin, "regression_interior_margin", low=0)
         for name in (
             "relight_shadowed_share",

@@ -51,7 +51,7 @@ def interior(data: DiagnosisData, erode_pixels: int) -> torch.Tensor:
     return mask.permute(0, 2, 3, 1).contiguous()
 
 
-def _angles(data: DiagnosisData) -> tuple[torch.Tensor, torch.Tensor]:
+def surface_angles(data: DiagnosisData) -> tuple[torch.Tensor, torch.Tensor]:
     """n.h (against the fitted light's main direction, n.v without one) and n.v per pixel
     [B, H, W], as recon.diagnose.pixel_table measures them."""
     _, to_camera = view_directions(data)
@@ -99,7 +99,7 @@ def half_masks(
         centre = (region * coordinate).sum(dim=(1, 2, 3)) / area
         below = (coordinate < centre[:, None, None, None]).double()
         halves.append((region * below, region * (1 - below)))
-    n_dot_h, n_dot_v = _angles(data)
+    n_dot_h, n_dot_v = surface_angles(data)
     for value in (data.rendered.double().mean(dim=-1), n_dot_h, n_dot_v):
         halves.append(_median_split(region, value))
     return halves
@@ -139,7 +139,7 @@ def view_covariates(data: DiagnosisData, settings: DiagnoseConfig = DEFAULTS) ->
     coloured highlight (a metal's: gold's is gold) tints a view by how much of it the view
     shows, so its per-view colour follows these; a camera's white balance does not."""
     weight = interior(data, settings.colour_erode_pixels)[..., 0]
-    n_dot_h, _ = _angles(data)
+    n_dot_h, _ = surface_angles(data)
     n_dot_h = n_dot_h.clamp_min(0.0)
     observed, rendered = data.observed.double(), data.rendered.double()
     luminance = rendered.mean(dim=-1) * weight

@@ -47,6 +47,9 @@ metadata      veto          the capture's own record (EXIF exposure) disagrees w
                             candidate recovered: the camera did not do it, so it is not named
                             (the gains are some other per-view change, e.g. the model's
                             mismatch); an agreeing record changes nothing
+gain          inform        the exposure's per-view gains read apart from a highlight lobe
+                            (recon.diagnose.camera_gain): the parameters it reports, before
+                            the probe's
 ============  ============  =================================================================
 
 Evidence of a kind without a row is recorded and informs nothing.
@@ -187,7 +190,7 @@ DECISION_TABLE: tuple[Rule, ...] = (
         strength=True,
         threshold=probe_threshold,
         passes=_lower_bound_clears,
-        parameters_from=("probe",),
+        parameters_from=("gain", "probe"),
     ),
     Rule(
         "absorption",
@@ -245,11 +248,13 @@ DECISION_TABLE: tuple[Rule, ...] = (
     Rule("specificity", "veto", measured=True, parameters_from=("specificity", "probe")),
     Rule("identifiability", "qualify"),
     Rule("metadata", "veto"),
+    Rule("gain", "inform"),
 )
 RULES: dict[str, Rule] = {rule.kind: rule for rule in DECISION_TABLE}
 # Whose parameters a candidate that nothing decided reports: the relight split's estimate when
-# it has one (the one estimate of a response curve the albedo cannot absorb), else the probe's.
-UNDECIDED_PARAMETERS = ("relight", "probe")
+# it has one (the one estimate of a response curve the albedo cannot absorb), else the exposure's
+# highlight-free gains, else the probe's.
+UNDECIDED_PARAMETERS = ("relight", "gain", "probe")
 
 
 def rethreshold(evidence: Evidence, config: DecisionConfig) -> Evidence:
