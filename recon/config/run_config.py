@@ -808,9 +808,10 @@ class FitConfig:
 
 
 # Twice the largest shared per-view colour spread of the blind check's clean synthetic fits
-# (2 x 0.0186, Mitsuba teapot; 10 clean cases of the own and Mitsuba worlds, /work/blind_runs/b48v9;
-# docs/decisions/0191-blind-misses.md).
-AGREEMENT_WHITE_BALANCE = 0.037
+# (2 x 0.0083, Mitsuba teapot; 12 clean cases of the own and Mitsuba worlds, glossy ones
+# included, re-diagnosed from b48v17 with the agreement of decision 0207;
+# docs/decisions/0207-white-balance-exposure.md).
+AGREEMENT_WHITE_BALANCE = 0.017
 # The lobe evidence's allowance for specular (docs/decisions/0196-diagnosis-light-transport-lobe.md).
 LOBE_SPECULAR = 0.02
 
