@@ -72,7 +72,7 @@ def clean_statistics(
     """The statistics of one clean diagnosis (diagnosis.json, either schema) that its thresholds
     are compared with, by threshold name (benchmarks.blind.decide): each probe's, absorption
     refit's and relight probe's reduction, the agreement's shared colour spread, the flat
-    field's deviation and the visibility fingerprint's lower bound. present: effects the data
+    field's deviation and the visibility fingerprint's excess over its placebo lights. present: effects the data
     holds although nothing was injected (a
     path tracer's cast shadows): their statistics measure the effect, not the null, and are left
     out (the visibility fingerprint with shadows or interreflection).
@@ -114,8 +114,13 @@ def clean_statistics(
         if flat_field is not None:
             keep("flat_field", flat_field.statistic)
     fingerprint = (stored.gap or {}).get("visibility_fingerprint") or {}
-    if fingerprint.get("interval") and not {"shadows", "interreflection"} & set(present):
-        keep("visibility_share", fingerprint["interval"][0])
+    excess = fingerprint.get("excess")
+    if (
+        excess is not None
+        and excess == excess
+        and not {"shadows", "interreflection"} & set(present)
+    ):
+        keep("fingerprint", excess)
     return found
 
 

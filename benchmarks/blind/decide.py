@@ -8,7 +8,8 @@ A threshold set maps names to values:
     lobe.<effect>         the partial correlation of the view-to-view residual with a lobe
     relight               the relight probe's allowance
     flat_field            the flat-field deviation that makes vignetting significant
-    visibility_share      the visibility fingerprint's lower bound that makes it name an effect
+    fingerprint           the visibility fingerprint's excess over its placebo lights that makes it
+                          name an effect
     shadow_share          above this share the fingerprint names shadows, below interreflection
 
 ``code_thresholds()`` is the set the diagnosis uses by default (the ``diagnose.decision``
@@ -45,7 +46,7 @@ def code_thresholds(config: DecisionConfig | None = None) -> dict[str, float]:
         thresholds[f"lobe.{effect}"] = lobe_threshold(effect, config)
     thresholds["relight"] = config.relight_allowance
     thresholds["flat_field"] = config.flat_field_allowance
-    thresholds["visibility_share"] = config.visibility_share_minimum
+    thresholds["fingerprint"] = config.fingerprint_minimum
     thresholds["shadow_share"] = config.shadow_share
     return thresholds
 
@@ -70,7 +71,7 @@ def diagnose_section(thresholds: dict[str, float]) -> dict:
             "lobe_allowance": per_effect("lobe"),
             "relight_allowance": thresholds["relight"],
             "flat_field_allowance": thresholds["flat_field"],
-            "visibility_share_minimum": thresholds["visibility_share"],
+            "fingerprint_minimum": thresholds["fingerprint"],
             "shadow_share": thresholds["shadow_share"],
         }
     }

@@ -855,10 +855,6 @@ class DecisionConfig:
         0.02,
         "Deviation from flat (corner or half-way falloff) above which flat-field frames name vignetting.",
     )
-    visibility_share_minimum: float = setting(
-        0.2,
-        "The visibility fingerprint's lower bound above which baked-in self-shadowing names an effect.",
-    )
     shadow_share: float = setting(
         0.6,
         "Fingerprint share at or above which the missing light transport is shadows, below it interreflection.",
@@ -899,6 +895,14 @@ class DecisionConfig:
         0.01,
         "Level of the cast-shadow evidence's placebo-direction test (the share of placebo directions reaching the relight sun's correlation): conventional, not tuned.",
     )
+    fingerprint_minimum: float = setting(
+        0.02,
+        "Floor of the visibility fingerprint (recon.diagnose.fingerprint): how far the partial correlation of the fitted albedo with the fitted mesh's self-shadowing under the fitted light must exceed the placebo lights' 95th percentile (docs/decisions/0206-fingerprint-share.md).",
+    )
+    fingerprint_alpha: float = setting(
+        0.01,
+        "Level of the visibility fingerprint's placebo-light test (the share of placebo lights reaching the fitted light's correlation): conventional, not tuned.",
+    )
 
     def __post_init__(self) -> None:
         check_range(self.agreement_minimum, "agreement_minimum", low=0.0, high=1.0)
@@ -909,7 +913,9 @@ class DecisionConfig:
         check_range(self.cast_shadow_alpha, "cast_shadow_alpha", low=0.0, high=1.0)
         for name in ("minimum_share", "absorption_minimum_share", "regression_minimum_share"):
             check_range(getattr(self, name), name, low=0.0, high=1.0)
-        for name in ("relight_allowance", "flat_field_allowance", "visibility_share_minimum"):
+        check_range(self.fingerprint_minimum, "fingerprint_minimum", low=0.0, high=1.0)
+        check_range(self.fingerprint_alpha, "fingerprint_alpha", low=0.0, high=1.0)
+        for name in ("relight_allowance", "flat_field_allowance"):
             check_range(getattr(self, name), name, low=0.0, high=1.0)
         check_range(self.shadow_share, "shadow_share", low=0.0, high=1.0)
 
@@ -1154,6 +1160,27 @@ class CastShadowConfig:
 
 
 @dataclass
+class FingerprintConfig:
+    """The visibility fingerprint (recon.diagnose.fingerprint): the fitted albedo against the
+    fitted mesh's self-shadowing under the fitted light, against placebo lights."""
+
+    placebo_lights: int = setting(
+        200,
+        "Fibonacci directions the fitted light's dominant direction is turned to as placebo lights (those near it are left out).",
+    )
+    placebo_separation_degrees: float = setting(
+        45.0,
+        "Least angle between a placebo light's dominant direction and the fitted one: nearer ones share its shadows.",
+    )
+
+    def __post_init__(self) -> None:
+        check_range(self.placebo_lights, "placebo_lights", low=1)
+        check_range(
+            self.placebo_separation_degrees, "placebo_separation_degrees", low=0.0, high=180.0
+        )
+
+
+@dataclass
 class DiagnoseConfig:
     """The gap diagnosis (recon diagnose): which candidates, how each kind of evidence is
     measured, how far the refits go, and the decision's allowances."""
@@ -1276,6 +1303,10 @@ class DiagnoseConfig:
     cast_shadow: CastShadowConfig = setting(
         factory=CastShadowConfig,
         doc="The cast-shadow evidence: the relight split's residual against the relight sun's shadow from the fitted mesh.",
+    )
+    fingerprint: FingerprintConfig = setting(
+        factory=FingerprintConfig,
+        doc="The visibility fingerprint: the fitted albedo against the fitted mesh's self-shadowing, beyond placebo lights.",
     )
     colour_erode_pixels: int = setting(
         1,

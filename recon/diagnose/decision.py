@@ -26,7 +26,9 @@ cast_shadow   clear         the relight split's residual is darker where the fit
                             shadows the relight sun, beyond placebo directions
                             (recon.diagnose.cast_shadow); measured on other data than the
                             held-out residual (independent)
-fingerprint   name          the visibility fingerprint names the effect (ranks after the above)
+fingerprint   name          the fitted albedo is darker where the fitted mesh hides the fitted
+                            light, beyond placebo lights (recon.diagnose.fingerprint); its
+                            slope picks shadows or interreflection (ranks after the above)
 null          raise bar     a failed null from the run (placebo, permutation, split half)
                             keeps the clearing rows from making the candidate significant
 specificity   veto          a failed check says the signature is not the candidate's: it is not
@@ -66,7 +68,7 @@ rows are re-thresholded from ``DecisionConfig``).
 
 Ranking (``rank_key``): significant first; then evidence from a held-out residual or a direct
 measurement before the fingerprint alone; then by how far the residual evidence clears its own
-allowance (the fingerprint: by its share). The ranks and verdicts on recon's own world are the
+allowance (the fingerprint: by its placebo excess). The ranks and verdicts on recon's own world are the
 ones the hand-ordered rule gave before this table (tests/diagnose/test_decision.py).
 """
 
@@ -130,13 +132,19 @@ def _lower_bound_clears(evidence: Evidence, threshold: float, config: DecisionCo
 
 
 def _fingerprint_names(evidence: Evidence, threshold: float, config: DecisionConfig) -> bool:
-    """The fingerprint names a candidate when it is testable, its lower bound clears the
-    minimum, and its share falls on the candidate's side of the shadow share."""
-    interval = evidence.interval or (evidence.statistic, evidence.statistic)
+    """The fingerprint names a candidate when it is testable (the fitted mesh shadows enough of
+    the pixels, and the fitted light has a direction to turn), its partial correlation beats
+    the placebo lights (excess above the threshold, p below fingerprint_alpha), and its slope
+    falls on the candidate's side of the shadow share."""
     testable = evidence.details.get("coverage", 0.0) >= config.fingerprint_minimum_coverage
-    if not (testable and interval[0] > threshold):
+    statistic = evidence.statistic
+    if not testable or statistic != statistic:
         return False
-    side = "blocked" if evidence.statistic >= config.shadow_share else "bounced"
+    if not (
+        statistic > threshold and evidence.details.get("p_value", 1.0) < config.fingerprint_alpha
+    ):
+        return False
+    side = "blocked" if evidence.details.get("slope", 0.0) >= config.shadow_share else "bounced"
     facts = diagnosis_facts(evidence.candidate)
     return facts is not None and facts.fingerprint_side == side
 
@@ -240,7 +248,7 @@ DECISION_TABLE: tuple[Rule, ...] = (
     Rule(
         "fingerprint",
         "name",
-        threshold=lambda effect, config: config.visibility_share_minimum,
+        threshold=lambda effect, config: config.fingerprint_minimum,
         passes=_fingerprint_names,
         parameters_from=("probe",),
     ),
@@ -410,7 +418,11 @@ def _why_not(candidate: Candidate) -> str:
     counted = [item for item in measured if item.counts]
     if not counted:
         return voided[0].void
-    best = max(counted, key=lambda item: item.statistic - item.threshold)
+    # (a statistic that could not be measured, NaN, says only its reason)
+    numbers = [item for item in counted if item.statistic == item.statistic]
+    if not numbers:
+        return explain(counted[0])
+    best = max(numbers, key=lambda item: item.statistic - item.threshold)
     return explain(best)
 
 
@@ -439,7 +451,7 @@ def excess(candidate: Candidate) -> float:
 
 def rank_key(candidate: Candidate) -> tuple:
     """Significant first; then held-out or direct evidence before the fingerprint alone (whose
-    effect shows in no held-out residual); then by excess (the fingerprint: by its share). A
+    effect shows in no held-out residual); then by excess (the fingerprint: by its placebo excess). A
     mismatch named by a veto ranks where the vetoed candidate would have."""
     stand_in = candidate.evidence_of("specificity")
     if candidate.decided_by == "specificity" and stand_in is not None:

@@ -129,6 +129,9 @@ def fingerprint_evidence(
     for candidate in candidates:
         if "fingerprint" in diagnosis_facts(candidate.name).evidence:
             candidate.add(fingerprint.evidence(candidate.name).record())
+            condition = fingerprint.identifiability(candidate.name, settings.decision)
+            if condition is not None:
+                candidate.add(condition)
             decide(candidate, settings.decision)
     return fingerprint.to_json(settings.decision)
 

@@ -4,52 +4,115 @@ Under one light, a cast shadow, a concavity that sees less of the sky, or the li
 back into it look the same from every view, so the fit bakes them into the texture and no probe
 on the frozen scene can see them (the held-out residual does not change). What they leave is a
 fingerprint: the fitted albedo is darker exactly where the fitted mesh hides its own light. The
-true albedo knows nothing of the lighting geometry, so on a correct fit the fitted mesh's
-self-shadowing explains none of it.
+true albedo knows nothing of the lighting geometry.
 
 The model predicts the self-shadowing itself: per vertex, the share of the fitted light's
 irradiance the fitted mesh does not block (recon.effects.light_transport.vertex_light_visibility,
 SH environment sampled along 64 directions plus any directional light). Per covered interior
 pixel of the held-out renders (the fitted scene only; no observed pixel is used), the log
-luminance of the fitted albedo is regressed on [1, L, L^2, log visible share], L = max(0, n.l)
-toward the dominant fitted light (so a light that is slightly off is held fixed). The last
-coefficient is the share of the predicted self-shadowing the fit baked into its albedo:
-about 0 on a correct fit, near 1 when blocked light is missing from the model (shadows), and in
-between when bounced light fills part of it back (interreflection: about 1 - albedo of it
-remains). A block bootstrap (8 x 8 pixel blocks across views) gives its interval.
+luminance of the fitted albedo y is compared with the log visible share x, given [1, L, L^2],
+L = max(0, n.l) toward the dominant fitted light (a light that is slightly off is held fixed):
+
+- the statistic is the partial correlation of y and x (bounded, -1..1);
+- its null comes from the run itself: the same partial correlation with the fitted light turned
+  so that its dominant direction points elsewhere (diagnose.fingerprint.placebo_lights Fibonacci
+  directions at least placebo_separation_degrees away; environment and suns turned together,
+  recon.effects.light_transport.rotated_light_visibility). A texture that is darker in
+  concavities, or a fitted mesh whose concavities are wrong, correlates with the self-shadowing
+  of every such light; a baked shadow with its own light's. The evidence is the correlation's
+  excess over the placebo lights' 95th percentile, with the share of placebo lights that reach
+  it as p-value (recon.diagnose.lobe.placebo_excess_evidence, like the lobe and cast-shadow
+  evidence). Under an even light (no dominant direction) every placebo light is the light
+  itself: nothing is testable, and the evidence says so.
+- the slope of y on x (a block bootstrap, 8 x 8 pixel blocks across views, gives its interval)
+  says how much darker: 1 when the albedo holds all of the predicted self-shadowing, 0 when none;
+  it is not a share of anything when the predicted self-shadowing barely varies (coverage) or is
+  weaker than the baked one (then it exceeds 1), and the reason line says which. The reported
+  share is the slope clipped to its meaning, 0..1.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 
 from recon.config.run_config import DecisionConfig, DiagnoseConfig
 from recon.diagnose.data import DiagnosisData, box_erode
 from recon.diagnose.records import Evidence
-from recon.effects.light_transport import dominant_light, vertex_light_visibility
+from recon.effects.light_transport import (
+    dominant_light,
+    fibonacci_directions,
+    rotated_light_visibility,
+    rotation_between,
+)
 from recon.effects.registry import effects_with_evidence
 from recon.render.interpolate import interpolate_packed
 from recon.render.rasterize import scatter_to_image
 from recon.render.renderer import RenderOutput
 
+KIND = "fingerprint"
+# Rec. 709 luminance weights of the albedo's log luminance.
+LUMINANCE = (0.2126, 0.7152, 0.0722)
+# A pixel counts as shadowed by the fitted mesh below this predicted visible share (coverage).
+SHADOWED_SHARE = 0.9
+
 
 @dataclass
 class VisibilityFingerprint:
-    """share: the share of the predicted self-shadowing baked into the fitted albedo; interval:
-    its 90 % block-bootstrap interval; coverage: share of interior pixels the fitted mesh
-    shadows by more than 10 %."""
+    """The fingerprint of one fitted albedo.
 
-    share: float
+    slope: the log-log slope of the albedo on the predicted visible share (unbounded);
+    interval: its 90 % block-bootstrap interval; coverage: share of interior pixels the fitted
+    mesh shadows by more than 10 %; correlation: the partial correlation of the two (-1..1);
+    placebo_quantile: the placebo lights' 95th percentile of it; p_value: the share of placebo
+    lights reaching it; placebo_lights: how many were tried (0: an even light, none).
+    """
+
+    slope: float
     interval: tuple[float, float]
     coverage: float
+    correlation: float = 0.0
+    placebo_quantile: float = math.nan
+    p_value: float = 1.0
+    placebo_lights: int = 0
+    pixels: int = 0
+    placebo_correlations: list[float] = field(default_factory=list, repr=False)
+
+    @property
+    def share(self) -> float:
+        """The share of the predicted self-shadowing baked into the albedo: the slope clipped
+        to 0..1 (a slope outside it is reported as what it is, see slope_note)."""
+        return min(1.0, max(0.0, self.slope))
+
+    @property
+    def excess(self) -> float:
+        """The correlation's excess over the placebo lights' 95th percentile (NaN without
+        placebo lights)."""
+        return self.correlation - self.placebo_quantile
+
+    def slope_note(self, minimum_coverage: float) -> str:
+        """What the slope means here, in words."""
+        if self.coverage < minimum_coverage:
+            return (
+                f"the fitted mesh shadows {self.coverage:.1%} of the pixels: the slope "
+                f"{self.slope:.2f} is not a share of anything"
+            )
+        if self.slope > 1:
+            return (
+                f"slope {self.slope:.2f}: the albedo is darker than the predicted self-shadowing "
+                "alone would make it (the fitted mesh or light predicts weaker shadows than the "
+                "baked ones), so all of it counts (share 1)"
+            )
+        if self.slope < 0:
+            return f"slope {self.slope:.2f}: the albedo is brighter where the light is blocked"
+        return f"share {self.share:.2f} of the predicted self-shadowing baked into the albedo"
 
     def names(self, config: DecisionConfig) -> str | None:
         """The effect the fingerprint names (recon.diagnose.decision's fingerprint row), or
         None: blocked light missing entirely, or partly filled back by bounces."""
-        for name in effects_with_evidence("fingerprint"):
+        for name in effects_with_evidence(KIND):
             if self.evidence(name).passed_under(config):
                 return name
         return None
@@ -57,63 +120,101 @@ class VisibilityFingerprint:
     def evidence(self, candidate: str) -> FingerprintEvidence:
         return FingerprintEvidence(self, candidate)
 
+    def identifiability(self, candidate: str, config: DecisionConfig) -> Evidence | None:
+        """A failed identifiability condition when the albedo holds a self-shadowing pattern
+        (the slope's bootstrap interval above 0) that placebo lights explain as well as the
+        fitted one (p at or above fingerprint_alpha): baked light transport of this light, or
+        an albedo or fitted mesh that is darker in concavities under any light, which one light
+        cannot tell apart. None when the fingerprint is untestable, shows no such pattern, or
+        beats its placebo lights."""
+        testable = self.placebo_lights > 0 and self.coverage >= config.fingerprint_minimum_coverage
+        if not testable or self.interval[0] <= 0 or self.p_value < config.fingerprint_alpha:
+            return None
+        return Evidence(
+            kind="identifiability",
+            candidate=candidate,
+            statistic=self.p_value,
+            threshold=math.nan,
+            passed=False,
+            reason=(
+                f"the fitted albedo is darker where the fitted mesh hides light (slope "
+                f"{self.slope:.2f}, interval {self.interval[0]:.2f} to {self.interval[1]:.2f}) "
+                f"and as much under placebo lights turned elsewhere (p = {self.p_value:.2g} "
+                f"against {self.placebo_lights}): baked light transport or an albedo darker in "
+                "concavities, which one light cannot tell apart"
+            ),
+            details={
+                "capture": "views under a second, known light whose sun the object shadows "
+                "itself (a relight split)",
+                "slope": self.slope,
+                "interval": list(self.interval),
+                "p_value": self.p_value,
+            },
+        )
+
     def to_json(self, config: DecisionConfig) -> dict:
         return {
             "share": self.share,
+            "slope": self.slope,
             "interval": list(self.interval),
             "coverage": self.coverage,
+            "correlation": self.correlation,
+            "placebo_quantile": self.placebo_quantile,
+            "excess": self.excess,
+            "p_value": self.p_value,
+            "placebo_lights": self.placebo_lights,
             "names": self.names(config),
         }
 
 
 @dataclass
 class FingerprintEvidence:
-    """The fingerprint as one candidate's Evidence."""
+    """The fingerprint as one candidate's Evidence (statistic: the placebo excess; NaN when no
+    placebo light exists, which the decision reads as not testable)."""
 
     fingerprint: VisibilityFingerprint
     candidate: str
 
-    def record(self) -> Evidence:
+    def record(self, minimum_coverage: float | None = None) -> Evidence:
+        fingerprint = self.fingerprint
+        if minimum_coverage is None:
+            minimum_coverage = DecisionConfig().fingerprint_minimum_coverage
+        if fingerprint.placebo_lights == 0:
+            measured = "no placebo light: the fitted light has no dominant direction"
+        else:
+            measured = (
+                f"r = {fingerprint.correlation:.3f}, p = {fingerprint.p_value:.2g} against "
+                f"{fingerprint.placebo_lights} placebo lights"
+            )
+        reason = (
+            f"{self.candidate}: the fitted albedo is darker where the fitted mesh hides the "
+            f"fitted light ({measured}; {fingerprint.slope_note(minimum_coverage)}); its excess "
+            "over the placebo lights' 95th percentile"
+        )
         return Evidence(
-            kind="fingerprint",
+            kind=KIND,
             candidate=self.candidate,
-            statistic=self.fingerprint.share,
+            statistic=fingerprint.excess if fingerprint.placebo_lights else math.nan,
             threshold=math.nan,
             passed=False,
-            reason="visibility fingerprint: share of the fitted mesh's self-shadowing baked "
-            "into the albedo",
+            reason=reason,
             details={
-                "interval": list(self.fingerprint.interval),
-                "coverage": self.fingerprint.coverage,
+                "share": fingerprint.share,
+                "slope": fingerprint.slope,
+                "interval": list(fingerprint.interval),
+                "coverage": fingerprint.coverage,
+                "correlation": fingerprint.correlation,
+                "placebo_quantile": fingerprint.placebo_quantile,
+                "p_value": fingerprint.p_value,
+                "placebo_lights": fingerprint.placebo_lights,
+                "pixels": fingerprint.pixels,
             },
         )
 
     def passed_under(self, config: DecisionConfig) -> bool:
         from recon.diagnose.decision import rethreshold
 
-        return rethreshold(self.record(), config).passed
-
-
-def _signatures(data: DiagnosisData, output: RenderOutput) -> dict[str, torch.Tensor]:
-    """Per-pixel [B, H, W] signatures and the fitted albedo's log luminance."""
-    direction, _ = dominant_light(data.lighting)
-    direction = direction.to(output.color)
-    with torch.no_grad():
-        cosine = (output.normals * direction).sum(-1).clamp(min=0.0)
-        share = vertex_light_visibility(data.mesh.verts, data.mesh.faces, data.lighting)
-        log_share = share.clamp(min=0.02).log().to(output.color)
-        fragments = output.fragments
-        packed = interpolate_packed(log_share[:, None], fragments, data.mesh.faces)
-        batch = fragments.batch_size
-        height, width = fragments.resolution
-        visible = scatter_to_image(packed, fragments.covered_index, batch, height, width)[..., 0]
-    weights = torch.tensor([0.2126, 0.7152, 0.0722], dtype=output.albedo.dtype)
-    luminance = (output.albedo * weights).sum(-1)
-    return {
-        "log_albedo": torch.log(luminance.clamp_min(1e-3)),
-        "lambert": cosine,
-        "log_visible_share": visible.to(cosine),
-    }
+        return rethreshold(self.record(config.fingerprint_minimum_coverage), config).passed
 
 
 def _interior(output: RenderOutput) -> torch.Tensor:
@@ -132,35 +233,47 @@ def _solve(grams: torch.Tensor, moments: torch.Tensor) -> torch.Tensor:
     return torch.linalg.solve(grams + ridge, moments)[:, 3]
 
 
-def visibility_fingerprint(
-    data: DiagnosisData, output: RenderOutput, settings: DiagnoseConfig, seed: int = 0
-) -> VisibilityFingerprint:
-    """The visibility fingerprint of the fitted albedo (see the module docstring).
+def _placebo_rotations(direction: torch.Tensor, count: int, separation_degrees: float):
+    """Rotations [1 + K, 3, 3] (the identity first) that turn the dominant direction [3] onto
+    the Fibonacci directions at least separation_degrees from it."""
+    targets = fibonacci_directions(count)
+    targets = targets[(targets @ direction) < math.cos(math.radians(separation_degrees))]
+    rotations = [torch.eye(3, dtype=torch.float64)]
+    rotations += [rotation_between(direction, target) for target in targets]
+    return torch.stack(rotations)
 
-    output: the fitted scene rendered at data's cameras (the probe's base render); settings:
-    its block size (diagnose.fingerprint_block_pixels) and bootstrap samples.
-    """
-    block_pixels = settings.fingerprint_block_pixels
-    samples = settings.bootstrap_samples
-    signatures = _signatures(data, output)
-    interior = _interior(output)
-    batch, height, width = interior.shape
-    if int(interior.sum()) < 50:
-        return VisibilityFingerprint(0.0, (0.0, 0.0), 0.0)
-    rows = torch.arange(height) // block_pixels
-    columns = torch.arange(width) // block_pixels
-    blocks_per_row = (width + block_pixels - 1) // block_pixels
-    blocks_per_view = ((height + block_pixels - 1) // block_pixels) * blocks_per_row
-    block = rows[:, None] * blocks_per_row + columns[None, :]
-    block = (block[None] + torch.arange(batch)[:, None, None] * blocks_per_view)[interior]
-    lambert = signatures["lambert"][interior].double()
-    log_share = signatures["log_visible_share"][interior].double()
-    design = torch.stack([torch.ones_like(lambert), lambert, lambert * lambert, log_share], 1)
-    target = signatures["log_albedo"][interior].double()
-    coverage = float((log_share < torch.log(torch.tensor(0.9))).double().mean())
 
-    # Normal equations per 8 x 8 block; a bootstrap sample of blocks is then a count-weighted
-    # sum of them (the same as repeating the blocks' rows), solved for all samples at once.
+def _partial_correlations(
+    target: torch.Tensor, features: torch.Tensor, lamberts: torch.Tensor
+) -> torch.Tensor:
+    """Partial correlation [K] of target [N] with each feature column [N, K] given
+    [1, L_k, L_k^2] of its own lambert column [N, K]."""
+    values = []
+    for column in range(features.shape[1]):
+        lambert = lamberts[:, column]
+        nuisance = torch.stack([torch.ones_like(lambert), lambert, lambert * lambert], 1)
+        both = torch.stack([target, features[:, column]], 1)
+        fitted = nuisance @ torch.linalg.lstsq(nuisance, both).solution
+        rest = both - fitted
+        norms = rest.norm(dim=0)
+        if float(norms.min()) < 1e-12:
+            values.append(0.0)
+            continue
+        values.append(float(rest[:, 0] @ rest[:, 1] / (norms[0] * norms[1])))
+    return torch.tensor(values, dtype=torch.float64)
+
+
+def _bootstrap_slope(
+    design: torch.Tensor,
+    target: torch.Tensor,
+    block: torch.Tensor,
+    samples: int,
+    seed: int,
+) -> tuple[float, tuple[float, float]]:
+    """The log-share slope and its block-bootstrap 90 % interval.
+
+    Normal equations per block; a bootstrap sample of blocks is then a count-weighted sum of
+    them (the same as repeating the blocks' rows), solved for all samples at once."""
     unique_blocks, inverse = torch.unique(block, return_inverse=True)
     outer = design[:, :, None] * design[:, None, :]  # [N, 4, 4]
     block_gram = torch.zeros(len(unique_blocks), 4, 4, dtype=torch.float64)
@@ -172,7 +285,79 @@ def visibility_fingerprint(
     counts = torch.zeros(samples, len(unique_blocks), dtype=torch.float64)
     counts.scatter_add_(1, picks, torch.ones_like(picks, dtype=torch.float64))
     ones = torch.ones(1, len(unique_blocks), dtype=torch.float64)
-    share = float(_solve(ones @ block_gram.flatten(1), ones @ block_moment)[0])
+    slope = float(_solve(ones @ block_gram.flatten(1), ones @ block_moment)[0])
     values = _solve(counts @ block_gram.flatten(1), counts @ block_moment)
-    interval = (float(torch.quantile(values, 0.05)), float(torch.quantile(values, 0.95)))
-    return VisibilityFingerprint(share, interval, coverage)
+    return slope, (float(torch.quantile(values, 0.05)), float(torch.quantile(values, 0.95)))
+
+
+def visibility_fingerprint(
+    data: DiagnosisData, output: RenderOutput, settings: DiagnoseConfig, seed: int = 0
+) -> VisibilityFingerprint:
+    """The visibility fingerprint of the fitted albedo (see the module docstring).
+
+    output: the fitted scene rendered at data's cameras (the probe's base render); settings:
+    its block size (diagnose.fingerprint_block_pixels), bootstrap samples and placebo lights
+    (diagnose.fingerprint).
+    """
+    options = settings.fingerprint
+    interior = _interior(output)
+    batch, height, width = interior.shape
+    if int(interior.sum()) < 50:
+        return VisibilityFingerprint(0.0, (0.0, 0.0), 0.0)
+    direction, irradiance = dominant_light(data.lighting)
+    direction = direction.detach().double().cpu()
+    even = float(direction.norm()) < 1e-9 or float(irradiance.detach().abs().max()) < 1e-9
+    if even:
+        rotations = torch.eye(3, dtype=torch.float64)[None]
+    else:
+        direction = direction / direction.norm()
+        rotations = _placebo_rotations(
+            direction, options.placebo_lights, options.placebo_separation_degrees
+        )
+    with torch.no_grad():
+        shares = rotated_light_visibility(
+            data.mesh.verts, data.mesh.faces, data.lighting, rotations
+        )
+        log_shares = shares.clamp(min=0.02).log().T.to(output.color)  # [V, 1 + K]
+        fragments = output.fragments
+        packed = interpolate_packed(log_shares, fragments, data.mesh.faces)
+        per_pixel = scatter_to_image(packed, fragments.covered_index, batch, height, width)
+        log_share = per_pixel[interior].double()  # [N, 1 + K]
+        normals = output.normals[interior].double()
+        lights = torch.einsum("rde,e->rd", rotations, direction if not even else rotations[0, 1])
+        lamberts = (normals @ lights.T).clamp(min=0.0)  # [N, 1 + K]
+    albedo = (output.albedo[interior].double() * torch.tensor(LUMINANCE, dtype=torch.float64)).sum(
+        -1
+    )
+    target = torch.log(albedo.clamp_min(1e-3))
+    coverage = float((log_share[:, 0] < math.log(SHADOWED_SHARE)).double().mean())
+
+    block_pixels = settings.fingerprint_block_pixels
+    rows = torch.arange(height) // block_pixels
+    columns = torch.arange(width) // block_pixels
+    blocks_per_row = (width + block_pixels - 1) // block_pixels
+    blocks_per_view = ((height + block_pixels - 1) // block_pixels) * blocks_per_row
+    block = rows[:, None] * blocks_per_row + columns[None, :]
+    block = (block[None] + torch.arange(batch)[:, None, None] * blocks_per_view)[interior]
+    lambert = lamberts[:, 0]
+    design = torch.stack([torch.ones_like(lambert), lambert, lambert * lambert, log_share[:, 0]], 1)
+    slope, interval = _bootstrap_slope(design, target, block, settings.bootstrap_samples, seed)
+
+    correlations = _partial_correlations(target, log_share, lamberts)
+    null = correlations[1:]
+    correlation = float(correlations[0])
+    if null.numel() == 0:
+        return VisibilityFingerprint(
+            slope, interval, coverage, correlation, pixels=int(target.numel())
+        )
+    return VisibilityFingerprint(
+        slope,
+        interval,
+        coverage,
+        correlation,
+        placebo_quantile=float(torch.quantile(null, 0.95)),
+        p_value=float((1 + (null >= correlation).sum()) / (1 + null.numel())),
+        placebo_lights=int(null.numel()),
+        pixels=int(target.numel()),
+        placebo_correlations=[float(value) for value in null],
+    )

@@ -85,13 +85,18 @@ def legacy_candidate(record: dict[str, Any]) -> Candidate:
         )
     fingerprint = record.get("fingerprint")
     if fingerprint is not None and "share" in fingerprint:
+        # The old share had no null from the run (no placebo lights): recorded, not measured
+        # against anything, so it names nothing when re-decided.
         candidate.add(
             _evidence(
                 "fingerprint",
                 name,
-                fingerprint["share"],
-                "visibility fingerprint: share of the fitted mesh's self-shadowing baked into "
-                "the albedo",
+                math.nan,
+                f"visibility fingerprint of an old diagnosis: slope {fingerprint['share']:.2f} "
+                "of the fitted mesh's self-shadowing in the albedo, without placebo lights (no "
+                "null from the run: diagnose the run again)",
+                slope=fingerprint["share"],
+                share=min(1.0, max(0.0, fingerprint["share"])),
                 interval=list(fingerprint.get("interval", [fingerprint["share"]] * 2)),
                 coverage=fingerprint.get("coverage", 1.0),
             )

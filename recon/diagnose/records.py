@@ -172,7 +172,9 @@ class Diagnosis:
     gap: dict[str, Any] = doc(
         "Held-out rmse, psnr, mse and per-view values (linear); noise_floor {a, b, floor_rmse, "
         "gap_above_floor}; relight (the relight split's gap, or why it is skipped); "
-        "visibility_fingerprint {share, interval, coverage, names}; flat_field {corner_falloff, "
+        "visibility_fingerprint {share (0..1), slope, interval (the slope's), coverage, "
+        "correlation, placebo_quantile, excess, p_value, placebo_lights, names}; "
+        "flat_field {corner_falloff, "
         "half_radius_falloff, deviation, allowance, frames, profile...} or flat_field_error; "
         "parameters.geometry {chamfer_l1, normal_consistency, f1@1%} against a ground truth; "
         "heldout_mse (with a refit mode: the held-out MSE the refits are measured against); "

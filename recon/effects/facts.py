@@ -32,7 +32,7 @@ class DiagnosisFacts:
     probe_start: (parameter, value) a probe starts from instead of the identity, for a
         parameter whose image changes to second order at zero (None: the identity).
     probe_frozen: parameters the probe keeps at zero (their image looks like other effects').
-    fingerprint_side: which side of the visibility fingerprint's share names it: 'blocked'
+    fingerprint_side: which side of the visibility fingerprint's slope names it: 'blocked'
         (light missing entirely: at or above the shadow share) or 'bounced' (partly filled back).
     radial_falloff: its parameters describe a falloff over the image radius, measured only as
         far as the object's pixels reach (the diagnosis records that radius beside them).

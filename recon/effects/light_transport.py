@@ -513,6 +513,70 @@ def vertex_occlusion(
     return 1 - (cosine * seen).sum(dim=0) / weight
 
 
+def rotation_between(source: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """The rotation [3, 3] (float64) about source x target that takes unit source [3] onto unit
+    target [3] (a half turn about any perpendicular axis when they are opposite)."""
+    source, target = source.double(), target.double()
+    axis = torch.linalg.cross(source, target)
+    sine, cosine = float(axis.norm()), float(source @ target)
+    if sine < 1e-9:
+        if cosine > 0:
+            return torch.eye(3, dtype=torch.float64)
+        helper = torch.eye(3, dtype=torch.float64)[int(source.abs().argmin())]
+        axis = torch.nn.functional.normalize(torch.linalg.cross(source, helper), dim=0)
+        return 2 * torch.outer(axis, axis) - torch.eye(3, dtype=torch.float64)
+    axis = axis / sine
+    cross = torch.tensor(
+        [[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]],
+        dtype=torch.float64,
+    )
+    return torch.eye(3, dtype=torch.float64) + sine * cross + (1 - cosine) * cross @ cross
+
+
+def rotated_light_visibility(
+    verts: torch.Tensor,
+    faces: torch.Tensor,
+    lighting: Lighting,
+    rotations: torch.Tensor,
+    directions: int = 64,
+    resolution: int = 96,
+) -> torch.Tensor:
+    """vertex_light_visibility [R, V] of the light turned by each rotation [R, 3, 3] (world
+    frame): the environment's radiance along direction w is the light's along R^T w, and each
+    directional light points along R d. The identity gives vertex_light_visibility. No
+    gradient."""
+    with torch.no_grad():
+        sphere, cosine, seen = sky_visibility(verts, faces, directions, resolution)
+        sphere, cosine, seen = sphere.double(), cosine.double(), seen.double()
+        rotations = rotations.double().to(sphere.device)
+        weights = torch.tensor([0.2126, 0.7152, 0.0722], dtype=torch.float64, device=verts.device)
+        coefficients = lighting.sh_coefficients.detach().to(sphere)
+        channels = coefficients.shape[-1]
+        luminance = weights[:channels] / weights[:channels].sum()
+        # Radiance along R^T w for every rotation: the row vector w R.
+        turned = torch.einsum("kd,rde->rke", sphere, rotations)  # [R, K, 3]
+        radiance = (sh_basis(turned) @ coefficients).clamp(min=0.0) @ luminance  # [R, K]
+        power = radiance * (4 * math.pi / directions)
+        total = power @ cosine  # [R, V]
+        visible = power @ (cosine * seen)
+        if lighting.directional:
+            suns = torch.nn.functional.normalize(
+                torch.stack([light.direction_to_light.detach() for light in lighting.directional]),
+                dim=-1,
+            ).to(sphere)
+            sun_power = torch.stack(
+                [light.irradiance.detach().to(sphere) @ luminance for light in lighting.directional]
+            )
+            pointed = torch.einsum("rde,se->rsd", rotations, suns).reshape(-1, 3)  # [R * S, 3]
+            sun_cosine, sun_seen = vertex_direction_visibility(verts, faces, pointed, resolution)
+            count = rotations.shape[0]
+            sun_cosine = sun_cosine.double().reshape(count, len(suns), -1)
+            sun_seen = sun_seen.double().reshape(count, len(suns), -1)
+            total = total + torch.einsum("s,rsv->rv", sun_power, sun_cosine)
+            visible = visible + torch.einsum("s,rsv->rv", sun_power, sun_cosine * sun_seen)
+        return torch.where(total > 1e-12, visible / total.clamp(min=1e-12), torch.ones_like(total))
+
+
 def vertex_light_visibility(
     verts: torch.Tensor,
     faces: torch.Tensor,

@@ -46,9 +46,17 @@ def diagnosis_lines(diagnosis: Diagnosis) -> list[str]:
     fingerprint = gap.get("visibility_fingerprint")
     if fingerprint:
         low, high = fingerprint["interval"]
+        slope = fingerprint.get("slope", fingerprint["share"])
+        placebo = ""
+        if fingerprint.get("placebo_lights"):
+            placebo = (
+                f"; r = {fingerprint['correlation']:.3f}, excess {fingerprint['excess']:.3f} over "
+                f"{fingerprint['placebo_lights']} placebo lights (p = {fingerprint['p_value']:.2g})"
+            )
         lines.append(
-            f"visibility fingerprint: {fingerprint['share']:.2f} [{low:.2f}, {high:.2f}] of the "
-            f"predicted self-shadowing baked into the albedo ({fingerprint['names'] or 'nothing'})"
+            f"visibility fingerprint: share {fingerprint['share']:.2f} of the predicted "
+            f"self-shadowing baked into the albedo (slope {slope:.2f} [{low:.2f}, {high:.2f}]"
+            f"{placebo}; names {fingerprint['names'] or 'nothing'})"
         )
     model = diagnosis.model
     if model.get("effects") or model.get("material", "lambert") != "lambert":

@@ -51,9 +51,17 @@ def candidate(name, probe=None, absorption=None, relight=None, flat_field=None, 
     if flat_field is not None:
         result.add(evidence("flat_field", name, flat_field))
     if share is not None:
+        # A fingerprint that beats its placebo lights, with this slope.
         result.add(
             evidence(
-                "fingerprint", name, share, interval=[share - 0.05, share + 0.05], coverage=0.3
+                "fingerprint",
+                name,
+                0.1,
+                slope=share,
+                share=min(1.0, max(0.0, share)),
+                interval=[share - 0.05, share + 0.05],
+                coverage=0.3,
+                p_value=0.005,
             )
         )
     return decide(result, CONFIG)
@@ -126,6 +134,28 @@ def test_the_fingerprint_names_shadows_or_interreflection_by_its_share():
     assert [item.significant for item in low] == [False, True]
     faint = candidate("shadows", probe=(-0.01, 0.0), share=0.1)
     assert not faint.significant
+
+
+def test_the_fingerprint_needs_its_placebo_lights_and_never_flips_on_a_large_slope():
+    """Named only when the correlation beats the placebo lights; a slope above 1 (a deeper
+    baked shadow than predicted) is on the shadows side however large; an untestable one (the
+    fitted mesh shadows nothing) names nothing, and its why says so; a fingerprint without
+    placebo lights (statistic NaN) names nothing either."""
+
+    def shadows(statistic, p_value, slope, coverage=0.3, reason="fingerprint"):
+        result = Candidate("shadows")
+        details = {"slope": slope, "coverage": coverage, "p_value": p_value}
+        result.add(Evidence("fingerprint", "shadows", statistic, math.nan, False, reason, details))
+        return decide(result, CONFIG)
+
+    assert shadows(0.1, 0.005, 0.9).significant
+    assert shadows(0.1, 0.005, 10.9).significant
+    assert not shadows(0.1, 0.2, 10.9).significant  # placebo lights reach it
+    assert not shadows(0.01, 0.005, 0.9).significant  # below the floor
+    untestable = shadows(0.1, 0.005, 10.9, coverage=0.0, reason="not a share of anything")
+    assert not untestable.significant and "not a share of anything" in untestable.why
+    unmeasured = shadows(math.nan, 1.0, 2.0, reason="no placebo light")
+    assert not unmeasured.significant and unmeasured.why.startswith("no placebo light")
 
 
 def test_ranking_puts_residual_evidence_before_the_fingerprint():

@@ -333,3 +333,34 @@ def test_views_of_one_batch_get_their_own_light_direction() -> None:
     together = render(mesh, pair, lighting("camera"), chosen)
     alone = render(mesh, other, lighting("camera"), chosen)
     assert float((together[1:] - alone).abs().max()) < 1e-4
+
+
+def test_a_turned_light_is_the_light_turned():
+    """rotated_light_visibility: the identity is vertex_light_visibility; rotation_between
+    takes its source onto its target (a half turn for opposite ones); a light turned about
+    a torus' axis casts shadows of the same mean strength at other vertices."""
+    from data_synth.shapes import torus
+    from recon.effects.light_transport import (
+        rotated_light_visibility,
+        rotation_between,
+        vertex_light_visibility,
+    )
+
+    mesh = torus(resolution=16)
+    lighting = Lighting.constant(0.3)
+    lighting.directional = [
+        DirectionalLight(torch.tensor([0.3, 0.9, 0.2]), torch.tensor([2.0, 2.0, 2.0]))
+    ]
+    identity = torch.eye(3, dtype=torch.float64)[None]
+    same = rotated_light_visibility(mesh.verts, mesh.faces, lighting, identity)[0]
+    assert torch.allclose(same, vertex_light_visibility(mesh.verts, mesh.faces, lighting))
+    up, side = torch.tensor([0.0, 1.0, 0.0]), torch.tensor([1.0, 0.0, 0.0])
+    turn = rotation_between(up, side)
+    assert torch.allclose(turn @ up.double(), side.double(), atol=1e-12)
+    assert torch.allclose(rotation_between(up, -up) @ up.double(), -up.double(), atol=1e-12)
+    # A quarter turn about the torus' own axis (y): the same shadows, elsewhere on the ring.
+    quarter = torch.tensor([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]]).double()
+    turned = rotated_light_visibility(mesh.verts, mesh.faces, lighting, quarter[None])[0]
+    # (within the shadow maps' texel sampling of a coarse mesh)
+    assert float(turned.mean()) == pytest.approx(float(same.mean()), abs=0.03)
+    assert float((turned - same).abs().max()) > 0.2  # but not at the same vertices

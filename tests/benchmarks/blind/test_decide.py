@@ -38,21 +38,17 @@ def test_thresholds_change_the_decision_and_are_restored():
 
 
 def test_the_fingerprint_is_re_decided_with_its_threshold():
-    stored = _diagnosis()
-    fingerprint = {"share": 0.7, "interval": [0.3, 0.9], "coverage": 0.2, "names": "shadows"}
-    stored["ranking"].append(
-        {
-            "effect": "shadows",
-            "score": 0.0,
-            "heldout_reduction": 0.0,
-            "interval": [0.0, 0.0],
-            "significant": True,
-            "fingerprint": fingerprint,
-        }
-    )
+    import math
+
+    from recon.diagnose.records import Candidate, Diagnosis, Evidence
+
+    shadows = Candidate("shadows")
+    details = {"slope": 0.7, "share": 0.7, "coverage": 0.2, "p_value": 0.005}
+    shadows.add(Evidence("fingerprint", "shadows", 0.06, math.nan, False, "fp", details))
+    stored = Diagnosis(candidates=[shadows]).to_json()
     assert "shadows" in significant_effects(redecide_with(stored))
-    assert "shadows" not in significant_effects(redecide_with(stored, {"visibility_share": 0.5}))
-    # Above a share of 0.8 only a shadow is "shadows": 0.7 now names interreflection.
+    assert "shadows" not in significant_effects(redecide_with(stored, {"fingerprint": 0.1}))
+    # Above a slope of 0.8 only a shadow is "shadows": 0.7 now names interreflection.
     assert "shadows" not in significant_effects(redecide_with(stored, {"shadow_share": 0.8}))
 
 
