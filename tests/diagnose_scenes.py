@@ -38,6 +38,7 @@ def glossy_torus_views(
     transform: Callable[[torch.Tensor, object], torch.Tensor] | None = None,
     distance: float = 2.4,
     fov_x_deg: float = 45.0,
+    specular_colour: tuple[float, float, float] = (1.0, 1.0, 1.0),
 ):
     """Held-out views of a glossy torus beside its diffuse fit: (DiagnosisData, true gains [V]).
 
@@ -49,7 +50,8 @@ def glossy_torus_views(
     object leaves. The light's direction is near the cameras' ring, so views that face it show
     more highlight: per-view gains follow n.h. transform(observed, output) applies a further
     camera effect to the observed views (premultiplied linear colour). distance and fov_x_deg
-    frame the orbit (how much of the image the torus covers).
+    frame the orbit (how much of the image the torus covers). specular_colour: the highlight's
+    colour (a metal's, e.g. gold's, is its own colour; a dielectric's is white).
     """
     from recon.camera import orbit_cameras
     from recon.diagnose.data import build_diagnosis_data
@@ -91,7 +93,8 @@ def glossy_torus_views(
     gains = torch.exp(exposure_sigma * torch.randn(views, generator=generator))
     red_blue = torch.exp(white_balance_sigma * torch.randn(views, 2, generator=generator))
     channel_gains = torch.stack([red_blue[:, 0], torch.ones(views), red_blue[:, 1]], -1)
-    observed = output.color + highlight[..., None] * output.alpha
+    tint = torch.tensor(specular_colour, dtype=torch.float32)
+    observed = output.color + highlight[..., None] * tint * output.alpha
     observed = observed * gains[:, None, None, None] * channel_gains[:, None, None, :]
     if transform is not None:
         observed = transform(observed, output)

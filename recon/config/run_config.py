@@ -808,9 +808,10 @@ class FitConfig:
 
 
 # Twice the largest shared per-view colour spread of the blind check's clean synthetic fits
-# (2 x 0.0186, Mitsuba teapot; 10 clean cases of the own and Mitsuba worlds, /work/blind_runs/b48v9;
-# docs/decisions/0191-blind-misses.md).
-AGREEMENT_WHITE_BALANCE = 0.037
+# (2 x 0.0083, Mitsuba teapot; 12 clean cases of the own and Mitsuba worlds, glossy ones
+# included, re-diagnosed from b48v17 with the agreement of decision 0207;
+# docs/decisions/0207-white-balance-exposure.md).
+AGREEMENT_WHITE_BALANCE = 0.017
 # The lobe evidence's allowance for specular (docs/decisions/0196-diagnosis-light-transport-lobe.md).
 LOBE_SPECULAR = 0.02
 
@@ -1326,6 +1327,25 @@ class DiagnoseConfig:
         True,
         "The relight probe credits only a compressive curve (exponent below 1 on the shading ratio, what a camera's response does to highlights); an expanding one (a highlight under the relight sun that the diffuse fit lacks) removes nothing (docs/decisions/0208-response-specular.md).",
     )
+    colour_erode_pixels: int = setting(
+        1,
+        "Pixels the agreement's per-view colour gains leave out inside the silhouettes of both the photo and the render (recon.diagnose.agreement): a silhouette pixel's colour ratio is the coverage misfit's.",
+    )
+    colour_dark_fraction: float = setting(
+        0.02,
+        "The agreement's per-view colour gains leave out pixels darker than this share of the view's brightest (photo or render): their colour ratios are noise.",
+    )
+    colour_highlight_powers: list[int] = setting(
+        factory=lambda: [1, 8],
+        doc="Powers p of n.h whose per-view mean (how much of a highlight's lobe a view shows: a broad and a narrow lobe) the agreement removes from the views' colour gains with their brightness, so that a coloured highlight is not a white balance (recon.diagnose.agreement.view_covariates).",
+    )
+    exposure_highlight_powers: list[int] = setting(
+        factory=lambda: [1, 4, 16, 64],
+        doc="Powers of n.h of the highlight lobe that the exposure's per-view gains are read apart from (recon.diagnose.camera_gain): from a broad lobe to a narrow one.",
+    )
+    exposure_gain_iterations: int = setting(
+        30, "Alternating least-squares steps of the exposure's highlight-free per-view gains."
+    )
 
     def __post_init__(self) -> None:
         for name in (
@@ -1340,6 +1360,13 @@ class DiagnoseConfig:
         ):
             check_range(getattr(self, name), name, low=1)
         check_range(self.band_pixels, "band_pixels", low=0)
+        check_range(self.colour_erode_pixels, "colour_erode_pixels", low=0)
+        check_range(self.colour_dark_fraction, "colour_dark_fraction", low=0.0, high=1.0)
+        for power in self.colour_highlight_powers:
+            check_range(power, "colour_highlight_powers", low=1)
+        for power in self.exposure_highlight_powers:
+            check_range(power, "exposure_highlight_powers", low=1)
+        check_range(self.exposure_gain_iterations, "exposure_gain_iterations", low=1)
         check_range(self.regression_interior_margin, "regression_interior_margin", low=0)
         for name in (
             "relight_shadowed_share",

@@ -36,6 +36,7 @@ import torch
 
 from recon.config.run_config import DiagnoseConfig
 from recon.diagnose.agreement import agreement_evidence
+from recon.diagnose.camera_gain import gain_evidence
 from recon.diagnose.decision import DECISION_TABLE, probe_threshold
 from recon.diagnose.geometric_specificity import could_clear
 from recon.diagnose.identifiability import (
@@ -232,6 +233,16 @@ def _as_condition(evidence: Evidence) -> Evidence:
     )
 
 
+def gain_producer(
+    inputs: EvidenceInputs, candidates: list[Candidate], settings: DiagnoseConfig
+) -> list[Evidence]:
+    """The exposure's per-view gains read apart from a highlight lobe (recon.diagnose.camera_gain):
+    the exposure's recovered parameters."""
+    if not any(candidate.name == "exposure" for candidate in candidates):
+        return []
+    return [gain_evidence(inputs.data, settings)]
+
+
 def metadata_producer(
     inputs: EvidenceInputs, candidates: list[Candidate], settings: DiagnoseConfig
 ) -> list[Evidence]:
@@ -259,5 +270,6 @@ CHECK_PRODUCERS = [
     null_producer,
     specificity_producer,
     identifiability_producer,
+    gain_producer,
     metadata_producer,
 ]

@@ -17,7 +17,8 @@ absorption    clear         the same for the absorption refit (unless voided)
 relight       clear         the same for the relight split's probe
 agreement     clear         a per-view colour gain shared by separate halves of each view
                             above its allowance, beyond permuted views (recon.diagnose.agreement);
-                            a specificity veto in the image position alone does not overturn it
+                            its halves split the image position, intensity, n.h and n.v, so a
+                            specificity veto in those domains alone does not overturn it
 lobe          clear         the view-to-view residual (training and held-out views) follows a
                             highlight's lobe under the fitted light beyond placebo lights
                             (recon.diagnose.lobe); ranks after clearing residual evidence
@@ -52,6 +53,9 @@ metadata      veto          the capture's own record (EXIF exposure) disagrees w
                             candidate recovered: the camera did not do it, so it is not named
                             (the gains are some other per-view change, e.g. the model's
                             mismatch); an agreeing record changes nothing
+gain          inform        the exposure's per-view gains read apart from a highlight lobe
+                            (recon.diagnose.camera_gain): the parameters it reports, before
+                            the probe's
 ============  ============  =================================================================
 
 Evidence of a kind without a row is recorded and informs nothing.
@@ -168,8 +172,9 @@ class Rule:
         pattern of the held-out residual, does not overturn it.
     settles: specificity domains (recon.diagnose.specificity) this evidence tests itself: a
         specificity veto whose failing domains (details["failing_domains"]) all lie among
-        them does not overturn it (the agreement's separate halves of each view share the
-        colour change: it is not a profile of the image position).
+        them does not overturn a candidate this evidence passed for (whichever row decided
+        it): the agreement's halves of each view, split by image position, intensity, n.h and
+        n.v, share the colour change, so it is no profile of those domains.
     outlives_null: whether it still decides when the probe's null from the run failed (the
         null tests the probe's claim; these rows measure on their own terms). The rows
         without it are the ones a failed null blocked before the null was measured for
@@ -230,7 +235,7 @@ DECISION_TABLE: tuple[Rule, ...] = (
         strength=True,
         threshold=probe_threshold,
         passes=_lower_bound_clears,
-        parameters_from=("probe",),
+        parameters_from=("gain", "probe"),
     ),
     Rule(
         "absorption",
@@ -260,7 +265,7 @@ DECISION_TABLE: tuple[Rule, ...] = (
         threshold=agreement_threshold,
         passes=_agrees,
         parameters_from=("probe",),
-        settles=("image_position",),
+        settles=("image_position", "intensity", "n_dot_h", "n_dot_v"),
         outlives_null=True,
     ),
     Rule(
@@ -298,11 +303,13 @@ DECISION_TABLE: tuple[Rule, ...] = (
     ),
     Rule("identifiability", "qualify", revise=_rejudge_expected_share),
     Rule("metadata", "veto"),
+    Rule("gain", "inform"),
 )
 RULES: dict[str, Rule] = {rule.kind: rule for rule in DECISION_TABLE}
 # Whose parameters a candidate that nothing decided reports: the relight split's estimate when
-# it has one (the one estimate of a response curve the albedo cannot absorb), else the probe's.
-UNDECIDED_PARAMETERS = ("relight", "probe")
+# it has one (the one estimate of a response curve the albedo cannot absorb), else the exposure's
+# highlight-free gains, else the probe's.
+UNDECIDED_PARAMETERS = ("relight", "gain", "probe")
 
 
 def rethreshold(evidence: Evidence, config: DecisionConfig) -> Evidence:
@@ -382,8 +389,18 @@ def decide(candidate: Candidate, config: DecisionConfig) -> Candidate:
         # Measured on other data (flat-field frames, the relight split): the held-out
         # residual's pattern (specificity) does not overturn it; the capture's record does.
         vetoes = [item for item in vetoes if item.kind != "specificity"]
-    if deciding is not None and RULES[deciding.kind].settles:
-        vetoes = [item for item in vetoes if not _settled(item, RULES[deciding.kind].settles)]
+    if deciding is not None:
+        # Any clearing evidence that passed and tests a domain itself settles a veto in it
+        # (the probe may clear first, the agreement's halves still tested those domains).
+        settled = {
+            domain
+            for item in _role_evidence(candidate, "clear")
+            if item.passed
+            for domain in RULES[item.kind].settles
+        }
+        settled |= set(RULES[deciding.kind].settles)
+        if settled:
+            vetoes = [item for item in vetoes if not _settled(item, tuple(sorted(settled)))]
     if vetoes and status == "significant":
         status, why = "vetoed", vetoes[0].reason
     unidentifiable = [item for item in _role_evidence(candidate, "qualify") if not item.passed]

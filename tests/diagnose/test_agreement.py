@@ -9,7 +9,7 @@ the held-out error the probe can vouch for, but the same in both halves of every
 from __future__ import annotations
 
 import torch
-from diagnose_scenes import albedo_error_views
+from diagnose_scenes import albedo_error_views, glossy_torus_views
 
 from recon.config.run_config import DiagnoseConfig, NullConfig
 from recon.diagnose.agreement import agreement_evidence, shared_spread
@@ -99,3 +99,64 @@ def test_a_local_colour_misfit_is_not_a_white_balance():
     data = albedo_error_views(seed=2, error=0.8)
     evidence = agreement_evidence(data, "white_balance", SETTINGS)
     assert not evidence.passed, evidence.reason
+
+
+GOLD = (1.0, 0.7, 0.25)
+
+
+def decided_with_specificity(data) -> Candidate:
+    """The white_balance candidate with its probe, agreement, specificity and identifiability
+    evidence, decided."""
+    from recon.diagnose.specificity import specificity_evidence
+
+    candidate = next(
+        c for c in rank_candidates(data, ["white_balance"]) if c.name == "white_balance"
+    )
+    agreement = agreement_evidence(data, "white_balance", SETTINGS)
+    candidate.add(agreement)
+    for evidence in specificity_evidence(data, ["white_balance"], SETTINGS):
+        candidate.add(evidence)
+    details = agreement.details
+    condition = white_balance_evidence(
+        details["detectable"], details["noise"], details["views"], SETTINGS.identifiability
+    )
+    candidate.add(_as_condition(condition))
+    return decide(candidate, SETTINGS.decision)
+
+
+def test_a_coloured_highlight_with_a_constant_white_balance_is_not_a_white_balance():
+    # A gold torus (its highlight has the metal's colour) under a colour cast common to every
+    # view: views facing the light show more of the gold lobe, so their colour changes from
+    # view to view although the camera's white balance does not. A broad lobe tints the whole
+    # object; a narrow one a spot.
+    cast = torch.tensor([1.15, 1.0, 0.85])
+    for shininess in (3.0, 20.0):
+        data, _ = glossy_torus_views(
+            views=12,
+            size=32,
+            specular=0.5,
+            shininess=shininess,
+            specular_colour=GOLD,
+            transform=lambda observed, output: observed * cast,
+        )
+        agreement = agreement_evidence(data, "white_balance", SETTINGS)
+        assert not agreement.passed, agreement.reason
+        candidate = decided_with_specificity(data)
+        assert not candidate.significant, candidate.why
+
+
+def test_a_white_balance_on_a_coloured_highlight_is_named():
+    # The same gold torus, its views' white balance changing by 4 % (RMS log gain).
+    for shininess in (3.0, 20.0):
+        data, _ = glossy_torus_views(
+            views=12,
+            size=32,
+            specular=0.5,
+            shininess=shininess,
+            specular_colour=GOLD,
+            white_balance_sigma=0.04,
+        )
+        agreement = agreement_evidence(data, "white_balance", SETTINGS)
+        assert agreement.passed and agreement.details["p_value"] < 0.01, agreement.reason
+        candidate = decided_with_specificity(data)
+        assert candidate.significant, candidate.why

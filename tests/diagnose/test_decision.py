@@ -394,11 +394,12 @@ def test_redecide_uses_the_stored_evidence_and_the_given_config():
     assert stored["candidates"][1]["significant"]
 
 
-def test_a_colour_gain_shared_by_separate_halves_is_not_vetoed_by_the_image_position_alone():
+def test_a_colour_gain_shared_by_separate_halves_is_not_vetoed_in_the_domains_they_split():
     # Own bunny's white balance in the blind check: the halves of each view share a 6 % colour
     # change (p = 0.001), but the F-test against the image position (p = 1, under a misfit of
-    # 18-20 dB) vetoed it. The agreement tested the image position itself; a veto in other
-    # domains (n.h: the base model's view-dependent reflectance) still stands.
+    # 18-20 dB) vetoed it. The agreement tested the image position, intensity, n.h and n.v
+    # itself (halves split by each; per-view highlight composition partialled out); a veto in
+    # another domain (the surface region) still stands.
     def white_balance(failing):
         result = Candidate("white_balance")
         result.add(evidence("agreement", "white_balance", 0.06, p_value=0.001, views=8))
@@ -409,7 +410,10 @@ def test_a_colour_gain_shared_by_separate_halves_is_not_vetoed_by_the_image_posi
         return decide(result, CONFIG)
 
     assert white_balance(["image_position"]).status == "significant"
-    assert white_balance(["image_position", "n_dot_h"]).status == "vetoed"
+    assert white_balance(["image_position", "n_dot_h", "n_dot_v", "intensity"]).status == (
+        "significant"
+    )
+    assert white_balance(["image_position", "surface"]).status == "vetoed"
     assert white_balance(None).status == "vetoed"  # a record without its failing domains
     # The probe did not test the image position: its veto stands.
     probed = Candidate("white_balance")
@@ -426,3 +430,6 @@ def test_a_colour_gain_shared_by_separate_halves_is_not_vetoed_by_the_image_posi
         )
     )
     assert decide(probed, CONFIG).status == "vetoed"
+    # Unless the agreement also passed: it tested the image position, whichever row decided.
+    probed.add(evidence("agreement", "white_balance", 0.06, p_value=0.001, views=8))
+    assert decide(probed, CONFIG).status == "significant"
