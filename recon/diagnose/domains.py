@@ -25,11 +25,9 @@ from recon.diagnose.residuals import (
     bin_means,
     bin_ratio,
     constant_features,
-    intensity_bins,
     luminance_of,
     quantile_edges,
     scalar_means,
-    shared_response,
 )
 from recon.effects.light_transport import dominant_light, view_directions
 from recon.errors import ReconError
@@ -136,7 +134,7 @@ def surface_domain(
     cell_views = cells * views + surface.view
     # Beyond the response and the texel cells, fitted on random pixel halves of every view.
     texel_baseline = BinBaseline(
-        surface.residual, [shared_response(surface.rendered), texel_stage], surface.pixel_half()
+        surface.residual, [surface.response(), texel_stage], surface.pixel_half()
     )
     view_stage = BinStage(constant_features(len(surface), 3), cell_views, grid * grid * views)
     view_score, view_in_sample = texel_baseline.score(view_stage)
@@ -208,7 +206,7 @@ def intensity_domain(data: DiagnosisData, samples: ResidualSamples | None = None
     samples = samples if samples is not None else ResidualSamples.from_data(data)
     channels = 3
     count = len(samples)
-    edges, levels = intensity_bins(samples.rendered)
+    edges, levels = samples.intensity_bins()
     level_count = len(edges) - 1
     half = samples.view_half()
     no_bins = torch.zeros(count, dtype=torch.int64)

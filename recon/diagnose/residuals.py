@@ -174,16 +174,17 @@ def intensity_bins(rendered: torch.Tensor, bins: int = INTENSITY_BINS) -> tuple:
     return edges, torch.bucketize(rendered.double(), edges[1:-1], right=True)
 
 
-def shared_response(rendered: torch.Tensor) -> BinStage:
+def shared_response(rendered: torch.Tensor, bins: tuple | None = None) -> BinStage:
     """The baseline of every domain but intensity: a response curve per channel, piecewise
-    affine over bins of the rendered value [N, C].
+    affine over bins of the rendered value [N, C] (bins: intensity_bins(rendered) when the
+    caller has them).
 
     What depends on the rendered value alone (a gamma, a global gain) is removed first, so it
     cannot reappear in a domain whose bins happen to sort pixels by brightness (texels of one
     albedo, silhouette distances, n.l), where per-bin lines would rebuild the curve piecewise.
     """
-    edges, bins = intensity_bins(rendered)
-    return BinStage(affine_features(rendered), bins, len(edges) - 1)
+    edges, levels = bins if bins is not None else intensity_bins(rendered)
+    return BinStage(affine_features(rendered), levels, len(edges) - 1)
 
 
 # --------------------------------------------------------------------------------------------
@@ -220,6 +221,9 @@ class ResidualSamples:
         self.view_count = view_count
         self.seed = seed
         self._baselines: dict[str, BinBaseline] = {}
+        # Built on first use, then shared (both splits' baselines, the domains' bins).
+        self._intensity_bins: tuple[torch.Tensor, torch.Tensor] | None = None
+        self._response: BinStage | None = None
 
     @staticmethod
     def from_data(data: DiagnosisData, seed: int = 0) -> ResidualSamples:
@@ -268,14 +272,25 @@ class ResidualSamples:
         generator = torch.Generator().manual_seed(self.seed)
         return torch.rand(len(self), generator=generator) < 0.5
 
+    def intensity_bins(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """intensity_bins of the samples' render (computed once)."""
+        if self._intensity_bins is None:
+            self._intensity_bins = intensity_bins(self.rendered)
+        return self._intensity_bins
+
+    def response(self) -> BinStage:
+        """shared_response of the samples' render (built once: a stage is not changed by
+        fitting it)."""
+        if self._response is None:
+            self._response = shared_response(self.rendered, self.intensity_bins())
+        return self._response
+
     def baseline(self, split: str) -> BinBaseline:
         """The response curve (see shared_response) fitted on all samples and on each half;
         split 'views' (pooled domains) or 'pixels' (per-view models)."""
         if split not in self._baselines:
             half = self.view_half() if split == "views" else self.pixel_half()
-            self._baselines[split] = BinBaseline(
-                self.residual, [shared_response(self.rendered)], half
-            )
+            self._baselines[split] = BinBaseline(self.residual, [self.response()], half)
         return self._baselines[split]
 
     def binned_score(self, bins: torch.Tensor, count: int, split: str) -> tuple[float, float]:
