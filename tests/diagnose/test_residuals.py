@@ -1,0 +1,37 @@
+"""The where-analysis' samples: the shared response curve and its intensity bins are built
+once per set of samples and are what the plain functions give."""
+
+from __future__ import annotations
+
+import torch
+from diagnose_where_scene import make_scene, noisy
+
+from recon.diagnose.residuals import (
+    BinBaseline,
+    ResidualSamples,
+    intensity_bins,
+    shared_response,
+)
+
+
+def test_the_shared_response_is_built_once_and_equals_the_plain_one():
+    scene = make_scene()
+    observed = noisy(scene.output.color.detach() ** 1.3)
+    samples = ResidualSamples.from_data(scene.data(observed))
+    edges, levels = samples.intensity_bins()
+    plain_edges, plain_levels = intensity_bins(samples.rendered)
+    assert torch.equal(edges, plain_edges) and torch.equal(levels, plain_levels)
+    assert samples.intensity_bins()[1] is levels
+    response = samples.response()
+    assert samples.response() is response
+    assert torch.equal(response.rows, shared_response(samples.rendered).rows)
+    # Both splits' baselines fit that one stage; fitting leaves it unchanged.
+    views, pixels = samples.baseline("views"), samples.baseline("pixels")
+    plain = BinBaseline(samples.residual, [shared_response(samples.rendered)], samples.view_half())
+    assert torch.equal(views.left, plain.left)
+    by_pixels = BinBaseline(
+        samples.residual, [shared_response(samples.rendered)], samples.pixel_half()
+    )
+    for (_, left), (_, plain_left) in zip(pixels.left_by_half, by_pixels.left_by_half, strict=True):
+        assert torch.equal(left, plain_left)
+    assert samples.response() is response and float(views.left.abs().sum()) > 0
