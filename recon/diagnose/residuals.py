@@ -101,7 +101,15 @@ class BinStage:
 
     def predict(self, coefficients: torch.Tensor) -> torch.Tensor:
         """[N, C] prediction for every sample from fit's coefficients."""
-        return (self.features * coefficients[self.rows]).sum(-1)
+        samples, channels, parameters = self.features.shape
+        chosen = coefficients.index_select(0, self.rows.reshape(-1))
+        chosen = chosen.view(samples, channels, parameters)
+        # Parameter by parameter: the products summed in order, as .sum(-1) adds the few
+        # parameters of a bin model, without the [N, C, P] product and its reduction pass.
+        prediction = self.features[..., 0] * chosen[..., 0]
+        for parameter in range(1, parameters):
+            prediction = prediction + self.features[..., parameter] * chosen[..., parameter]
+        return prediction
 
 
 def _fit_stages(
