@@ -3,11 +3,13 @@ once per set of samples and are what the plain functions give."""
 
 from __future__ import annotations
 
+import pytest
 import torch
 from diagnose_where_scene import make_scene, noisy
 
 from recon.diagnose.residuals import (
     BinBaseline,
+    BinStage,
     ResidualSamples,
     intensity_bins,
     shared_response,
@@ -35,3 +37,14 @@ def test_the_shared_response_is_built_once_and_equals_the_plain_one():
     for (_, left), (_, plain_left) in zip(pixels.left_by_half, by_pixels.left_by_half, strict=True):
         assert torch.equal(left, plain_left)
     assert samples.response() is response and float(views.left.abs().sum()) > 0
+
+
+@pytest.mark.parametrize("parameters", [1, 2, 3])
+def test_a_bin_model_predicts_the_plain_sum_of_its_products(parameters):
+    generator = torch.Generator().manual_seed(parameters)
+    features = torch.randn(500, 3, parameters, generator=generator, dtype=torch.float64)
+    bins = torch.randint(7, (500,), generator=generator)
+    stage = BinStage(features, bins, 7)
+    coefficients = stage.fit(torch.randn(500, 3, generator=generator, dtype=torch.float64))
+    plain = (stage.features * coefficients[stage.rows]).sum(-1)
+    assert torch.equal(stage.predict(coefficients), plain)
