@@ -20,7 +20,6 @@ from recon.diagnose.residuals import (
     BinStage,
     ResidualSamples,
     adaptive_grid,
-    affine_features,
     bin_counts,
     bin_means,
     bin_ratio,
@@ -127,7 +126,7 @@ def surface_domain(
     cell_column = (uv[:, 0] * grid).long().clamp(0, grid - 1)
     cell_row = (uv[:, 1] * grid).long().clamp(0, grid - 1)
     cells = cell_row * grid + cell_column
-    texel_stage = BinStage(affine_features(surface.rendered), cells, grid * grid)
+    texel_stage = surface.response().rebinned(cells, grid * grid)
     score, in_sample = surface.baseline("views").score(texel_stage)
 
     views = data.view_count
@@ -211,7 +210,7 @@ def intensity_domain(data: DiagnosisData, samples: ResidualSamples | None = None
     half = samples.view_half()
     no_bins = torch.zeros(count, dtype=torch.int64)
     channel_means = BinStage(constant_features(count, channels), no_bins, 1)
-    line = BinStage(affine_features(samples.rendered), no_bins, 1)
+    line = samples.response().rebinned(no_bins, 1)
     binned = BinStage(constant_features(count, channels), levels, level_count)
     about_mean = BinBaseline(samples.residual, [channel_means], half)
     score, in_sample = about_mean.score(binned)

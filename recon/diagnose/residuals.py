@@ -29,6 +29,7 @@ term) split a seeded random half of the pixels of every view.
 
 from __future__ import annotations
 
+import copy
 import math
 
 import torch
@@ -58,14 +59,25 @@ class BinStage:
     def __init__(self, features: torch.Tensor, bins: torch.Tensor, count: int) -> None:
         self.features = features.double()
         samples, channels, parameters = self.features.shape
-        if bins.ndim == 1:
-            bins = bins[:, None].expand(-1, channels)
-        # Row of each (sample, channel) in the flat [count x C] coefficient table.
-        self.rows = bins * channels + torch.arange(channels)
-        self.count = count
+        self._set_bins(bins, count)
         # Every fit sums the same per-sample outer products, only over other samples.
         flat = self.features.reshape(-1, parameters)
         self._outer = (flat[:, :, None] * flat[:, None, :]).reshape(-1, parameters * parameters)
+
+    def _set_bins(self, bins: torch.Tensor, count: int) -> None:
+        if bins.ndim == 1:
+            bins = bins[:, None].expand(-1, self.channels)
+        # Row of each (sample, channel) in the flat [count x C] coefficient table.
+        self.rows = bins * self.channels + torch.arange(self.channels)
+        self.count = count
+
+    def rebinned(self, bins: torch.Tensor, count: int) -> BinStage:
+        """The same features in other bins (bins [N] or [N, C] in [0, count)): a new stage
+        that shares the features and their outer products (most domains bin the same affine
+        features of the render)."""
+        stage = copy.copy(self)
+        stage._set_bins(bins, count)
+        return stage
 
     @property
     def channels(self) -> int:
@@ -304,8 +316,7 @@ class ResidualSamples:
     def binned_score(self, bins: torch.Tensor, count: int, split: str) -> tuple[float, float]:
         """(split-half, in-sample) score of an affine response per bin [N] beyond the shared
         response curve: the default domain model."""
-        stage = BinStage(affine_features(self.rendered), bins, count)
-        return self.baseline(split).score(stage)
+        return self.baseline(split).score(self.response().rebinned(bins, count))
 
 
 def luminance_of(values: torch.Tensor) -> torch.Tensor:

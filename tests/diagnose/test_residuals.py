@@ -48,3 +48,17 @@ def test_a_bin_model_predicts_the_plain_sum_of_its_products(parameters):
     coefficients = stage.fit(torch.randn(500, 3, generator=generator, dtype=torch.float64))
     plain = (stage.features * coefficients[stage.rows]).sum(-1)
     assert torch.equal(stage.predict(coefficients), plain)
+
+
+def test_a_rebinned_stage_shares_its_features_and_fits_like_a_new_one():
+    generator = torch.Generator().manual_seed(3)
+    features = torch.randn(400, 3, 2, generator=generator, dtype=torch.float64)
+    target = torch.randn(400, 3, generator=generator, dtype=torch.float64)
+    first = BinStage(features, torch.randint(5, (400,), generator=generator), 5)
+    bins = torch.randint(9, (400, 3), generator=generator)
+    rebinned = first.rebinned(bins, 9)
+    fresh = BinStage(features, bins, 9)
+    assert rebinned._outer is first._outer and rebinned.count == 9 and first.count == 5
+    train = torch.rand(400, generator=generator) < 0.5
+    assert torch.equal(rebinned.fit(target, train), fresh.fit(target, train))
+    assert torch.equal(first.fit(target), BinStage(features, first.rows // 3, 5).fit(target))
