@@ -170,7 +170,7 @@ def placebo_bases(
     total = torch.zeros(batch).index_add_(0, pixels.view, weight).clamp_min(1e-30)
     for component in range(components):
         sums = torch.zeros(count, batch).index_add_(1, pixels.view, values[:, component] * weight)
-        values[:, component] -= (sums / total)[:, pixels.view]
+        values[:, component] -= (sums / total).index_select(1, pixels.view)
     if not geometric:
         return values[:, 0, :, None] * pixels.rendered[None]
     return (
@@ -243,7 +243,7 @@ def _placebo_reduction(
         bases = placebo_bases(pixels, size, per_view, geometric, settings, generator).double()
         # Every view's own fit at once (the views' normal equations are independent).
         theta = _per_view_least_squares(bases, residual, pixels.first, pixels.view, data.view_count)
-        explained += torch.einsum("np,pnc->nc", theta[pixels.view], bases.double())
+        explained += torch.einsum("np,pnc->nc", theta.index_select(0, pixels.view), bases)
     if shared:
         bases = placebo_bases(pixels, size, shared, geometric, settings, generator, shared=True)
         bases = bases.double()
