@@ -883,8 +883,8 @@ class DecisionConfig:
         "Floor of every lobe allowance: an excess correlation of 0.02 over the placebo lights' 95th percentile.",
     )
     lobe_alpha: float = setting(
-        0.01,
-        "Level of the lobe's placebo-light test (the share of placebo lights reaching the fitted light's correlation): conventional, not tuned.",
+        0.05,
+        "Level of the lobe's placebo-light test (the share of placebo lights reaching the fitted light's correlation): the level of the 95th percentile its excess is measured over, not tuned; at 0.01 it asked to beat every one of ~170 placebo lights (docs/decisions/0208-response-specular.md).",
     )
     cast_shadow_minimum: float = setting(
         0.05,
@@ -1046,7 +1046,18 @@ class IdentifiabilityConfig:
         "Per-view white-balance change judged (RMS log gain of red and blue over green; 5 %, an auto white balance wandering some 600 K around daylight): identifiable when the agreement's test names a change this small over the fit's per-view colour noise.",
     )
 
+    reference_blur_radius: float = setting(
+        1.0,
+        "Defocus judged by the identifiability check (pillbox radius, pixels; 1 px: the smallest whose disk reaches the neighbouring pixels): would a blur this size clear the probe's allowance over this fit's misfit?",
+    )
+    blur_estimate_factor: float = setting(
+        2.3,
+        "What the defocus probe removes over the identifiability check's estimate (the reference blur's change of the render against the fit's misfit), the largest measured: 1.0-2.3 on the blind check's ten 1 px synthetic defocus cases (docs/decisions/0209-geometric-misses.md), so 'not identifiable' is said only below the allowance even then.",
+    )
+
     def __post_init__(self) -> None:
+        check_range(self.reference_blur_radius, "reference_blur_radius", low=0.0)
+        check_range(self.blur_estimate_factor, "blur_estimate_factor", low=0.0)
         check_range(self.white_balance_reference_spread, "white_balance_reference_spread", low=0.0)
         check_range(self.minimum_exposure_ratio, "minimum_exposure_ratio", low=1.0)
         check_range(self.corner_radius, "corner_radius", low=0.0, high=2.0)
@@ -1111,6 +1122,10 @@ class LobeConfig:
     maximum_pixels: int = setting(
         20000,
         "Interior object pixels (over all views) the lobe evidence uses at most, an even stride through them: its cost is pixels x placebo lights x exponents.",
+    )
+    blur_nuisance: bool = setting(
+        True,
+        "Project out, per view, the render's image Laplacian (a blur's first-order change, which follows the fitted light but not the half-vector) before the lobe is correlated (docs/decisions/0208-response-specular.md).",
     )
 
     def __post_init__(self) -> None:
@@ -1306,6 +1321,10 @@ class DiagnoseConfig:
     fingerprint: FingerprintConfig = setting(
         factory=FingerprintConfig,
         doc="The visibility fingerprint: the fitted albedo against the fitted mesh's self-shadowing, beyond placebo lights.",
+    )
+    relight_compressive_only: bool = setting(
+        True,
+        "The relight probe credits only a compressive curve (exponent below 1 on the shading ratio, what a camera's response does to highlights); an expanding one (a highlight under the relight sun that the diffuse fit lacks) removes nothing (docs/decisions/0208-response-specular.md).",
     )
 
     def __post_init__(self) -> None:

@@ -8,16 +8,18 @@ built-in evidence; the decision table (recon.diagnose.decision) says what each k
   separate halves of each view clears the candidate even where it is a small share of a large
   misfit (a local colour misfit differs between the halves).
 
-- null (recon.diagnose.nulls): for a candidate that only its probe made significant, the
-  probe's held-out reduction against placebo effects of its size on this run (and, for the
-  per-view gains, split-half agreement); a failed one keeps the probe from clearing.
+- null (recon.diagnose.nulls): for every candidate whose probe could clear under some
+  calibration (its lower bound above minimum_share), the probe's held-out reduction against
+  placebo effects of its size on this run (and, for the per-view gains, split-half
+  agreement); a failed one keeps the probe from clearing where it clears.
 - specificity (recon.diagnose.specificity): a gain-like candidate whose gain follows a
   confusable domain is vetoed; details["instead"] names the base-model mismatch (e.g.
   view_dependent_reflectance) when that domain is a mismatch's and the held-out pixels agree.
 - identifiability (recon.diagnose.identifiability): a tone curve with no second intensity of any
   surface point, a falloff measured short of the corners or absorbable by the albedo, a lens
   distortion a per-view pose correction reproduces (judged at its recovered size when it
-  cleared), a directional blur with edges one way only, a white balance whose change from view
+  cleared), a directional blur with edges one way only, a defocus of the reference radius
+  that would not clear its probe's allowance over the fit's own misfit, a white balance whose change from view
   to view hides in the fit's per-view colour noise: details["capture"] says what would
   settle it; the decision makes a miss "not identifiable from this data, because ..." and a
   cleared candidate confusable with a named effect ambiguous.
@@ -34,9 +36,11 @@ import torch
 
 from recon.config.run_config import DiagnoseConfig
 from recon.diagnose.agreement import agreement_evidence
-from recon.diagnose.decision import DECISION_TABLE
+from recon.diagnose.decision import DECISION_TABLE, probe_threshold
+from recon.diagnose.geometric_specificity import could_clear
 from recon.diagnose.identifiability import (
     CaptureConditions,
+    defocus_blur_evidence,
     lens_distortion_evidence,
     motion_blur_evidence,
     response_curve_evidence,
@@ -51,15 +55,6 @@ from recon.effects.registry import MODEL_EFFECTS
 
 if TYPE_CHECKING:  # producers imports this module to register the checks
     from recon.diagnose.producers import EvidenceInputs
-
-# Clearing evidence besides the probe: a candidate they made significant is not the probe's
-# claim, so the probe's null does not apply to it.
-OTHER_CLEARING = ("absorption", "relight", "flat_field", "fingerprint", "agreement")
-
-
-def _cleared(candidate: Candidate, kind: str) -> bool:
-    evidence = candidate.evidence_of(kind)
-    return evidence is not None and evidence.counts and evidence.passed
 
 
 def agreement_producer(
@@ -79,13 +74,14 @@ def null_producer(
     inputs: EvidenceInputs, candidates: list[Candidate], settings: DiagnoseConfig
 ) -> list[Evidence]:
     """Placebo nulls (and split-half agreement of per-view gains) for the candidates whose
-    probe alone clears its allowance."""
+    probe could clear under any calibration (its lower bound above the floor of every probe
+    allowance, recon.diagnose.geometric_specificity.could_clear): a calibration that names it
+    finds its null in the stored evidence. A failed null takes only the probe out of the
+    decision (recon.diagnose.decision), so it is measured whatever else cleared."""
     evidence = []
     for candidate in candidates:
         probe = candidate.evidence_of("probe")
-        if candidate.name not in MODEL_EFFECTS or probe is None or not _cleared(candidate, "probe"):
-            continue
-        if any(_cleared(candidate, kind) for kind in OTHER_CLEARING):
+        if candidate.name not in MODEL_EFFECTS or not could_clear(probe, settings):
             continue
         interval = probe.interval or (probe.statistic, probe.statistic)
         reduction = float(probe.details.get("reduction", interval[0]))
@@ -150,6 +146,11 @@ def identifiability_producer(
         )
     if "motion_blur" in names:
         evidence.append(_as_condition(motion_blur_evidence(inputs.data, options)))
+    if "defocus_blur" in names:
+        allowance = probe_threshold("defocus_blur", settings.decision)
+        explained = _strongest_other_probe(candidates, "defocus_blur")
+        condition = defocus_blur_evidence(inputs.data, options, allowance, explained)
+        evidence.append(_as_condition(condition))
     agreement = (
         by_name["white_balance"].evidence_of("agreement") if "white_balance" in names else None
     )
@@ -164,6 +165,24 @@ def identifiability_producer(
         )
         evidence.append(_as_condition(condition))
     return evidence
+
+
+def _strongest_other_probe(candidates: list[Candidate], name: str) -> float:
+    """The largest held-out reduction (point estimate, alone) of the other candidates' probes:
+    the part of the misfit that is another effect's, not the fit's own."""
+    best = 0.0
+    for candidate in candidates:
+        probe = candidate.evidence_of("probe")
+        if candidate.name == name or probe is None or not probe.counts:
+            continue
+        alone = probe.details.get("alone")
+        details = (
+            alone.get("details", {})
+            if probe.details.get("conditional_on") and alone
+            else probe.details
+        )
+        best = max(best, float(details.get("reduction") or 0.0))
+    return best
 
 
 def _recovered_distortion(

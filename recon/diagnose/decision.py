@@ -29,13 +29,17 @@ fingerprint   name          the fitted albedo is darker where the fitted mesh hi
                             light, beyond placebo lights (recon.diagnose.fingerprint); its
                             slope picks shadows or interreflection (ranks after the above)
 null          raise bar     a failed null from the run (placebo, permutation, split half)
-                            keeps the clearing rows from making the candidate significant
+                            keeps the probe from making the candidate significant (the
+                            other clearing rows still decide without it)
 specificity   veto          a failed check says the signature is not the candidate's: it is not
                             significant, and ``details["instead"]`` (a base-model mismatch
                             such as view_dependent_reflectance) is named in its place, with the
                             vetoed candidate's rank, when the vetoed one had cleared; a
                             candidate decided on other data than the held-out residual
-                            (flat_field, relight: ``Rule.independent``) is not vetoed by it
+                            (flat_field, relight: ``Rule.independent``) is not vetoed by it;
+                            a geometric check (details["pairs"]) is judged again with the
+                            config's probe allowances, and applies only where the probe
+                            clears (recon.diagnose.geometric_judgement)
 identifiability  qualify    a failed check on a candidate that did not clear, or that cleared
                             and was vetoed by specificity alone: "not identifiable from this
                             data, because ..." (not a silent miss, nor a claim that it is not
@@ -75,6 +79,8 @@ from dataclasses import dataclass, replace
 from typing import Any, Literal
 
 from recon.config.run_config import DecisionConfig, DiagnoseConfig
+from recon.diagnose.geometric_judgement import rejudge
+from recon.diagnose.identifiability import judge_expected_share
 from recon.diagnose.records import Candidate, Diagnosis, Evidence
 from recon.effects.registry import diagnosis_facts
 
@@ -164,6 +170,13 @@ class Rule:
         specificity veto whose failing domains (details["failing_domains"]) all lie among
         them does not overturn it (the agreement's separate halves of each view share the
         colour change: it is not a profile of the image position).
+    outlives_null: whether it still decides when the probe's null from the run failed (the
+        null tests the probe's claim; these rows measure on their own terms). The rows
+        without it are the ones a failed null blocked before the null was measured for
+        every probe that could clear (lobe, cast shadow: kept as they were).
+    revise: judges a stored evidence again under the config when its verdict depends on the
+        allowances in a way threshold and passes cannot say (the geometric specificity
+        check compares two probes, each with its own allowance).
     """
 
     kind: str
@@ -175,6 +188,28 @@ class Rule:
     parameters_from: tuple[str, ...] = ()
     independent: bool = False
     settles: tuple[str, ...] = ()
+    revise: Callable[[Evidence, DecisionConfig], Evidence] | None = None
+    outlives_null: bool = False
+
+
+def _rejudge_geometric(evidence: Evidence, config: DecisionConfig) -> Evidence:
+    """A geometric specificity check judged again with the config's probe allowances (its pair
+    records are stored); the gain-like checks keep their producer's verdict."""
+    return rejudge(evidence, lambda effect: probe_threshold(effect, config))
+
+
+def _rejudge_expected_share(evidence: Evidence, config: DecisionConfig) -> Evidence:
+    """An identifiability condition judged by the share of the held-out error the effect's
+    reference strength would remove (details["judged_against"] == "probe") judged again with
+    the config's probe allowance; other conditions keep their producer's verdict."""
+    if evidence.details.get("judged_against") != "probe":
+        return evidence
+    share = float(evidence.details["expected_share"])
+    allowance = probe_threshold(evidence.candidate, config)
+    return replace(
+        judge_expected_share(evidence.candidate, share, allowance, evidence.details),
+        void=evidence.void,
+    )
 
 
 DECISION_TABLE: tuple[Rule, ...] = (
@@ -186,6 +221,7 @@ DECISION_TABLE: tuple[Rule, ...] = (
         passes=_lower_bound_clears,
         parameters_from=("absorption", "probe"),
         independent=True,
+        outlives_null=True,
     ),
     Rule(
         "probe",
@@ -204,6 +240,7 @@ DECISION_TABLE: tuple[Rule, ...] = (
         threshold=absorption_threshold,
         passes=_lower_bound_clears,
         parameters_from=("absorption", "probe"),
+        outlives_null=True,
     ),
     Rule(
         "relight",
@@ -214,6 +251,7 @@ DECISION_TABLE: tuple[Rule, ...] = (
         passes=_lower_bound_clears,
         parameters_from=("relight", "probe"),
         independent=True,
+        outlives_null=True,
     ),
     Rule(
         "agreement",
@@ -223,6 +261,7 @@ DECISION_TABLE: tuple[Rule, ...] = (
         passes=_agrees,
         parameters_from=("probe",),
         settles=("image_position",),
+        outlives_null=True,
     ),
     Rule(
         "lobe",
@@ -247,10 +286,17 @@ DECISION_TABLE: tuple[Rule, ...] = (
         threshold=lambda effect, config: config.fingerprint_minimum,
         passes=_fingerprint_names,
         parameters_from=("probe",),
+        outlives_null=True,
     ),
     Rule("null", "null"),
-    Rule("specificity", "veto", measured=True, parameters_from=("specificity", "probe")),
-    Rule("identifiability", "qualify"),
+    Rule(
+        "specificity",
+        "veto",
+        measured=True,
+        parameters_from=("specificity", "probe"),
+        revise=_rejudge_geometric,
+    ),
+    Rule("identifiability", "qualify", revise=_rejudge_expected_share),
     Rule("metadata", "veto"),
 )
 RULES: dict[str, Rule] = {rule.kind: rule for rule in DECISION_TABLE}
@@ -260,8 +306,11 @@ UNDECIDED_PARAMETERS = ("relight", "probe")
 
 
 def rethreshold(evidence: Evidence, config: DecisionConfig) -> Evidence:
-    """The evidence with its threshold and passed taken from the config (built-in rows only)."""
+    """The evidence with its threshold and passed taken from the config (built-in rows only;
+    a row with ``revise`` judges its stored records again)."""
     rule = RULES.get(evidence.kind)
+    if rule is not None and rule.revise is not None:
+        return rule.revise(evidence, config)
     if rule is None or rule.threshold is None or rule.passes is None:
         return evidence
     threshold = rule.threshold(evidence.candidate, config)
@@ -286,15 +335,16 @@ def _role_evidence(candidate: Candidate, role: Role) -> list[Evidence]:
     ]
 
 
-def _first_cleared(candidate: Candidate) -> Evidence | None:
+def _first_cleared(candidate: Candidate, skip: tuple[str, ...] = ()) -> Evidence | None:
     """The overruling evidence's verdict, else the first clearing row that passed, else the
-    naming row; None when nothing speaks for the candidate."""
+    naming row (rows of the kinds in skip left out); None when nothing speaks for the
+    candidate."""
     overruling = _role_evidence(candidate, "overrule")
     if overruling:
         return overruling[0] if overruling[0].passed else None
     for role in ("clear", "name"):
         for rule in DECISION_TABLE:
-            if rule.role != role:
+            if rule.role != role or rule.kind in skip:
                 continue
             evidence = candidate.evidence_of(rule.kind)
             if evidence is not None and evidence.counts and evidence.passed:
@@ -305,10 +355,23 @@ def _first_cleared(candidate: Candidate) -> Evidence | None:
 def decide(candidate: Candidate, config: DecisionConfig) -> Candidate:
     """Decide one candidate in place from its evidence and the config; returns it."""
     candidate.evidence = [rethreshold(item, config) for item in candidate.evidence]
-    deciding = _first_cleared(candidate)
-    failed_nulls = [item for item in _role_evidence(candidate, "null") if not item.passed]
-    if deciding is not None and RULES[deciding.kind].role == "clear" and failed_nulls:
-        deciding, why = None, failed_nulls[0].reason
+    probe = candidate.evidence_of("probe")
+    probe_clears = probe is not None and probe.counts and probe.passed
+    # (Measured for every probe that could clear: it matters where the probe clears.)
+    failed_nulls = [
+        item for item in _role_evidence(candidate, "null") if not item.passed and probe_clears
+    ]
+    # A null from the run tests the probe's claim (recon.diagnose.nulls): a failed one takes the
+    # probe (and the rows without Rule.outlives_null) out, and the others decide without it.
+    blocked_by_null = tuple(
+        rule.kind
+        for rule in DECISION_TABLE
+        if rule.role in ("clear", "name") and not rule.outlives_null
+    )
+    deciding = _first_cleared(candidate, skip=blocked_by_null if failed_nulls else ())
+    blocked = failed_nulls and deciding is None and _first_cleared(candidate) is not None
+    if blocked:
+        why = failed_nulls[0].reason
     elif deciding is None:
         why = _why_not(candidate)
     else:

@@ -154,6 +154,15 @@ def relight_evidence(
             continue
         record = relight_response_probe(relight, under_fitted, fitted_lighting, settings)
         low, high = record["interval"]
+        reason = "relight split's response probe: reduction's lower bound"
+        if record["expanding"] and settings.relight_compressive_only:
+            exponent = record["parameters"]["gamma_with_light_error"]
+            reason = (
+                f"relight split's response probe: the ratio to the relight render is expanded "
+                f"(exponent {exponent:.2f} > 1: light the diffuse model lacks where it is "
+                "bright, e.g. a highlight, not a camera's compressive curve); reduction's lower "
+                "bound"
+            )
         candidate.add(
             Evidence(
                 kind="relight",
@@ -161,11 +170,12 @@ def relight_evidence(
                 statistic=low,
                 threshold=float("nan"),
                 passed=False,
-                reason="relight split's response probe: reduction's lower bound",
+                reason=reason,
                 details={
                     "reduction": record["reduction"],
                     "interval": [low, high],
                     "parameters": record["parameters"],
+                    "expanding": record["expanding"],
                 },
             )
         )

@@ -13,7 +13,8 @@ other (the signature that is the candidate's own):
 - a motion blur is a per-view smear with no radial structure: on top of it a lens distortion
   has nothing left to remove, while the blur still removes error on top of the distortion.
 
-The check, for each candidate T that cleared and each effect C it is most often confused with
+The check, for each candidate T whose probe could clear under some calibration (its lower bound
+above minimum_share, ``could_clear``) and each effect C it is most often confused with
 (``CONFUSERS``; the issue's list: lens distortion named for a motion blur, a response curve or
 interreflection; blurs and pose errors with spurious lens distortion): the probes of T and C
 fitted jointly on the first half of each held-out view's pixel blocks (the probes' own
@@ -32,6 +33,7 @@ import torch
 
 from recon.config.run_config import DiagnoseConfig
 from recon.diagnose.decision import probe_threshold
+from recon.diagnose.geometric_judgement import KIND, dominated, judge, redundant, swapped
 from recon.diagnose.records import Candidate, Evidence
 from recon.diagnose.which import (
     EffectProbe,
@@ -41,7 +43,7 @@ from recon.diagnose.which import (
     probe_effect,
 )
 
-KIND = "specificity"
+__all__ = ["KIND", "dominated", "redundant", "swapped"]
 
 # Per candidate, the effects it is most often confused with (issue 20's confusions: a lens
 # distortion named for a motion blur, a response curve or interreflection; defocus, exposure,
@@ -117,127 +119,32 @@ def pair_record(
     }
 
 
-def _excess(entry: dict, allowance: float) -> float:
-    return entry["interval"][0] - allowance
-
-
-def swapped(record: dict) -> dict:
-    """The pair record seen from the confuser's side."""
-    return {
-        **record,
-        "confuser": record.get("candidate"),
-        "alone": record["confuser_alone"],
-        "confuser_alone": record["alone"],
-        "on_top_of_confuser": record["confuser_on_top"],
-        "confuser_on_top": record["on_top_of_confuser"],
-        "allowance": record["confuser_allowance"],
-        "confuser_allowance": record["allowance"],
-    }
-
-
-def redundant(record: dict, margin: float) -> bool:
-    """Whether the pair cannot be told apart and the confuser explains more: both clear alone,
-    neither clears its allowance on top of the other, neither takes the other's place
-    (``dominated``), and the confuser alone clears its allowance by more than the candidate
-    alone (one cause suffices; the stronger is named)."""
-    if dominated(swapped(record), margin):
-        return False
-    confuser_excess = _excess(record["confuser_alone"], record["confuser_allowance"])
-    own_excess = _excess(record["alone"], record["allowance"])
-    neither_adds = (
-        _excess(record["on_top_of_confuser"], record["allowance"]) <= 0
-        and _excess(record["confuser_on_top"], record["confuser_allowance"]) <= 0
-    )
-    return confuser_excess > 0 and own_excess > 0 and neither_adds and confuser_excess > own_excess
-
-
-def dominated(record: dict, margin: float) -> bool:
-    """Whether the confuser takes the candidate's place: it clears its own allowance alone, the
-    candidate on top of it does not clear the candidate's, and the confuser adds more on top of
-    the candidate than the candidate adds on top of it (lower bound above upper bound + margin)."""
-    confuser_clears = record["confuser_alone"]["interval"][0] > record["confuser_allowance"]
-    candidate_adds = record["on_top_of_confuser"]["interval"][0] > record["allowance"]
-    separated = (
-        record["confuser_on_top"]["interval"][0]
-        > record["on_top_of_confuser"]["interval"][1] + margin
-    )
-    return confuser_clears and not candidate_adds and separated
-
-
-def _percent(entry: dict) -> str:
-    low, high = entry["interval"]
-    return f"{100 * entry['reduction']:.1f} % ({100 * low:.1f} to {100 * high:.1f})"
-
-
-def _kept_because(name: str, record: dict) -> str:
-    """Why the confuser of the least clear pair does not take the candidate's place."""
-    confuser, on_top = record["confuser"], record["on_top_of_confuser"]
-    if _excess(on_top, record["allowance"]) > 0:
-        return (
-            f"on top of every confuser it still clears its allowance (least: on top of "
-            f"{confuser}, {_percent(on_top)} of the held-out error)"
-        )
-    if _excess(record["confuser_alone"], record["confuser_allowance"]) <= 0:
-        return (
-            f"on top of {confuser} it removes {_percent(on_top)}, but {confuser} alone "
-            f"({_percent(record['confuser_alone'])}) does not clear its own allowance "
-            f"{100 * record['confuser_allowance']:.1f} %, so it cannot take its place"
-        )
-    return (
-        f"on top of {confuser} it removes {_percent(on_top)}, {confuser} on top of it "
-        f"{_percent(record['confuser_on_top'])}: not separable, and {name} alone explains "
-        f"as much or more ({_percent(record['alone'])} against "
-        f"{_percent(record['confuser_alone'])})"
-    )
-
-
 def geometric_evidence(
-    name: str, probe: EffectProbe, settings: DiagnoseConfig, confusers: list[str]
+    name: str,
+    probe: EffectProbe,
+    settings: DiagnoseConfig,
+    confusers: list[str],
+    probe_lower_bound: float | None = None,
 ) -> Evidence:
-    """The specificity Evidence of one geometric candidate against the confusers given."""
-    options = settings.geometric_specificity
+    """The specificity Evidence of one geometric candidate against the confusers given
+    (recon.diagnose.geometric_judgement.judge; probe_lower_bound: the candidate's probe lower
+    bound, recorded so the decision judges the check only where the probe clears)."""
     base = _base(probe)
     records = [pair_record(name, confuser, probe, base, settings) for confuser in confusers]
-    details = {"pairs": records}
-    losing = [record for record in records if dominated(record, options.margin)]
-    tied = [
-        record for record in records if record not in losing and redundant(record, options.margin)
-    ]
-    if not losing and tied:
-        stronger = max(
-            tied, key=lambda record: _excess(record["confuser_alone"], record["confuser_allowance"])
-        )
-        confuser = stronger["confuser"]
-        details["alternative"] = confuser
-        reason = (
-            f"{name} and {confuser} are not separable here (on top of each other they remove "
-            f"{_percent(stronger['on_top_of_confuser'])} and {_percent(stronger['confuser_on_top'])}"
-            f", neither clearing its allowance), and {confuser} alone explains more "
-            f"({_percent(stronger['confuser_alone'])} against {_percent(stronger['alone'])}): "
-            f"one cause suffices, {confuser}"
-        )
-        statistic = stronger["on_top_of_confuser"]["interval"][0]
-        return Evidence(KIND, name, statistic, stronger["allowance"], False, reason, details)
-    if not losing:
-        closest = min(
-            records,
-            key=lambda record: _excess(record["on_top_of_confuser"], record["allowance"]),
-        )
-        reason = f"{name} is specific: " + _kept_because(name, closest)
-        statistic = closest["on_top_of_confuser"]["interval"][0]
-        return Evidence(KIND, name, statistic, closest["allowance"], True, reason, details)
-    # The confuser that leaves the candidate least.
-    worst = min(losing, key=lambda record: record["on_top_of_confuser"]["reduction"])
-    confuser = worst["confuser"]
-    details["alternative"] = confuser
-    reason = (
-        f"on top of {confuser} (alone {_percent(worst['confuser_alone'])}), {name} removes only "
-        f"{_percent(worst['on_top_of_confuser'])} of the held-out error, while {confuser} on "
-        f"top of {name} removes {_percent(worst['confuser_on_top'])}: the signature is "
-        f"{confuser}'s, not {name}'s"
+    return judge(name, records, settings.geometric_specificity.margin, probe_lower_bound)
+
+
+def could_clear(evidence: Evidence | None, settings: DiagnoseConfig) -> bool:
+    """Whether a probe's lower bound clears the least allowance any calibration can set (the
+    decision's minimum_share, the floor of every probe allowance): the checks of its claim run
+    for it, so a calibration other than the code's (a leave-one-scene-out one, a user's
+    config) that names it finds them in the stored evidence and judges them with its own
+    allowances (recon.diagnose.geometric_judgement.rejudge)."""
+    return (
+        evidence is not None
+        and evidence.counts
+        and evidence.statistic > settings.decision.minimum_share
     )
-    statistic = worst["on_top_of_confuser"]["interval"][0]
-    return Evidence(KIND, name, statistic, worst["allowance"], False, reason, details)
 
 
 def geometric_specificity(
@@ -246,24 +153,27 @@ def geometric_specificity(
     settings: DiagnoseConfig,
     names: set[str] | None = None,
 ) -> list[Evidence]:
-    """Specificity Evidence for every significant geometric candidate (CONFUSERS; only those
-    in names when given) whose probe cleared, against the confusers among the probed
-    candidates."""
+    """Specificity Evidence for every geometric candidate (CONFUSERS; only those in names when
+    given) whose probe could clear (``could_clear``), against the confusers among the probed
+    candidates. Whether the check applies (the probe clears its allowance) and whether it
+    passes is judged with the decision's allowances, again at every re-decision."""
     if not settings.geometric_specificity.enabled or probe.data.view_count < 2:
         return []
     probed = {candidate.name for candidate in candidates if candidate.evidence_of("probe")}
     evidence = []
     for candidate in candidates:
-        if candidate.name not in CONFUSERS or not candidate.significant:
+        if candidate.name not in CONFUSERS:
             continue
         probe_evidence = candidate.evidence_of("probe")
-        if probe_evidence is None or not (probe_evidence.counts and probe_evidence.passed):
-            # Cleared by other evidence (an absorption refit sees a distortion the fit bent into
-            # the geometry, which the probes cannot): the probes' comparison does not speak to it.
+        if not could_clear(probe_evidence, settings):
             continue
         if names is not None and candidate.name not in names:
             continue
         confusers = [name for name in CONFUSERS[candidate.name] if name in probed]
         if confusers:
-            evidence.append(geometric_evidence(candidate.name, probe, settings, confusers))
+            evidence.append(
+                geometric_evidence(
+                    candidate.name, probe, settings, confusers, probe_evidence.statistic
+                )
+            )
     return evidence

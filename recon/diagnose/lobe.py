@@ -17,8 +17,11 @@ only: silhouette pixels carry the misalignment):
    f_e = max(0, n.l) (e + 8) / (8 pi) max(0, n.h)^e [N];
 2. both with the nuisances the fit could have absorbed or a camera could have made projected
    out: one offset per surface cell (a voxel grid over the object's surface points,
-   diagnose.lobe.cells_per_axis per axis: the albedo) and one gain per view on the render
-   (an exposure); an exact least-squares projection;
+   diagnose.lobe.cells_per_axis per axis: the albedo), one gain per view on the render
+   (an exposure) and one coefficient per view on the render's image Laplacian (a blur's
+   first-order change, diagnose.lobe.blur_nuisance: a blur changes the shading where it
+   curves, under the fitted light only, so placebo lights would not reproduce it); an exact
+   least-squares projection;
 3. the largest partial correlation of r with f_e over the exponents (a highlight adds light:
    only a positive one counts);
 4. its null: the same statistic with the light replaced by placebo lights
@@ -83,10 +86,12 @@ def project_out(
     cell: torch.Tensor,
     view: torch.Tensor,
     rendered: torch.Tensor,
+    extra: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """values [N, K] with the nuisance space (an offset per cell, a gain on rendered [N] per
-    view) projected out exactly (Frisch-Waugh: cell means out, then the per-view gain columns
-    with their cell means out by least squares); returns [N, K]."""
+    view, and the columns of extra [N, E] if given) projected out exactly (Frisch-Waugh: cell
+    means out, then the other columns with their cell means out by least squares); returns
+    [N, K]."""
     cells = int(cell.max()) + 1 if cell.numel() else 0
     views = int(view.max()) + 1 if view.numel() else 0
     count = torch.zeros(cells, dtype=values.dtype).index_add_(0, cell, torch.ones_like(rendered))
@@ -99,10 +104,13 @@ def project_out(
 
     gains = torch.zeros(values.shape[0], views, dtype=values.dtype)
     gains[torch.arange(values.shape[0]), view] = rendered.to(values.dtype)
+    if extra is not None:
+        gains = torch.cat([gains, extra.to(values.dtype)], dim=1)
     gains = without_cell_means(gains)
     out = without_cell_means(values)
     gram = gains.T @ gains
-    ridge = 1e-9 * gram.diagonal().mean().clamp_min(1e-30) * torch.eye(views, dtype=gram.dtype)
+    size = gram.shape[0]
+    ridge = 1e-9 * gram.diagonal().mean().clamp_min(1e-30) * torch.eye(size, dtype=gram.dtype)
     return out - gains @ torch.linalg.solve(gram + ridge, gains.T @ out)
 
 
@@ -134,14 +142,35 @@ def _pixels(data: DiagnosisData) -> dict[str, torch.Tensor]:
     points, to_camera = view_directions(data)
     normals = torch.nn.functional.normalize(data.normals.double(), dim=-1)
     view = torch.arange(data.view_count)[:, None, None].expand_as(keep)
+    laplacian = image_laplacian(rendered)
     return {
         "residual": residual[keep],
         "rendered": rendered[keep],
+        "laplacian": laplacian[keep],
         "view": view[keep],
         "points": points.double()[keep],
         "normals": normals[keep],
         "to_camera": to_camera.double()[keep],
     }
+
+
+def image_laplacian(luminance: torch.Tensor) -> torch.Tensor:
+    """[B, H, W] the 5-point Laplacian of [B, H, W] images (borders replicated): to first
+    order, what a small blur of the render changes (a blur by a kernel of variance s^2 adds
+    s^2 / 2 times it)."""
+    padded = torch.nn.functional.pad(luminance[:, None], (1, 1, 1, 1), mode="replicate")[:, 0]
+    centre = padded[:, 1:-1, 1:-1]
+    neighbours = padded[:, 1:-1, :-2] + padded[:, 1:-1, 2:] + padded[:, :-2, 1:-1]
+    return neighbours + padded[:, 2:, 1:-1] - 4 * centre
+
+
+def blur_columns(view: torch.Tensor, laplacian: torch.Tensor) -> torch.Tensor:
+    """[N, B] the render's Laplacian [N] of each view, one column per view (zero on the other
+    views' pixels): a blur's first-order change, with its own strength in every view."""
+    views = int(view.max()) + 1 if view.numel() else 0
+    columns = torch.zeros(view.shape[0], views, dtype=laplacian.dtype)
+    columns[torch.arange(view.shape[0]), view] = laplacian
+    return columns
 
 
 def _light_per_pixel(data: DiagnosisData, direction: torch.Tensor, view: torch.Tensor):
@@ -199,6 +228,9 @@ def lobe_statistic(
     residual, rendered = joined("residual")[keep], joined("rendered")[keep]
     normals, to_camera = joined("normals")[keep], joined("to_camera")[keep]
     cell = surface_cells(joined("points")[keep], lobe.cells_per_axis)
+    # A blur changes the shading where it curves, under the fitted light only (placebo lights
+    # do not reproduce it): its first-order change is projected out with the nuisances.
+    extra = blur_columns(view, joined("laplacian")[keep]) if lobe.blur_nuisance else None
     exponents = list(lobe.exponents)
 
     def light_rows(candidate: torch.Tensor) -> torch.Tensor:
@@ -211,7 +243,7 @@ def lobe_statistic(
     separation = math.cos(math.radians(lobe.placebo_separation_degrees))
     placebos = placebos[(placebos @ direction) < separation]
     directions = torch.cat([direction[None], placebos])
-    residual_p = project_out(residual[:, None], cell, view, rendered)[:, 0]
+    residual_p = project_out(residual[:, None], cell, view, rendered, extra)[:, 0]
     scores = []
     # Projection is linear: the lights' lobes are projected in chunks (memory).
     for chunk in directions.split(LIGHTS_PER_CHUNK):
@@ -219,7 +251,7 @@ def lobe_statistic(
             [lobe_features(normals, to_camera, light_rows(item), exponents) for item in chunk],
             dim=1,
         )
-        projected = project_out(features, cell, view, rendered)
+        projected = project_out(features, cell, view, rendered, extra)
         for index in range(chunk.shape[0]):
             block = projected[:, index * len(exponents) : (index + 1) * len(exponents)]
             scores.append(_best_correlation(residual_p, block))

@@ -172,7 +172,9 @@ def relight_response_probe(
     """relight: the relight split rendered under its own light (rendered = R2); under_fitted:
     the same views rendered under the fitted light (R1) [B, H, W, 3]; fitted_lighting: the
     fit's light (its error shapes, and the cast shadows of both lights). Returns {"reduction",
-    "interval", "parameters": {"gamma", "effective_gamma", "gamma_with_light_error"}}."""
+    "interval", "parameters": {"gamma", "effective_gamma", "gamma_with_light_error"},
+    "expanding": whether the tested fit's exponent exceeds 1 (then, with
+    diagnose.relight_compressive_only, nothing is credited)}."""
     batch, height, width, _ = relight.observed.shape
     first, second = block_halves(
         batch, height, width, relight.observed.device, settings.block_pixels
@@ -186,6 +188,13 @@ def relight_response_probe(
     baseline = _fit(fixed, under_fitted, relight, first, second, settings)
     tested = RelightResponse(light_basis)
     curved = _fit(tested, under_fitted, relight, first, second, settings)
+    # A camera's response compresses (exponent below 1 on the shading ratio); an expanding fit
+    # is light the diffuse model lacks where the relight render is bright (a highlight under
+    # the relight sun), not a curve: the one-sided fit then sits at gamma = 1 and removes
+    # nothing (diagnose.relight_compressive_only).
+    expanding = bool(tested.response.log_gamma.detach() > 0)
+    if expanding and settings.relight_compressive_only:
+        curved = baseline
     reduction, interval = bootstrap_reduction(baseline, curved, settings.bootstrap_samples, seed)
     # The exponent itself comes from the fit without the light-error factor: a power law of the
     # ratio s2 / s1 is in part a function of s1, so with the factor free the exponent is pinned
@@ -201,4 +210,5 @@ def relight_response_probe(
             "effective_gamma": gamma,
             "gamma_with_light_error": float(tested.response.log_gamma.detach().exp()),
         },
+        "expanding": expanding,
     }

@@ -243,6 +243,31 @@ def test_a_failed_null_from_the_run_raises_the_bar():
     assert decide(exposure, CONFIG).significant
 
 
+def test_a_failed_null_blocks_only_the_probe_and_only_where_it_clears():
+    """Nulls are measured for every probe that could clear under some calibration; a failed
+    one must not block a candidate its probe does not make significant, nor evidence that
+    has its own null (an absorption refit), and must block the probe whatever else is
+    recorded (built to fool a decision that treated the null as a veto of the candidate)."""
+    failed = Evidence("null", "lens_distortion", 0.03, 0.05, False, "placebo effects reach 0.05")
+    # Absorption clears, the probe clears but its null fails: the absorption decides.
+    lens = candidate("lens_distortion", probe=(0.3, 0.4), absorption=(0.5, 0.6))
+    lens.add(failed)
+    decide(lens, CONFIG)
+    assert lens.significant and lens.decided_by == "absorption", lens.why
+    # The probe alone, null failed: not significant, and the null says why.
+    alone = candidate("lens_distortion", probe=(0.3, 0.4))
+    alone.add(failed)
+    assert not decide(alone, CONFIG).significant and alone.why == failed.reason
+    # A probe short of its allowance: the failed null is moot (the why is the probe's miss).
+    short = candidate("lens_distortion", probe=(0.03, 0.04))
+    short.add(failed)
+    decide(short, CONFIG)
+    assert not short.significant and "does not clear its allowance" in short.why
+    # Re-decided with an allowance the probe clears, the stored null blocks it.
+    lenient = replace(CONFIG, probe_allowance={"lens_distortion": 0.02})
+    assert not decide(short, lenient).significant and short.why == failed.reason
+
+
 def condition(name, reason, **details):
     """A failed identifiability condition on `name` (a condition: NaN statistic)."""
     return Evidence("identifiability", name, math.nan, math.nan, False, reason, details)

@@ -143,3 +143,42 @@ def test_white_balance_identifiability_is_the_colour_noise_not_the_change_found(
     for item in (clear, hidden):
         assert "common to every view is absorbed by the albedo" in item.reason
         assert item.threshold == reference
+
+
+def test_a_small_defocus_hidden_by_the_fits_misfit_is_not_identifiable():
+    """The case built to fool it: the same 1 px defocus, once over a close fit (identifiable)
+    and once over a fit whose misfit (a mottled albedo error the model cannot represent) is far
+    larger than anything the blur changes: there the probe's allowance cannot be cleared by a
+    blur that size, and the check must say so instead of a silent miss, with the capture that
+    would settle it; judged again with a lower allowance (another calibration) it passes."""
+    from diagnose_scenes import camera_effect_torus_views
+
+    from recon.config.run_config import DecisionConfig
+    from recon.diagnose.decision import rethreshold
+    from recon.diagnose.identifiability import blur_share, defocus_blur_evidence
+
+    options = IdentifiabilityConfig()
+    close = camera_effect_torus_views("defocus_blur", {"radius_px": 1.0}, size=32, views=4)
+    allowance = 0.157
+    sharp = defocus_blur_evidence(close, options, allowance)
+    assert sharp.passed, sharp.reason
+    assert sharp.details["outline_share"] <= sharp.details["estimated_share"] <= 1
+    generator = torch.Generator().manual_seed(1)
+    mottle = 1 + 0.5 * torch.randn(close.observed.shape, generator=generator)
+    hidden = replace(close, observed=close.observed * mottle.clamp_min(0))
+    blurred = defocus_blur_evidence(hidden, options, allowance)
+    assert not blurred.passed and blurred.statistic < allowance, blurred.reason
+    assert "the fit's own misfit hides a blur this size" in blurred.reason
+    assert "views in focus" in blurred.details["capture"]
+    # The misfit another candidate explains (its probe's reduction) is not the fit's own: with
+    # nearly all of it explained, the same blur would show.
+    assert defocus_blur_evidence(hidden, options, allowance, explained=0.999).passed
+    json.dumps(blurred.to_json())
+    # A radius inside the centre pixel is the identity: nothing to identify.
+    assert blur_share(close, 0.4)[0] == 0.0
+    # Judged again with another calibration's allowance (the decision's rule).
+    lenient = DecisionConfig(probe_allowance={"defocus_blur": 0.02}, minimum_share=0.0)
+    expected = blurred.details["expected_share"]
+    assert rethreshold(blurred, lenient).passed == (expected > 0.02)
+    strict = DecisionConfig(probe_allowance={"defocus_blur": 1.0})
+    assert not rethreshold(sharp, strict).passed

@@ -113,3 +113,48 @@ def test_the_producer_is_registered_and_measures_training_and_heldout_views_toge
     assert evidence[0].details["views"] == 15 and evidence[0].passed, evidence[0].reason
     disabled = replace(SETTINGS, lobe=replace(SETTINGS.lobe, enabled=False))
     assert lobe_producer(inputs, candidates, disabled) == []
+
+
+def _blurred(observed: torch.Tensor, output) -> torch.Tensor:
+    """A small defocus-like blur of the observed views: a 3x3 binomial kernel (variance 0.5 px^2
+    per axis)."""
+    image = observed.permute(0, 3, 1, 2)
+    kernel = torch.tensor([[1.0, 2.0, 1.0], [2.0, 4.0, 2.0], [1.0, 2.0, 1.0]]) / 16
+    kernel = kernel[None, None].repeat(image.shape[1], 1, 1, 1)
+    padded = torch.nn.functional.pad(image, (1, 1, 1, 1), mode="replicate")
+    return torch.nn.functional.conv2d(padded, kernel, groups=image.shape[1]).permute(0, 2, 3, 1)
+
+
+def test_the_blur_nuisance_is_the_render_laplacian_of_each_view_on_its_own_pixels():
+    from recon.diagnose.lobe import blur_columns, image_laplacian
+
+    rows, columns = torch.meshgrid(
+        torch.arange(6, dtype=torch.float64), torch.arange(7, dtype=torch.float64), indexing="ij"
+    )
+    # x^2 + 2 y^2: Laplacian 2 + 4 = 6 inside (the replicated border bends it).
+    laplacian = image_laplacian((columns**2 + 2 * rows**2)[None].expand(2, 6, 7))
+    assert torch.allclose(laplacian[:, 1:-1, 1:-1], torch.full((2, 4, 5), 6.0, dtype=torch.float64))
+    # A gaussian blur of variance s^2 adds s^2 / 2 x the Laplacian to a smooth image.
+    view = torch.tensor([0, 0, 1, 1, 1, 0, 1])
+    values = torch.arange(1.0, 8.0, dtype=torch.float64)
+    per_view = blur_columns(view, values)
+    assert per_view.shape == (7, 2)
+    assert torch.equal(per_view.sum(1), values)
+    assert float(per_view[view == 1, 0].abs().max()) == 0.0
+
+
+def test_a_blurred_lambertian_object_gives_no_lobe_a_glossy_one_still_does():
+    # Built to fool it: a blur changes the shading where it curves, under the fitted light only
+    # (placebo lights do not reproduce it), so without its first-order change projected out the
+    # light-specific view-to-view residual reads as a lobe.
+    settings = DiagnoseConfig(lobe=LobeConfig(placebo_lights=120))
+    blurred, _ = glossy_torus_views(views=12, size=64, specular=0.0, transform=_blurred)
+    evidence = lobe_evidence([blurred], "specular", settings)
+    assert not evidence.passed, evidence.reason
+    unguarded = replace(settings, lobe=replace(settings.lobe, blur_nuisance=False))
+    assert lobe_evidence([blurred], "specular", unguarded).passed
+    glossy, _ = glossy_torus_views(
+        views=12, size=64, specular=0.3, shininess=30.0, transform=_blurred
+    )
+    measured = lobe_statistic([glossy], settings)
+    assert measured["p_value"] < 0.01 and measured["correlation"] > 0.5, measured

@@ -29,7 +29,33 @@ def lit_by(direction: list[float]) -> Lighting:
     return Lighting(sh_coefficients=ambient.sh_coefficients, directional=[sun])
 
 
-def relight_case(gamma: float, noise: float = 0.002):
+def highlight_of(output, cameras, direction: list[float], strength: float, shininess: float):
+    """[B, H, W, 1] a white Blinn-Phong highlight strength max(0, n.h)^shininess of a sun toward
+    direction, seen by cameras in output (its depth and normals)."""
+    batch, height, width, _ = output.color.shape
+    rows, columns = torch.meshgrid(
+        torch.arange(height) + 0.5, torch.arange(width) + 0.5, indexing="ij"
+    )
+    depth = output.depth[..., 0]
+    intrinsics = cameras.intrinsics
+    fx, fy = intrinsics[:, 0, 0, None, None], intrinsics[:, 1, 1, None, None]
+    cx, cy = intrinsics[:, 0, 2, None, None], intrinsics[:, 1, 2, None, None]
+    points = torch.stack(
+        [(columns - cx) / fx * depth, (rows - cy) / fy * depth, depth, torch.ones_like(depth)],
+        -1,
+    ).view(batch, -1, 4)
+    world = (points @ torch.linalg.inv(cameras.world_to_cam).transpose(1, 2))[..., :3]
+    to_camera = cameras.centers()[:, None, None, :] - world.view(batch, height, width, 3)
+    to_light = torch.nn.functional.normalize(torch.tensor(direction), dim=0)
+    halfway = torch.nn.functional.normalize(
+        torch.nn.functional.normalize(to_camera, dim=-1) + to_light, dim=-1
+    )
+    lit = (output.normals * to_light).sum(-1) > 0
+    lobe = (output.normals * halfway).sum(-1).clamp_min(0) ** shininess * lit
+    return (strength * lobe)[..., None] * output.alpha
+
+
+def relight_case(gamma: float, noise: float = 0.002, highlight: float = 0.0):
     mesh = patterned_torus((2, 3), 0.25, lambda p: [p, 0.8 * p + 0.1, 0.6 * p + 0.2], base=0.45)
     cameras = orbit_cameras(VIEWS, (SIZE, SIZE), distance=2.2, fov_x_deg=50, elevation_deg=30)
     renderer = Renderer(texture_filter="linear")
@@ -42,6 +68,10 @@ def relight_case(gamma: float, noise: float = 0.002):
     fitted_second = torch.where(under_first.color > 1e-3, fitted_first * ratio, under_second.color)
     generator = torch.Generator().manual_seed(0)
     observed = under_second.color.clamp_min(0).pow(gamma) * under_second.alpha
+    if highlight:
+        # A glossy surface: the second light's highlight, which the diffuse fit lacks.
+        sun = [-0.7, 0.5, -0.3]
+        observed = observed + highlight_of(under_second, cameras, sun, highlight, 30.0)
     observed = observed + noise * torch.randn(observed.shape, generator=generator)
     relight = build_diagnosis_data(
         observed,
@@ -59,6 +89,26 @@ def test_a_tone_curve_shows_under_the_second_light():
     record = relight_response_probe(relight, under_fitted, fitted_light, SETTINGS)
     assert record["interval"][0] > 0.3, record
     assert abs(record["parameters"]["gamma"] - 0.6) < 0.05, record
+
+
+def test_a_highlight_under_the_second_light_is_not_a_tone_curve():
+    # Built to fool it: a glossy surface under the relight sun adds light that the diffuse fit
+    # lacks where n.h peaks, bright pixels brighter, which a curve could bend toward.
+    relight, under_fitted, fitted_light = relight_case(gamma=1.0, highlight=0.4)
+    assert float((relight.residual.abs() > 0.05).float().mean()) > 0.01  # the highlight is there
+    record = relight_response_probe(relight, under_fitted, fitted_light, SETTINGS)
+    assert record["expanding"] and record["interval"][0] < SETTINGS.decision.relight_allowance
+    # Credited both ways, the highlight would read as a (expanding) curve.
+    both_ways = replace(SETTINGS, relight_compressive_only=False)
+    record = relight_response_probe(relight, under_fitted, fitted_light, both_ways)
+    assert record["interval"][0] > SETTINGS.decision.relight_allowance, record
+
+
+def test_a_compressive_curve_on_a_glossy_surface_is_still_found():
+    relight, under_fitted, fitted_light = relight_case(gamma=0.6, highlight=0.2)
+    record = relight_response_probe(relight, under_fitted, fitted_light, SETTINGS)
+    assert not record["expanding"], record
+    assert record["interval"][0] > SETTINGS.decision.relight_allowance, record
 
 
 def test_a_linear_camera_leaves_nothing():

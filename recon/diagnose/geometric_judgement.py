@@ -1,0 +1,192 @@
+"""The geometric specificity verdict from its pair records (recon.diagnose.geometric_specificity).
+
+The pair records hold what each geometric candidate and each confuser removes alone and on top
+of the other (held-out reductions with bootstrap intervals); the verdict compares them with the
+probes' allowances. It is kept apart from the measurement so the decision (recon.diagnose.
+decision) can judge the stored records again with another calibration's allowances: a
+candidate that only a leave-one-scene-out calibration makes significant is checked with the
+allowances that name it, not with those the diagnosis ran with.
+
+A verdict applies to the probe's claim only: when the candidate's probe lower bound
+(``details["probe_lower_bound"]``) does not clear its allowance, the probes' comparison does not
+speak to it (an absorption refit sees a distortion the fit bent into the geometry, which the
+probes cannot), and the check passes as not judged.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from recon.diagnose.records import Evidence
+
+KIND = "specificity"
+
+
+def _excess(entry: dict, allowance: float) -> float:
+    return entry["interval"][0] - allowance
+
+
+def swapped(record: dict) -> dict:
+    """The pair record seen from the confuser's side."""
+    return {
+        **record,
+        "confuser": record.get("candidate"),
+        "alone": record["confuser_alone"],
+        "confuser_alone": record["alone"],
+        "on_top_of_confuser": record["confuser_on_top"],
+        "confuser_on_top": record["on_top_of_confuser"],
+        "allowance": record["confuser_allowance"],
+        "confuser_allowance": record["allowance"],
+    }
+
+
+def redundant(record: dict, margin: float) -> bool:
+    """Whether the pair cannot be told apart and the confuser explains more: both clear alone,
+    neither clears its allowance on top of the other, neither takes the other's place
+    (``dominated``), and the confuser alone clears its allowance by more than the candidate
+    alone (one cause suffices; the stronger is named)."""
+    if dominated(swapped(record), margin):
+        return False
+    confuser_excess = _excess(record["confuser_alone"], record["confuser_allowance"])
+    own_excess = _excess(record["alone"], record["allowance"])
+    neither_adds = (
+        _excess(record["on_top_of_confuser"], record["allowance"]) <= 0
+        and _excess(record["confuser_on_top"], record["confuser_allowance"]) <= 0
+    )
+    return confuser_excess > 0 and own_excess > 0 and neither_adds and confuser_excess > own_excess
+
+
+def dominated(record: dict, margin: float) -> bool:
+    """Whether the confuser takes the candidate's place: it clears its own allowance alone, the
+    candidate on top of it does not clear the candidate's, and the confuser adds more on top of
+    the candidate than the candidate adds on top of it (lower bound above upper bound + margin)."""
+    confuser_clears = record["confuser_alone"]["interval"][0] > record["confuser_allowance"]
+    candidate_adds = record["on_top_of_confuser"]["interval"][0] > record["allowance"]
+    separated = (
+        record["confuser_on_top"]["interval"][0]
+        > record["on_top_of_confuser"]["interval"][1] + margin
+    )
+    return confuser_clears and not candidate_adds and separated
+
+
+def _percent(entry: dict) -> str:
+    low, high = entry["interval"]
+    return f"{100 * entry['reduction']:.1f} % ({100 * low:.1f} to {100 * high:.1f})"
+
+
+def _kept_because(name: str, record: dict) -> str:
+    """Why the confuser of the least clear pair does not take the candidate's place."""
+    confuser, on_top = record["confuser"], record["on_top_of_confuser"]
+    if _excess(on_top, record["allowance"]) > 0:
+        return (
+            f"on top of every confuser it still clears its allowance (least: on top of "
+            f"{confuser}, {_percent(on_top)} of the held-out error)"
+        )
+    if _excess(record["confuser_alone"], record["confuser_allowance"]) <= 0:
+        return (
+            f"on top of {confuser} it removes {_percent(on_top)}, but {confuser} alone "
+            f"({_percent(record['confuser_alone'])}) does not clear its own allowance "
+            f"{100 * record['confuser_allowance']:.1f} %, so it cannot take its place"
+        )
+    return (
+        f"on top of {confuser} it removes {_percent(on_top)}, {confuser} on top of it "
+        f"{_percent(record['confuser_on_top'])}: not separable, and {name} alone explains "
+        f"as much or more ({_percent(record['alone'])} against "
+        f"{_percent(record['confuser_alone'])})"
+    )
+
+
+def judge(
+    name: str,
+    records: list[dict],
+    margin: float,
+    probe_lower_bound: float | None = None,
+    allowance: Callable[[str], float] | None = None,
+) -> Evidence:
+    """The specificity Evidence of one geometric candidate from its pair records (pair_record
+    in recon.diagnose.geometric_specificity). allowance: each effect's probe allowance, to
+    judge with instead of the records' own; probe_lower_bound: the candidate's probe lower
+    bound (the check passes, not judged, when it does not clear the allowance)."""
+    if allowance is not None:
+        records = [
+            {
+                **record,
+                "allowance": allowance(record["candidate"]),
+                "confuser_allowance": allowance(record["confuser"]),
+            }
+            for record in records
+        ]
+    details: dict = {"pairs": records, "margin": margin}
+    if probe_lower_bound is not None:
+        details["probe_lower_bound"] = probe_lower_bound
+    own_allowance = records[0]["allowance"] if records else float("nan")
+    if probe_lower_bound is not None and not probe_lower_bound > own_allowance:
+        details["not_judged"] = True
+        reason = (
+            f"not judged: {name}'s probe (lower bound {100 * probe_lower_bound:.1f} %) does not "
+            f"clear its allowance {100 * own_allowance:.1f} %, so the probes' comparison does "
+            "not speak to it"
+        )
+        return Evidence(KIND, name, probe_lower_bound, own_allowance, True, reason, details)
+    losing = [record for record in records if dominated(record, margin)]
+    tied = [record for record in records if record not in losing and redundant(record, margin)]
+    if not losing and tied:
+        stronger = max(
+            tied, key=lambda record: _excess(record["confuser_alone"], record["confuser_allowance"])
+        )
+        confuser = stronger["confuser"]
+        details["alternative"] = confuser
+        reason = (
+            f"{name} and {confuser} are not separable here (on top of each other they remove "
+            f"{_percent(stronger['on_top_of_confuser'])} and {_percent(stronger['confuser_on_top'])}"
+            f", neither clearing its allowance), and {confuser} alone explains more "
+            f"({_percent(stronger['confuser_alone'])} against {_percent(stronger['alone'])}): "
+            f"one cause suffices, {confuser}"
+        )
+        statistic = stronger["on_top_of_confuser"]["interval"][0]
+        return Evidence(KIND, name, statistic, stronger["allowance"], False, reason, details)
+    if not losing:
+        closest = min(
+            records,
+            key=lambda record: _excess(record["on_top_of_confuser"], record["allowance"]),
+        )
+        reason = f"{name} is specific: " + _kept_because(name, closest)
+        statistic = closest["on_top_of_confuser"]["interval"][0]
+        return Evidence(KIND, name, statistic, closest["allowance"], True, reason, details)
+    # The confuser that leaves the candidate least.
+    worst = min(losing, key=lambda record: record["on_top_of_confuser"]["reduction"])
+    confuser = worst["confuser"]
+    details["alternative"] = confuser
+    reason = (
+        f"on top of {confuser} (alone {_percent(worst['confuser_alone'])}), {name} removes only "
+        f"{_percent(worst['on_top_of_confuser'])} of the held-out error, while {confuser} on "
+        f"top of {name} removes {_percent(worst['confuser_on_top'])}: the signature is "
+        f"{confuser}'s, not {name}'s"
+    )
+    statistic = worst["on_top_of_confuser"]["interval"][0]
+    return Evidence(KIND, name, statistic, worst["allowance"], False, reason, details)
+
+
+def rejudge(evidence: Evidence, allowance: Callable[[str], float]) -> Evidence:
+    """A stored geometric specificity Evidence (one with details["pairs"]) judged again with
+    other probe allowances; any other evidence comes back unchanged."""
+    records = evidence.details.get("pairs")
+    if evidence.kind != KIND or not records:
+        return evidence
+    judged = judge(
+        evidence.candidate,
+        records,
+        float(evidence.details.get("margin", 0.0)),
+        evidence.details.get("probe_lower_bound"),
+        allowance,
+    )
+    return Evidence(
+        judged.kind,
+        judged.candidate,
+        judged.statistic,
+        judged.threshold,
+        judged.passed,
+        judged.reason,
+        judged.details,
+        evidence.void,
+    )
