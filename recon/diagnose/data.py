@@ -314,28 +314,63 @@ def render_diagnosis_data(
         raise ReconError(f"diagnose: split '{captures.split}' has no views")
     model = model.to(device)
     lighting = None if lighting is None else lighting.to(device)
-    renderer = Renderer(texture_filter="linear-mipmap-linear", texture_boundary="clamp")
-    parts: list[DiagnosisData] = []
-    with torch.no_grad():
-        for start in range(0, len(captures.cameras), VIEWS_PER_BATCH):
-            stop = start + VIEWS_PER_BATCH
-            cameras = captures.cameras[start:stop].to(device)
-            output = model.render_with(renderer, cameras, list(effects or []), lighting)
-            parts.append(
-                build_diagnosis_data(
-                    captures.images[start:stop],
-                    captures.masks[start:stop],
-                    output,
-                    cameras,
-                    model.lighting if lighting is None else lighting,
-                    model.mesh,
-                    band_pixels,
-                    captures.names[start:stop],
-                    captures.split,
-                    model.to("cpu"),
-                )
-            )
+    parts = [
+        _render_views(
+            captures,
+            slice(start, start + VIEWS_PER_BATCH),
+            model,
+            device,
+            band_pixels,
+            effects,
+            lighting,
+        )[0]
+        for start in range(0, len(captures.cameras), VIEWS_PER_BATCH)
+    ]
     return concatenate(parts)
+
+
+def render_views_once(
+    captures: CaptureSet, model: FittedModel, band_pixels: int = DEFAULTS.band_pixels
+) -> tuple[DiagnosisData, RenderOutput]:
+    """The fitted model (without effects) against every view of captures in one batch on the
+    CPU, and the RenderOutput it was made from: the EffectProbe's cached scene render
+    (recon.diagnose.which), so the held-out views are rendered once. A view's render does not
+    depend on the views batched with it: the same data as render_diagnosis_data."""
+    if len(captures.cameras) == 0:
+        raise ReconError(f"diagnose: split '{captures.split}' has no views")
+    cpu = torch.device("cpu")
+    views = slice(0, len(captures.cameras))
+    return _render_views(captures, views, model.to(cpu), cpu, band_pixels, None, None)
+
+
+def _render_views(
+    captures: CaptureSet,
+    views: slice,
+    model: FittedModel,
+    device: torch.device,
+    band_pixels: int,
+    effects: Sequence[ModelEffect] | None,
+    lighting: Lighting | None,
+) -> tuple[DiagnosisData, RenderOutput]:
+    """One batch of render_diagnosis_data (model and lighting on device already), with the
+    render."""
+    renderer = Renderer(texture_filter="linear-mipmap-linear", texture_boundary="clamp")
+    with torch.no_grad():
+        cameras = captures.cameras[views].to(device)
+        output = model.render_with(renderer, cameras, list(effects or []), lighting)
+        data = build_diagnosis_data(
+            captures.images[views],
+            captures.masks[views],
+            output,
+            cameras,
+            model.lighting if lighting is None else lighting,
+            model.mesh,
+            band_pixels,
+            captures.names[views],
+            captures.split,
+            model.to("cpu"),
+        )
+    return data, output
 
 
 def concatenate(parts: list[DiagnosisData]) -> DiagnosisData:

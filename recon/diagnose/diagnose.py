@@ -17,7 +17,12 @@ import torch
 from recon.config import to_dict
 from recon.config.run_config import DiagnoseConfig, RunConfig
 from recon.diagnose.absorption import AbsorptionCache, AbsorptionInputs, absorption_probes
-from recon.diagnose.data import DiagnosisData, FittedModel, render_diagnosis_data
+from recon.diagnose.data import (
+    DiagnosisData,
+    FittedModel,
+    render_diagnosis_data,
+    render_views_once,
+)
 from recon.diagnose.decision import decide, decide_all, verdict_of
 from recon.diagnose.domains import where_analysis
 from recon.diagnose.fingerprint import visibility_fingerprint
@@ -296,8 +301,8 @@ def heldout_views(inputs: DiagnosisInputs) -> tuple[DiagnosisData, EffectProbe]:
     """The held-out views against the model (its own effects on, per-view ones fitted on each
     view's first half of blocks) and the EffectProbe that renders them."""
     settings = inputs.config.diagnose
-    data = render_diagnosis_data(inputs.heldout, inputs.model, inputs.device, settings.band_pixels)
-    probe = EffectProbe(data, settings)
+    data, output = render_views_once(inputs.heldout, inputs.model, settings.band_pixels)
+    probe = EffectProbe(data, settings, scene_output=output)
     if probe.model_effects:
         data = replace(data, rendered=probe.base_output.color.detach())
         probe.data = data

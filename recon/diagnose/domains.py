@@ -20,16 +20,13 @@ from recon.diagnose.residuals import (
     BinStage,
     ResidualSamples,
     adaptive_grid,
-    affine_features,
     bin_counts,
     bin_means,
     bin_ratio,
     constant_features,
-    intensity_bins,
     luminance_of,
     quantile_edges,
     scalar_means,
-    shared_response,
 )
 from recon.effects.light_transport import dominant_light, view_directions
 from recon.errors import ReconError
@@ -129,14 +126,14 @@ def surface_domain(
     cell_column = (uv[:, 0] * grid).long().clamp(0, grid - 1)
     cell_row = (uv[:, 1] * grid).long().clamp(0, grid - 1)
     cells = cell_row * grid + cell_column
-    texel_stage = BinStage(affine_features(surface.rendered), cells, grid * grid)
+    texel_stage = surface.response().rebinned(cells, grid * grid)
     score, in_sample = surface.baseline("views").score(texel_stage)
 
     views = data.view_count
     cell_views = cells * views + surface.view
     # Beyond the response and the texel cells, fitted on random pixel halves of every view.
     texel_baseline = BinBaseline(
-        surface.residual, [shared_response(surface.rendered), texel_stage], surface.pixel_half()
+        surface.residual, [surface.response(), texel_stage], surface.pixel_half()
     )
     view_stage = BinStage(constant_features(len(surface), 3), cell_views, grid * grid * views)
     view_score, view_in_sample = texel_baseline.score(view_stage)
@@ -208,12 +205,12 @@ def intensity_domain(data: DiagnosisData, samples: ResidualSamples | None = None
     samples = samples if samples is not None else ResidualSamples.from_data(data)
     channels = 3
     count = len(samples)
-    edges, levels = intensity_bins(samples.rendered)
+    edges, levels = samples.intensity_bins()
     level_count = len(edges) - 1
     half = samples.view_half()
     no_bins = torch.zeros(count, dtype=torch.int64)
     channel_means = BinStage(constant_features(count, channels), no_bins, 1)
-    line = BinStage(affine_features(samples.rendered), no_bins, 1)
+    line = samples.response().rebinned(no_bins, 1)
     binned = BinStage(constant_features(count, channels), levels, level_count)
     about_mean = BinBaseline(samples.residual, [channel_means], half)
     score, in_sample = about_mean.score(binned)

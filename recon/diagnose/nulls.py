@@ -19,6 +19,7 @@ Producers return recon.diagnose.records.Evidence of kind "null".
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
 
@@ -169,7 +170,7 @@ def placebo_bases(
     total = torch.zeros(batch).index_add_(0, pixels.view, weight).clamp_min(1e-30)
     for component in range(components):
         sums = torch.zeros(count, batch).index_add_(1, pixels.view, values[:, component] * weight)
-        values[:, component] -= (sums / total)[:, pixels.view]
+        values[:, component] -= (sums / total).index_select(1, pixels.view)
     if not geometric:
         return values[:, 0, :, None] * pixels.rendered[None]
     return (
@@ -242,7 +243,7 @@ def _placebo_reduction(
         bases = placebo_bases(pixels, size, per_view, geometric, settings, generator).double()
         # Every view's own fit at once (the views' normal equations are independent).
         theta = _per_view_least_squares(bases, residual, pixels.first, pixels.view, data.view_count)
-        explained += torch.einsum("np,pnc->nc", theta[pixels.view], bases.double())
+        explained += torch.einsum("np,pnc->nc", theta.index_select(0, pixels.view), bases)
     if shared:
         bases = placebo_bases(pixels, size, shared, geometric, settings, generator, shared=True)
         bases = bases.double()
@@ -254,6 +255,34 @@ def _placebo_reduction(
     return float(1 - after / before.clamp_min(1e-30))
 
 
+# The last views' placebo draws by parameter layout (per view, shared, geometric), with the
+# views and settings they were drawn for: the draws depend on nothing else, so candidates of
+# one layout (shadows and vignetting: 2 shared gains) share them, and a candidate measured
+# again (recon.diagnose.geometric_checks restores probes alone) does not draw them twice.
+_LAST_DRAWS: list = []  # [(data, settings, {layout: draws})], at most one entry
+
+
+def placebo_draws(
+    data: DiagnosisData, per_view: int, shared: int, geometric: bool, settings: DiagnoseConfig
+) -> list[float]:
+    """The held-out reductions of settings.nulls.placebo_draws placebos of one parameter
+    layout on data (seeds nulls.seed, nulls.seed + 1, ...), cached for the last data asked
+    about (by identity) under equal settings."""
+    if not (_LAST_DRAWS and _LAST_DRAWS[0][0] is data and _LAST_DRAWS[0][1] == settings):
+        _LAST_DRAWS[:] = [(data, copy.deepcopy(settings), {})]
+    cache = _LAST_DRAWS[0][2]
+    layout = (per_view, shared, geometric)
+    if layout not in cache:
+        pixels = _Pixels.of(data, settings.block_pixels)
+        cache[layout] = [
+            _placebo_reduction(
+                pixels, data, per_view, shared, geometric, settings, settings.nulls.seed + d
+            )
+            for d in range(settings.nulls.placebo_draws)
+        ]
+    return list(cache[layout])
+
+
 def placebo_null(
     data: DiagnosisData, name: str, settings: DiagnoseConfig | None = None
 ) -> tuple[float, list[float]]:
@@ -261,14 +290,7 @@ def placebo_null(
     run, and the draws."""
     settings = settings or DiagnoseConfig()
     per_view, shared = parameter_layout(name, data.view_count)
-    geometric = name in GEOMETRIC_EFFECTS
-    pixels = _Pixels.of(data, settings.block_pixels)
-    draws = [
-        _placebo_reduction(
-            pixels, data, per_view, shared, geometric, settings, settings.nulls.seed + d
-        )
-        for d in range(settings.nulls.placebo_draws)
-    ]
+    draws = placebo_draws(data, per_view, shared, name in GEOMETRIC_EFFECTS, settings)
     threshold = float(
         torch.quantile(torch.tensor(draws, dtype=torch.float64), settings.nulls.quantile)
     )

@@ -29,6 +29,7 @@ term) split a seeded random half of the pixels of every view.
 
 from __future__ import annotations
 
+import copy
 import math
 
 import torch
@@ -58,14 +59,25 @@ class BinStage:
     def __init__(self, features: torch.Tensor, bins: torch.Tensor, count: int) -> None:
         self.features = features.double()
         samples, channels, parameters = self.features.shape
-        if bins.ndim == 1:
-            bins = bins[:, None].expand(-1, channels)
-        # Row of each (sample, channel) in the flat [count x C] coefficient table.
-        self.rows = bins * channels + torch.arange(channels)
-        self.count = count
+        self._set_bins(bins, count)
         # Every fit sums the same per-sample outer products, only over other samples.
         flat = self.features.reshape(-1, parameters)
         self._outer = (flat[:, :, None] * flat[:, None, :]).reshape(-1, parameters * parameters)
+
+    def _set_bins(self, bins: torch.Tensor, count: int) -> None:
+        if bins.ndim == 1:
+            bins = bins[:, None].expand(-1, self.channels)
+        # Row of each (sample, channel) in the flat [count x C] coefficient table.
+        self.rows = bins * self.channels + torch.arange(self.channels)
+        self.count = count
+
+    def rebinned(self, bins: torch.Tensor, count: int) -> BinStage:
+        """The same features in other bins (bins [N] or [N, C] in [0, count)): a new stage
+        that shares the features and their outer products (most domains bin the same affine
+        features of the render)."""
+        stage = copy.copy(self)
+        stage._set_bins(bins, count)
+        return stage
 
     @property
     def channels(self) -> int:
@@ -101,7 +113,15 @@ class BinStage:
 
     def predict(self, coefficients: torch.Tensor) -> torch.Tensor:
         """[N, C] prediction for every sample from fit's coefficients."""
-        return (self.features * coefficients[self.rows]).sum(-1)
+        samples, channels, parameters = self.features.shape
+        chosen = coefficients.index_select(0, self.rows.reshape(-1))
+        chosen = chosen.view(samples, channels, parameters)
+        # Parameter by parameter: the products summed in order, as .sum(-1) adds the few
+        # parameters of a bin model, without the [N, C, P] product and its reduction pass.
+        prediction = self.features[..., 0] * chosen[..., 0]
+        for parameter in range(1, parameters):
+            prediction = prediction + self.features[..., parameter] * chosen[..., parameter]
+        return prediction
 
 
 def _fit_stages(
@@ -174,16 +194,17 @@ def intensity_bins(rendered: torch.Tensor, bins: int = INTENSITY_BINS) -> tuple:
     return edges, torch.bucketize(rendered.double(), edges[1:-1], right=True)
 
 
-def shared_response(rendered: torch.Tensor) -> BinStage:
+def shared_response(rendered: torch.Tensor, bins: tuple | None = None) -> BinStage:
     """The baseline of every domain but intensity: a response curve per channel, piecewise
-    affine over bins of the rendered value [N, C].
+    affine over bins of the rendered value [N, C] (bins: intensity_bins(rendered) when the
+    caller has them).
 
     What depends on the rendered value alone (a gamma, a global gain) is removed first, so it
     cannot reappear in a domain whose bins happen to sort pixels by brightness (texels of one
     albedo, silhouette distances, n.l), where per-bin lines would rebuild the curve piecewise.
     """
-    edges, bins = intensity_bins(rendered)
-    return BinStage(affine_features(rendered), bins, len(edges) - 1)
+    edges, levels = bins if bins is not None else intensity_bins(rendered)
+    return BinStage(affine_features(rendered), levels, len(edges) - 1)
 
 
 # --------------------------------------------------------------------------------------------
@@ -220,6 +241,9 @@ class ResidualSamples:
         self.view_count = view_count
         self.seed = seed
         self._baselines: dict[str, BinBaseline] = {}
+        # Built on first use, then shared (both splits' baselines, the domains' bins).
+        self._intensity_bins: tuple[torch.Tensor, torch.Tensor] | None = None
+        self._response: BinStage | None = None
 
     @staticmethod
     def from_data(data: DiagnosisData, seed: int = 0) -> ResidualSamples:
@@ -268,21 +292,31 @@ class ResidualSamples:
         generator = torch.Generator().manual_seed(self.seed)
         return torch.rand(len(self), generator=generator) < 0.5
 
+    def intensity_bins(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """intensity_bins of the samples' render (computed once)."""
+        if self._intensity_bins is None:
+            self._intensity_bins = intensity_bins(self.rendered)
+        return self._intensity_bins
+
+    def response(self) -> BinStage:
+        """shared_response of the samples' render (built once: a stage is not changed by
+        fitting it)."""
+        if self._response is None:
+            self._response = shared_response(self.rendered, self.intensity_bins())
+        return self._response
+
     def baseline(self, split: str) -> BinBaseline:
         """The response curve (see shared_response) fitted on all samples and on each half;
         split 'views' (pooled domains) or 'pixels' (per-view models)."""
         if split not in self._baselines:
             half = self.view_half() if split == "views" else self.pixel_half()
-            self._baselines[split] = BinBaseline(
-                self.residual, [shared_response(self.rendered)], half
-            )
+            self._baselines[split] = BinBaseline(self.residual, [self.response()], half)
         return self._baselines[split]
 
     def binned_score(self, bins: torch.Tensor, count: int, split: str) -> tuple[float, float]:
         """(split-half, in-sample) score of an affine response per bin [N] beyond the shared
         response curve: the default domain model."""
-        stage = BinStage(affine_features(self.rendered), bins, count)
-        return self.baseline(split).score(stage)
+        return self.baseline(split).score(self.response().rebinned(bins, count))
 
 
 def luminance_of(values: torch.Tensor) -> torch.Tensor:

@@ -38,7 +38,7 @@ from recon.effects.forward import (
     apply_shading_effects,
 )
 from recon.effects.registry import MODEL_EFFECTS, diagnosis_facts, make_effect
-from recon.render.renderer import Renderer
+from recon.render.renderer import Renderer, RenderOutput
 
 
 def block_halves(
@@ -96,7 +96,10 @@ class EffectProbe:
         data: DiagnosisData,
         settings: DiagnoseConfig | None = None,
         renderer: Renderer | None = None,
+        scene_output: RenderOutput | None = None,
     ) -> None:
+        """scene_output: data's views rendered already (data.render_views_once), else the
+        probe renders them."""
         self.data = data
         self.settings = settings or DiagnoseConfig()
         # The probe's per-view held-out error sums [B] by effect: the baseline when the others
@@ -107,7 +110,9 @@ class EffectProbe:
         )
         model = data.model
         with torch.no_grad():
-            if model is not None and model.pbr is not None:
+            if scene_output is not None:
+                self.scene_output = scene_output
+            elif model is not None and model.pbr is not None:
                 self.scene_output = model.render(self.renderer, data.cameras)
             else:
                 self.scene_output = self.renderer.render(data.mesh, data.cameras, data.lighting)

@@ -368,6 +368,7 @@ class Shadows(ModelEffect):
         self.strength = torch.nn.Parameter(torch.zeros(()))
         self.log_softness = torch.nn.Parameter(torch.zeros(()))
         self._cache: tuple[tuple, OrthographicFrames, torch.Tensor] | None = None
+        self._receivers: tuple | None = None  # see receivers
 
     def shadow_map(
         self, mesh: Mesh, directions: torch.Tensor
@@ -387,18 +388,31 @@ class Shadows(ModelEffect):
             self._cache = (key, frames, maps)
         return self._cache[1], self._cache[2]
 
-    def visibility(
+    def receivers(
         self, render_output: RenderOutput, mesh: Mesh, directions: torch.Tensor
-    ) -> torch.Tensor:
-        """Soft visibility [B, H, W, 1] of the light from each covered pixel (1 on background).
+    ) -> tuple[torch.Tensor, list[tuple[torch.Tensor | None, torch.Tensor, torch.Tensor]]]:
+        """What the depth test of the covered pixels needs, whatever the softness: (depth maps
+        [K, R, R], per map (pixels [N] bool or None for all, their NDC [1, M, 3], their bias
+        [1, M])). directions as in visibility.
 
-        directions: [3] (every view) or [B, 3] (one per view: a camera-frame light), unit world
-        directions toward the light."""
+        Without gradients the result is kept for the same fragments, normals, mesh and light:
+        a diagnosis probe renders one frozen scene many times over, changing only the
+        strength and softness (the same tensors, not recomputed)."""
         fragments = render_output.fragments
         dtype = render_output.color.dtype
         per_view = directions.ndim == 2 and directions.shape[0] > 1
         directions = directions.reshape(-1, 3)
         frames, maps = self.shadow_map(mesh, directions if per_view else directions[:1])
+        kept = self._receivers
+        if (
+            not torch.is_grad_enabled()
+            and kept is not None
+            and kept[0] is fragments
+            and kept[1] is render_output.normals
+            and kept[2] is maps
+            and kept[3] == dtype
+        ):
+            return maps, kept[4]
         points = interpolate_packed(mesh.verts, fragments, mesh.faces).to(dtype)  # [N, 3]
         normals = render_output.normals.reshape(-1, 3)[fragments.covered_index].to(dtype)
         # Each covered pixel's own map: its view's (per-view light) or the only one.
@@ -408,23 +422,40 @@ class Shadows(ModelEffect):
         slope = torch.sqrt(1 - cosine * cosine) / cosine
         texel = 2.0 / self.map_resolution  # NDC units
         bias = texel * (self.bias_texels + self.slope_bias_texels * slope.clamp(max=10.0))
-        softness = 0.5 * texel * self.log_softness.exp().to(dtype)
         ndc = frames.to_ndc(points)  # [K, N, 3]
         if per_view:
-            packed = torch.ones_like(cosine)
+            parts = []
             for view in range(maps.shape[0]):
                 chosen = which == view
+                parts.append((chosen, ndc[view : view + 1, chosen], bias[chosen][None]))
+        else:
+            parts = [(None, ndc, bias[None])]
+        self._receivers = None
+        if not torch.is_grad_enabled():
+            self._receivers = (fragments, render_output.normals, maps, dtype, parts)
+        return maps, parts
+
+    def visibility(
+        self, render_output: RenderOutput, mesh: Mesh, directions: torch.Tensor
+    ) -> torch.Tensor:
+        """Soft visibility [B, H, W, 1] of the light from each covered pixel (1 on background).
+
+        directions: [3] (every view) or [B, 3] (one per view: a camera-frame light), unit world
+        directions toward the light."""
+        fragments = render_output.fragments
+        dtype = render_output.color.dtype
+        maps, parts = self.receivers(render_output, mesh, directions)
+        texel = 2.0 / self.map_resolution  # NDC units
+        softness = 0.5 * texel * self.log_softness.exp().to(dtype)
+        if parts[0][0] is not None:  # one map per view
+            packed = torch.ones(fragments.covered_index.shape[0], dtype=dtype, device=maps.device)
+            for view, (chosen, ndc, bias) in enumerate(parts):
                 packed = packed.masked_scatter(
-                    chosen,
-                    filtered_visibility(
-                        maps[view : view + 1],
-                        ndc[view : view + 1, chosen],
-                        bias[chosen][None],
-                        softness,
-                    )[0],
+                    chosen, filtered_visibility(maps[view : view + 1], ndc, bias, softness)[0]
                 )
         else:
-            packed = filtered_visibility(maps, ndc, bias[None], softness)[0]
+            _, ndc, bias = parts[0]
+            packed = filtered_visibility(maps, ndc, bias, softness)[0]
         batch = fragments.batch_size
         height, width = fragments.resolution
         visible = scatter_to_image(

@@ -13,6 +13,7 @@ import json
 import torch
 
 from recon.config.run_config import RunConfig
+from recon.diagnose.allocator import reuse_freed_memory
 from recon.diagnose.data import DiagnosisData, FittedModel, render_diagnosis_data
 from recon.diagnose.diagnose import DiagnosisInputs, RelightInputs, diagnose_run, radial_model
 from recon.diagnose.records import Diagnosis
@@ -131,8 +132,9 @@ def run_diagnosis(
 ) -> Diagnosis:
     """Diagnose a fitted run folder; writes RUN/diagnosis.json and RUN/diagnosis/*.png."""
     inputs = diagnosis_inputs(paths, config, device)
-    diagnosis, data = diagnose_run(inputs, refit, candidates)
-    write_figures(diagnosis, data, paths)
+    with reuse_freed_memory():  # large tensors come and go: no page faults for each
+        diagnosis, data = diagnose_run(inputs, refit, candidates)
+        write_figures(diagnosis, data, paths)
     atomic_write_json(paths.diagnosis, plain_json(diagnosis.to_json()))
     return diagnosis
 

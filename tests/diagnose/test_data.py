@@ -68,3 +68,36 @@ def test_box_dilation_and_erosion_equal_the_max_pool_they_replace(radius):
         eroded = -torch.nn.functional.max_pool2d(-mask, size, stride=1, padding=radius)
         assert torch.equal(box_dilate(mask, radius), pooled)
         assert torch.equal(box_erode(mask, radius), eroded)
+
+
+def test_views_rendered_once_are_the_batched_render_and_its_output():
+    """render_views_once (one batch, the render kept for the EffectProbe) gives the same data
+    as render_diagnosis_data's batches of VIEWS_PER_BATCH: a view's render does not depend on
+    the views beside it."""
+    from diagnose_scenes import patterned_torus
+
+    from recon.camera import orbit_cameras
+    from recon.diagnose.data import (
+        VIEWS_PER_BATCH,
+        FittedModel,
+        render_diagnosis_data,
+        render_views_once,
+    )
+    from recon.io.datasets import CaptureSet
+    from recon.render.shading import Lighting
+
+    mesh = patterned_torus((2, 3), 0.25, lambda p: [p, 0.7 * p + 0.2, 0.5 * (1 - p) + 0.2])
+    views = VIEWS_PER_BATCH + 2
+    cameras = orbit_cameras(views, (24, 24), distance=2.0, fov_x_deg=60, elevation_deg=35)
+    images = torch.rand(views, 24, 24, 3, generator=torch.Generator().manual_seed(0))
+    masks = torch.ones(views, 24, 24, 1)
+    captures = CaptureSet(cameras, images, masks, [str(i) for i in range(views)], "test")
+    model = FittedModel(mesh, Lighting.constant(0.9))
+    batched = render_diagnosis_data(captures, model, "cpu", 2)
+    once, output = render_views_once(captures, model, 2)
+    for name in ("observed", "rendered", "rendered_alpha", "region", "normals", "depth"):
+        assert torch.equal(getattr(once, name), getattr(batched, name)), name
+    assert torch.equal(once.texel_uv, batched.texel_uv)
+    assert torch.equal(once.triangle_id, batched.triangle_id)
+    assert once.names == batched.names and once.split == "test"
+    assert torch.equal(output.color, once.rendered)

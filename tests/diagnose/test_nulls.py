@@ -187,3 +187,37 @@ def test_a_placebo_draw_is_the_plain_per_view_fit_of_whole_image_fields():
         plain = _reference_placebo_reduction(data, per_view, shared, geometric, settings, 7)
         assert abs(fast - plain) < 1e-6 * max(1.0, abs(plain)), (per_view, shared, geometric)
         assert fast > 0
+
+
+def test_placebo_draws_are_drawn_once_per_layout_for_the_same_views(monkeypatch):
+    """Candidates of one parameter layout (shadows and vignetting: 2 shared gains) share the
+    draws; other views, another layout or other settings draw afresh, the same numbers as
+    drawn without the cache."""
+    import recon.diagnose.nulls as nulls
+
+    data, _ = glossy_torus_views(specular=0.3, size=32, views=4)
+    other, _ = glossy_torus_views(specular=0.3, size=32, views=4)
+    settings = DiagnoseConfig(nulls=NullConfig(placebo_draws=3))
+    drawn = []
+    original = nulls._placebo_reduction
+
+    def counted(*arguments):
+        drawn.append(arguments[2:5])
+        return original(*arguments)
+
+    monkeypatch.setattr(nulls, "_placebo_reduction", counted)
+    shadows = nulls.placebo_null(data, "shadows", settings)
+    vignetting = nulls.placebo_null(data, "vignetting", settings)
+    assert shadows == vignetting and len(drawn) == 3
+    nulls.placebo_null(data, "exposure", settings)  # (1, 0): its own draws
+    assert len(drawn) == 6
+    assert nulls.placebo_null(other, "vignetting", settings)[1] == shadows[1]  # equal views
+    assert len(drawn) == 9
+    more = DiagnoseConfig(nulls=NullConfig(placebo_draws=4))
+    assert nulls.placebo_null(other, "vignetting", more)[1][:3] == shadows[1]
+    assert len(drawn) == 13
+    pixels = nulls._Pixels.of(data, settings.block_pixels)
+    fresh = [
+        original(pixels, data, 0, 2, False, settings, settings.nulls.seed + d) for d in range(3)
+    ]
+    assert shadows[1] == fresh

@@ -126,6 +126,31 @@ def test_shadow_map_is_cached_for_an_unchanged_mesh(shadow_scene):
     assert effect.shadow_map(moved, direction)[1] is not first
 
 
+def test_receivers_are_kept_without_grad_and_give_the_same_visibility(shadow_scene):
+    """A probe renders one frozen scene many times: without gradients the depth-test inputs
+    are kept for the same fragments and maps (one map or one per view), and a softness change
+    gives exactly what a fresh module computes; with gradients nothing is kept."""
+    output, mesh = shadow_scene.output, shadow_scene.mesh
+    direction = dominant_light(shadow_scene.lighting)[0]
+    turned = torch.nn.functional.normalize(direction + torch.tensor([0.0, 0.0, 0.3]), dim=-1)
+    per_view = torch.stack([direction, turned, direction])  # a camera-frame light's [B, 3]
+    for directions in (direction, per_view):
+        effect = Shadows(map_resolution=64)
+        with torch.no_grad():
+            first = effect.receivers(output, mesh, directions)[1]
+            assert effect.receivers(output, mesh, directions)[1] is first
+            effect.log_softness.fill_(0.7)
+            kept = effect.visibility(output, mesh, directions)
+            fresh = Shadows(map_resolution=64)
+            fresh.log_softness.fill_(0.7)
+            assert torch.equal(kept, fresh.visibility(output, mesh, directions))
+            other = replace(output, fragments=replace(output.fragments))
+            assert effect.receivers(other, mesh, directions)[1] is not first
+    effect = Shadows(map_resolution=64)
+    first = effect.receivers(output, mesh, direction)[1]
+    assert effect.receivers(output, mesh, direction)[1] is not first
+
+
 def test_occlusion_is_kept_for_a_nudge_and_redrawn_for_a_move(shadow_scene):
     effect = Interreflection(directions=16, map_resolution=32)
     mesh = shadow_scene.mesh
