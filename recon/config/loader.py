@@ -18,6 +18,7 @@ from typing import Any, Literal, TypeVar
 import yaml
 
 from recon.config.checks import ConfigFieldError
+from recon.config.retired import retired_reason
 from recon.config.schema import (
     NONE_TYPE,
     KeyPath,
@@ -31,7 +32,7 @@ from recon.config.schema import (
     union_members,
 )
 from recon.config.yaml_io import parse_document, parse_value
-from recon.errors import ConfigError
+from recon.errors import ConfigError, warn_user
 
 Schema = TypeVar("Schema")
 
@@ -231,11 +232,29 @@ def _convert_tuple(
     )
 
 
+def _without_retired(
+    value: dict, path: KeyPath, fields: Mapping[str, Any], context: _Context
+) -> dict:
+    """value without the keys an earlier recon had and this one retired (recon.config.retired),
+    each skipped with a warning: a run folder written before still loads."""
+    kept = {}
+    for key, item in value.items():
+        reason = retired_reason((*path, key)) if key not in fields else None
+        if reason is None:
+            kept[key] = item
+            continue
+        warn_user(
+            f"{context.where((*path, key))}: {format_path((*path, key))}: retired key, ignored; {reason}"
+        )
+    return kept
+
+
 def _build(value: Any, schema_cls: type, path: KeyPath, context: _Context) -> Any:
     """Build schema_cls from a mapping: unknown, missing and invalid keys are errors."""
     if not isinstance(value, dict):
         raise context.error(path, _mismatch(schema_cls, value))
     fields = schema_fields(schema_cls)
+    value = _without_retired(value, path, fields, context)
     for key in value:
         if not isinstance(key, str):
             raise context.error(path, f"keys must be strings, got {describe_value(key)}")
