@@ -247,20 +247,36 @@ def _partial_correlations(
     target: torch.Tensor, features: torch.Tensor, lamberts: torch.Tensor
 ) -> torch.Tensor:
     """Partial correlation [K] of target [N] with each feature column [N, K] given
-    [1, L_k, L_k^2] of its own lambert column [N, K]."""
-    values = []
-    for column in range(features.shape[1]):
-        lambert = lamberts[:, column]
-        nuisance = torch.stack([torch.ones_like(lambert), lambert, lambert * lambert], 1)
-        both = torch.stack([target, features[:, column]], 1)
-        fitted = nuisance @ torch.linalg.lstsq(nuisance, both).solution
-        rest = both - fitted
-        norms = rest.norm(dim=0)
-        if float(norms.min()) < 1e-12:
-            values.append(0.0)
-            continue
-        values.append(float(rest[:, 0] @ rest[:, 1] / (norms[0] * norms[1])))
-    return torch.tensor(values, dtype=torch.float64)
+    [1, L_k, L_k^2] of its own lambert column [N, K].
+
+    All K columns at once from their normal equations: the residuals' inner products after
+    projecting out the nuisance are the raw ones less m^T G^-1 m (G the nuisance's 3 x 3 Gram
+    matrix, m its moments with target and feature), so no [K, N, 3] design is ever built."""
+    powers = torch.stack([lamberts**power for power in range(5)])  # [5, N, K]
+    sums = powers.sum(1)  # [5, K]: sum of L^p
+    index = torch.arange(3)
+    gram = sums[index[:, None] + index[None, :]].permute(2, 0, 1)  # [K, 3, 3]
+    target_moments = (powers[:3] * target[None, :, None]).sum(1).T  # [K, 3]
+    feature_moments = (powers[:3] * features[None]).sum(1).T  # [K, 3]
+    moments = torch.stack([target_moments, feature_moments], 2)  # [K, 3, 2]
+    scale = gram.diagonal(dim1=1, dim2=2).mean(-1)[:, None, None]
+    coefficients = torch.linalg.solve(gram + 1e-12 * scale * torch.eye(3), moments)
+    explained = moments.transpose(1, 2) @ coefficients  # [K, 2, 2]
+    raw = torch.stack(
+        [
+            torch.stack([(target * target).sum().expand(features.shape[1]), target @ features], 1),
+            torch.stack([target @ features, (features * features).sum(0)], 1),
+        ],
+        1,
+    )  # [K, 2, 2]
+    rest = raw - explained
+    variances = rest.diagonal(dim1=1, dim2=2).clamp(min=0.0)
+    norms = variances.sqrt()
+    # A column the nuisance explains to rounding (a constant share: a convex mesh) has no
+    # residual to correlate; the subtraction above leaves only cancellation noise there.
+    degenerate = (variances <= 1e-9 * raw.diagonal(dim1=1, dim2=2)).any(1)
+    correlation = rest[:, 0, 1] / (norms[:, 0] * norms[:, 1]).clamp_min(1e-300)
+    return torch.where(degenerate, torch.zeros_like(correlation), correlation)
 
 
 def _bootstrap_slope(

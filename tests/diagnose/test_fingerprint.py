@@ -153,3 +153,24 @@ def test_a_convex_mesh_is_not_testable():
     assert fingerprint.coverage < DECISION.fingerprint_minimum_coverage
     assert fingerprint.names(DECISION) is None
     assert "not a share of anything" in fingerprint.evidence("shadows").record().reason
+
+
+def test_partial_correlations_equal_a_column_by_column_least_squares() -> None:
+    from recon.diagnose.fingerprint import _partial_correlations
+
+    generator = torch.Generator().manual_seed(3)
+    lamberts = torch.rand(4000, 6, generator=generator, dtype=torch.float64)
+    features = 0.2 * torch.randn(4000, 6, generator=generator, dtype=torch.float64) + lamberts**2
+    target = torch.randn(4000, generator=generator, dtype=torch.float64) + features[:, 1]
+    features[:, 5] = 0.7  # a constant share: nothing left once the intercept is out
+    expected = []
+    for column in range(5):
+        lambert = lamberts[:, column]
+        nuisance = torch.stack([torch.ones_like(lambert), lambert, lambert**2], 1)
+        both = torch.stack([target, features[:, column]], 1)
+        rest = both - nuisance @ torch.linalg.lstsq(nuisance, both).solution
+        expected.append(float(rest[:, 0] @ rest[:, 1] / rest.norm(dim=0).prod()))
+    values = _partial_correlations(target, features, lamberts)
+    assert torch.allclose(values[:5], torch.tensor(expected, dtype=torch.float64), atol=1e-9)
+    assert float(values[1]) > 3 * float(values[[0, 2, 3, 4]].abs().max())  # it stands out
+    assert float(values[5]) == 0.0
