@@ -244,31 +244,61 @@ def _placebo_rotations(direction: torch.Tensor, count: int, separation_degrees: 
 
 
 def _partial_correlations(
-    target: torch.Tensor, features: torch.Tensor, lamberts: torch.Tensor
+    target: torch.Tensor, features: torch.Tensor, lamberts: torch.Tensor, chunk: int = 16
 ) -> torch.Tensor:
     """Partial correlation [K] of target [N] with each feature column [N, K] given
     [1, L_k, L_k^2] of its own lambert column [N, K].
 
-    All K columns at once from their normal equations: the residuals' inner products after
+    From the normal equations, chunk columns at a time: the residuals' inner products after
     projecting out the nuisance are the raw ones less m^T G^-1 m (G the nuisance's 3 x 3 Gram
-    matrix, m its moments with target and feature), so no [K, N, 3] design is ever built."""
-    powers = torch.stack([lamberts**power for power in range(5)])  # [5, N, K]
-    sums = powers.sum(1)  # [5, K]: sum of L^p
+    matrix, m its moments with target and feature), so only [N, chunk] temporaries are built."""
+    values = [
+        _partial_correlations_of(
+            target, features[:, start : start + chunk], lamberts[:, start : start + chunk]
+        )
+        for start in range(0, features.shape[1], chunk)
+    ]
+    return torch.cat(values)
+
+
+def _partial_correlations_of(
+    target: torch.Tensor, features: torch.Tensor, lamberts: torch.Tensor
+) -> torch.Tensor:
+    """_partial_correlations of a few columns: features, lamberts [N, C] -> [C]."""
+    square = lamberts * lamberts
+    ones = torch.ones_like(target)
+    # sum of L^p for p = 0..4, and the moments of target and feature with [1, L, L^2]
+    power_sums = torch.stack(
+        [
+            torch.full_like(lamberts[0], float(len(target))),
+            ones @ lamberts,
+            ones @ square,
+            (square * lamberts).sum(0),
+            (square * square).sum(0),
+        ]
+    )  # [5, C]
     index = torch.arange(3)
-    gram = sums[index[:, None] + index[None, :]].permute(2, 0, 1)  # [K, 3, 3]
-    target_moments = (powers[:3] * target[None, :, None]).sum(1).T  # [K, 3]
-    feature_moments = (powers[:3] * features[None]).sum(1).T  # [K, 3]
-    moments = torch.stack([target_moments, feature_moments], 2)  # [K, 3, 2]
+    gram = power_sums[index[:, None] + index[None, :]].permute(2, 0, 1)  # [C, 3, 3]
+    target_moments = torch.stack(
+        [target.sum().expand(lamberts.shape[1]), target @ lamberts, target @ square], 1
+    )
+    feature_moments = torch.stack(
+        [features.sum(0), (features * lamberts).sum(0), (features * square).sum(0)], 1
+    )
+    moments = torch.stack([target_moments, feature_moments], 2)  # [C, 3, 2]
     scale = gram.diagonal(dim1=1, dim2=2).mean(-1)[:, None, None]
-    coefficients = torch.linalg.solve(gram + 1e-12 * scale * torch.eye(3), moments)
-    explained = moments.transpose(1, 2) @ coefficients  # [K, 2, 2]
+    coefficients = torch.linalg.solve(
+        gram + 1e-12 * scale * torch.eye(3, dtype=gram.dtype), moments
+    )
+    explained = moments.transpose(1, 2) @ coefficients  # [C, 2, 2]
+    cross = target @ features
     raw = torch.stack(
         [
-            torch.stack([(target * target).sum().expand(features.shape[1]), target @ features], 1),
-            torch.stack([target @ features, (features * features).sum(0)], 1),
+            torch.stack([(target @ target).expand_as(cross), cross], 1),
+            torch.stack([cross, (features * features).sum(0)], 1),
         ],
         1,
-    )  # [K, 2, 2]
+    )  # [C, 2, 2]
     rest = raw - explained
     variances = rest.diagonal(dim1=1, dim2=2).clamp(min=0.0)
     norms = variances.sqrt()
@@ -336,9 +366,16 @@ def visibility_fingerprint(
         )
         log_shares = shares.clamp(min=0.02).log().T.to(output.color)  # [V, 1 + K]
         fragments = output.fragments
-        packed = interpolate_packed(log_shares, fragments, data.mesh.faces)
-        per_pixel = scatter_to_image(packed, fragments.covered_index, batch, height, width)
-        log_share = per_pixel[interior].double()  # [N, 1 + K]
+        # Interior pixels are covered ones, and covered_index is in raster order, so the
+        # covered pixels picked by interior's mask come in that mask's order.
+        picked = interior.reshape(-1)[fragments.covered_index]
+        if int(picked.sum()) == int(interior.sum()):
+            packed = interpolate_packed(log_shares, fragments, data.mesh.faces, pixels=picked)
+            log_share = packed.double()  # [N, 1 + K]
+        else:
+            packed = interpolate_packed(log_shares, fragments, data.mesh.faces)
+            per_pixel = scatter_to_image(packed, fragments.covered_index, batch, height, width)
+            log_share = per_pixel[interior].double()
         normals = output.normals[interior].double()
         lights = torch.einsum("rde,e->rd", rotations, direction if not even else rotations[0, 1])
         lamberts = (normals @ lights.T).clamp(min=0.0)  # [N, 1 + K]

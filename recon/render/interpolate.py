@@ -42,8 +42,12 @@ def interpolate_packed(
     fragments: Fragments,
     faces: torch.Tensor,
     with_derivatives: bool = False,
+    pixels: torch.Tensor | None = None,
 ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
-    """Like interpolate, but returns only covered pixels: [N, C] (and [N, 2C] derivatives)."""
+    """Like interpolate, but returns only covered pixels: [N, C] (and [N, 2C] derivatives).
+
+    pixels: [N] bool, which covered pixels to interpolate ([M, C] out, in covered order):
+    wide attributes at a few pixels cost only those (no derivatives with it)."""
     if not isinstance(attributes, torch.Tensor) or attributes.ndim not in (2, 3):
         raise ReconError(
             f"attributes: expected shape [V, C] or [B, V, C], got "
@@ -68,13 +72,27 @@ def interpolate_packed(
             "interpolate: with_derivatives=True needs fragments from rasterize(..., "
             "with_derivatives=True)"
         )
-    corner_index = faces.to(torch.int64)[fragments.covered_faces]  # [N, 3]
+    if pixels is not None and with_derivatives:
+        raise ReconError("interpolate: pixels= and with_derivatives=True do not combine")
+    covered_faces = fragments.covered_faces
+    barycentrics = fragments.covered_barycentrics
+    if pixels is not None:
+        if pixels.shape != covered_faces.shape or pixels.dtype != torch.bool:
+            raise ReconError(
+                f"pixels: expected a bool tensor of shape {tuple(covered_faces.shape)}, got "
+                f"{pixels.dtype} {tuple(pixels.shape)}"
+            )
+        covered_faces, barycentrics = covered_faces[pixels], barycentrics[pixels]
+    corner_index = faces.to(torch.int64)[covered_faces]  # [N, 3]
     if attributes.ndim == 3 and attributes.shape[0] > 1:
-        flat_index = fragments.covered_batch[:, None] * vertex_count + corner_index
+        batch_index = fragments.covered_batch
+        if pixels is not None:
+            batch_index = batch_index[pixels]
+        flat_index = batch_index[:, None] * vertex_count + corner_index
         corners = gather_rows(attributes.reshape(-1, attributes.shape[-1]), flat_index)
     else:
         corners = gather_rows(attributes.reshape(vertex_count, -1), corner_index)  # [N, 3, C]
-    u, v = fragments.covered_barycentrics.unbind(-1)
+    u, v = barycentrics.unbind(-1)
     # value = u a0 + v a1 + (1 - u - v) a2 = a2 + u (a0 - a2) + v (a1 - a2)
     edge0 = corners[:, 0] - corners[:, 2]
     edge1 = corners[:, 1] - corners[:, 2]
