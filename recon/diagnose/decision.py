@@ -67,7 +67,8 @@ candidate (an effect or a mismatch; a mismatch candidate is created when first n
 above, ``passed`` (for null, specificity and identifiability: whether the candidate survives the
 check) and a one-line ``reason``; ``details["instead"]`` on a failed specificity check names the
 mismatch, ``details["capture"]`` on a failed identifiability check the capture that would settle
-it. The table keeps the producer's ``threshold`` and ``passed`` for these kinds (only the built-in
+it, and its ``details["settled_by"]`` the evidence kinds that measured that capture's answer (a
+candidate they decided is not qualified by it). The table keeps the producer's ``threshold`` and ``passed`` for these kinds (only the built-in
 rows are re-thresholded from ``DecisionConfig``).
 
 Ranking (``rank_key``): significant first; then evidence from a held-out residual or a direct
@@ -403,7 +404,12 @@ def decide(candidate: Candidate, config: DecisionConfig) -> Candidate:
             vetoes = [item for item in vetoes if not _settled(item, tuple(sorted(settled)))]
     if vetoes and status == "significant":
         status, why = "vetoed", vetoes[0].reason
-    unidentifiable = [item for item in _role_evidence(candidate, "qualify") if not item.passed]
+    unidentifiable = [
+        item
+        for item in _role_evidence(candidate, "qualify")
+        if not item.passed
+        and not (status == "significant" and deciding.kind in item.details.get("settled_by", ()))
+    ]
     if unidentifiable:
         condition = unidentifiable[0]
         capture = condition.details.get("capture")

@@ -146,6 +146,8 @@ class VisibilityFingerprint:
             details={
                 "capture": "views under a second, known light whose sun the object shadows "
                 "itself (a relight split)",
+                # the relight split's evidences measure under that second light
+                "settled_by": ["cast_shadow", "relight"],
                 "slope": self.slope,
                 "interval": list(self.interval),
                 "p_value": self.p_value,

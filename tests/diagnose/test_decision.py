@@ -348,6 +348,28 @@ def test_a_cleared_candidate_whose_condition_names_no_effect_stays_significant_a
     assert verdict_of([falloff]) == "significant unmodelled effects: vignetting"
 
 
+def test_a_condition_the_deciding_evidence_measured_does_not_qualify_it():
+    # "a second light would settle it" reads wrong when the second light found it.
+    def shadows(**intervals):
+        found = candidate("shadows", **intervals)
+        found.add(
+            condition(
+                "shadows",
+                "placebo lights explain the baked shading as well",
+                capture="a relight split",
+                settled_by=["relight"],
+            )
+        )
+        return decide(found, CONFIG)
+
+    by_relight = shadows(relight=(0.3, 0.4))
+    assert by_relight.status == "significant" and by_relight.decided_by == "relight"
+    assert "but" not in by_relight.why and "relight split" not in by_relight.why
+    by_probe = shadows(probe=(0.3, 0.4))
+    assert by_probe.status == "significant" and by_probe.decided_by == "probe"
+    assert by_probe.why.endswith("; a relight split would settle it")
+
+
 def test_agreeing_metadata_and_unknown_kinds_change_nothing():
     exposure = candidate("exposure", probe=(0.1, 0.2))
     exposure.add(Evidence("metadata", "exposure", 0.9, math.nan, True, "EXIF agrees r = 0.9"))
