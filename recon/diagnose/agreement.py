@@ -29,6 +29,8 @@ permutation null) is the identifiability check's
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from recon.config.run_config import DiagnoseConfig
@@ -40,6 +42,9 @@ from recon.diagnose.records import Evidence
 KIND = "agreement"
 DEFAULTS = DiagnoseConfig()
 SPLITS = ["left-right", "top-bottom", "intensity", "n.h", "n.v"]
+# Fewer views leave a permutation null with too few orderings to reach any level (two views:
+# p >= 1/2) and, once centred, next to no degrees of freedom.
+MINIMUM_VIEWS = 3
 
 
 def interior(data: DiagnosisData, erode_pixels: int) -> torch.Tensor:
@@ -261,6 +266,20 @@ def agreement_evidence(data: DiagnosisData, name: str, settings: DiagnoseConfig)
     (the threshold and passed are the decision config's; recon.diagnose.decision re-derives
     them)."""
     decision = settings.decision
+    views = data.observed.shape[0]
+    if views < MINIMUM_VIEWS:
+        # A change from view to view needs views to compare: with one held-out view the
+        # centring alone leaves no degree of freedom, and nothing can be said either way.
+        return Evidence(
+            kind=KIND,
+            candidate=name,
+            statistic=math.nan,
+            threshold=math.nan,
+            passed=False,
+            reason=f"{name}: per-view colour gains need at least {MINIMUM_VIEWS} held-out views "
+            f"to agree over, got {views}",
+            details={"views": views, "too_few_views": True},
+        )
     statistics = spread_statistics(
         data, settings.nulls.permutations, settings.nulls.seed, decision.agreement_alpha, settings
     )

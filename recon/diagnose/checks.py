@@ -30,6 +30,7 @@ built-in evidence; the decision table (recon.diagnose.decision) says what each k
 
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING
 
 import torch
@@ -155,7 +156,12 @@ def identifiability_producer(
     agreement = (
         by_name["white_balance"].evidence_of("agreement") if "white_balance" in names else None
     )
-    if agreement is not None and "detectable" in agreement.details:
+    if agreement is not None and agreement.details.get("too_few_views"):
+        condition = white_balance_evidence(
+            math.inf, math.nan, int(agreement.details["views"]), options
+        )
+        evidence.append(_as_condition(condition))
+    elif agreement is not None and "detectable" in agreement.details:
         # Judged by the smallest per-view change the agreement's test names on this data (the
         # fit's per-view colour noise), not by the change it found.
         condition = white_balance_evidence(

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import torch
 
 from recon.config.run_config import IdentifiabilityConfig
+from recon.diagnose.agreement import MINIMUM_VIEWS
 from recon.diagnose.data import DiagnosisData
 from recon.diagnose.pixel_table import pixel_table
 from recon.diagnose.records import Evidence
@@ -498,6 +499,13 @@ def white_balance_evidence(
         "a colour cast common to every view is absorbed by the albedo's colour (a grey card "
         "or another target of known colour would settle that part)"
     )
+    if views < MINIMUM_VIEWS:
+        reason = (
+            "white_balance is not identifiable from this data, because a change from view to "
+            f"view needs at least {MINIMUM_VIEWS} held-out views to compare, got {views}, and "
+            f"{common}; more held-out views would settle the change from view to view"
+        )
+        return Evidence(KIND, "white_balance", detectable, reference, False, reason, details)
     if detectable <= reference:
         reason = (
             f"white_balance is identifiable as a change from view to view: one of "

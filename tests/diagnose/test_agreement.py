@@ -160,3 +160,17 @@ def test_a_white_balance_on_a_coloured_highlight_is_named():
         assert agreement.passed and agreement.details["p_value"] < 0.01, agreement.reason
         candidate = decided_with_specificity(data)
         assert candidate.significant, candidate.why
+
+
+def test_one_held_out_view_says_why_a_change_from_view_to_view_cannot_be_seen():
+    # A real capture's LLFF test split may hold a single view: no change from view to view to
+    # agree over, which must be said, not divided by zero.
+    data = albedo_error_views(seed=2, views=1, error=0.8)
+    agreement = agreement_evidence(data, "white_balance", SETTINGS)
+    assert not agreement.passed and agreement.details["too_few_views"]
+    assert "at least 3 held-out views" in agreement.reason and "got 1" in agreement.reason
+    condition = white_balance_evidence(
+        float("inf"), float("nan"), agreement.details["views"], SETTINGS.identifiability
+    )
+    assert not condition.passed
+    assert "needs at least 3 held-out views" in condition.reason and "got 1" in condition.reason
