@@ -26,6 +26,26 @@ def patterned_torus(
     return mesh
 
 
+def directions_to_camera(output, cameras) -> torch.Tensor:
+    """[B, H, W, 3] unit directions from each pixel's surface point (its rendered depth, lifted
+    through the cameras' intrinsics and pose) toward the camera centre."""
+    batch, height, width, _ = output.color.shape
+    depth = output.depth[..., 0]
+    rows, columns = torch.meshgrid(
+        torch.arange(height) + 0.5, torch.arange(width) + 0.5, indexing="ij"
+    )
+    intrinsics = cameras.intrinsics
+    fx, fy = intrinsics[:, 0, 0, None, None], intrinsics[:, 1, 1, None, None]
+    cx, cy = intrinsics[:, 0, 2, None, None], intrinsics[:, 1, 2, None, None]
+    points = torch.stack(
+        [(columns - cx) / fx * depth, (rows - cy) / fy * depth, depth, torch.ones_like(depth)],
+        -1,
+    ).view(batch, -1, 4)
+    world = (points @ torch.linalg.inv(cameras.world_to_cam).transpose(1, 2))[..., :3]
+    to_camera = cameras.centers()[:, None, None, :] - world.view(batch, height, width, 3)
+    return to_camera / to_camera.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+
+
 def glossy_torus_views(
     views: int = 12,
     size: int = 40,
@@ -69,21 +89,7 @@ def glossy_torus_views(
     world_light.directional.append(DirectionalLight(direction, irradiance))
     renderer = Renderer(texture_filter="linear")
     output = renderer.render(mesh, cameras, world_light)
-    batch, height, width, _ = output.color.shape
-    depth = output.depth[..., 0]
-    rows, columns = torch.meshgrid(
-        torch.arange(height) + 0.5, torch.arange(width) + 0.5, indexing="ij"
-    )
-    intrinsics = cameras.intrinsics
-    fx, fy = intrinsics[:, 0, 0, None, None], intrinsics[:, 1, 1, None, None]
-    cx, cy = intrinsics[:, 0, 2, None, None], intrinsics[:, 1, 2, None, None]
-    points = torch.stack(
-        [(columns - cx) / fx * depth, (rows - cy) / fy * depth, depth, torch.ones_like(depth)],
-        -1,
-    ).view(batch, -1, 4)
-    world = (points @ torch.linalg.inv(cameras.world_to_cam).transpose(1, 2))[..., :3]
-    to_camera = cameras.centers()[:, None, None, :] - world.view(batch, height, width, 3)
-    to_camera = to_camera / to_camera.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+    to_camera = directions_to_camera(output, cameras)
     halfway = to_camera + direction
     halfway = halfway / halfway.norm(dim=-1, keepdim=True)
     normals = output.normals

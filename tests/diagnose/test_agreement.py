@@ -17,6 +17,7 @@ from recon.diagnose.checks import _as_condition
 from recon.diagnose.decision import decide
 from recon.diagnose.identifiability import white_balance_evidence
 from recon.diagnose.records import Candidate
+from recon.diagnose.specificity import specificity_evidence
 from recon.diagnose.which import rank_candidates
 
 SETTINGS = DiagnoseConfig(nulls=NullConfig(permutations=300))
@@ -36,13 +37,17 @@ def misfit(gains: torch.Tensor | None):
     return albedo_error_views(seed=1, error=0.8, cells=16, grey=True, channel_gains=gains)
 
 
-def diagnosed(data) -> Candidate:
-    """The white_balance candidate with its probe, agreement and identifiability evidence."""
+def diagnosed(data, with_specificity: bool = False) -> Candidate:
+    """The white_balance candidate with its probe, agreement and identifiability evidence (and
+    its specificity checks with_specificity), decided."""
     candidate = next(
         c for c in rank_candidates(data, ["white_balance"]) if c.name == "white_balance"
     )
     agreement = agreement_evidence(data, "white_balance", SETTINGS)
     candidate.add(agreement)
+    if with_specificity:
+        for evidence in specificity_evidence(data, ["white_balance"], SETTINGS):
+            candidate.add(evidence)
     details = agreement.details
     condition = white_balance_evidence(
         details["detectable"], details["noise"], details["views"], SETTINGS.identifiability
@@ -104,26 +109,6 @@ def test_a_local_colour_misfit_is_not_a_white_balance():
 GOLD = (1.0, 0.7, 0.25)
 
 
-def decided_with_specificity(data) -> Candidate:
-    """The white_balance candidate with its probe, agreement, specificity and identifiability
-    evidence, decided."""
-    from recon.diagnose.specificity import specificity_evidence
-
-    candidate = next(
-        c for c in rank_candidates(data, ["white_balance"]) if c.name == "white_balance"
-    )
-    agreement = agreement_evidence(data, "white_balance", SETTINGS)
-    candidate.add(agreement)
-    for evidence in specificity_evidence(data, ["white_balance"], SETTINGS):
-        candidate.add(evidence)
-    details = agreement.details
-    condition = white_balance_evidence(
-        details["detectable"], details["noise"], details["views"], SETTINGS.identifiability
-    )
-    candidate.add(_as_condition(condition))
-    return decide(candidate, SETTINGS.decision)
-
-
 def test_a_coloured_highlight_with_a_constant_white_balance_is_not_a_white_balance():
     # A gold torus (its highlight has the metal's colour) under a colour cast common to every
     # view: views facing the light show more of the gold lobe, so their colour changes from
@@ -141,7 +126,7 @@ def test_a_coloured_highlight_with_a_constant_white_balance_is_not_a_white_balan
         )
         agreement = agreement_evidence(data, "white_balance", SETTINGS)
         assert not agreement.passed, agreement.reason
-        candidate = decided_with_specificity(data)
+        candidate = diagnosed(data, with_specificity=True)
         assert not candidate.significant, candidate.why
 
 
@@ -158,7 +143,7 @@ def test_a_white_balance_on_a_coloured_highlight_is_named():
         )
         agreement = agreement_evidence(data, "white_balance", SETTINGS)
         assert agreement.passed and agreement.details["p_value"] < 0.01, agreement.reason
-        candidate = decided_with_specificity(data)
+        candidate = diagnosed(data, with_specificity=True)
         assert candidate.significant, candidate.why
 
 

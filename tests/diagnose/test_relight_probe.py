@@ -7,7 +7,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import torch
-from diagnose_scenes import patterned_torus
+from diagnose_scenes import directions_to_camera, patterned_torus
 
 from recon.camera import orbit_cameras
 from recon.config.run_config import DiagnoseConfig
@@ -32,24 +32,9 @@ def lit_by(direction: list[float]) -> Lighting:
 def highlight_of(output, cameras, direction: list[float], strength: float, shininess: float):
     """[B, H, W, 1] a white Blinn-Phong highlight strength max(0, n.h)^shininess of a sun toward
     direction, seen by cameras in output (its depth and normals)."""
-    batch, height, width, _ = output.color.shape
-    rows, columns = torch.meshgrid(
-        torch.arange(height) + 0.5, torch.arange(width) + 0.5, indexing="ij"
-    )
-    depth = output.depth[..., 0]
-    intrinsics = cameras.intrinsics
-    fx, fy = intrinsics[:, 0, 0, None, None], intrinsics[:, 1, 1, None, None]
-    cx, cy = intrinsics[:, 0, 2, None, None], intrinsics[:, 1, 2, None, None]
-    points = torch.stack(
-        [(columns - cx) / fx * depth, (rows - cy) / fy * depth, depth, torch.ones_like(depth)],
-        -1,
-    ).view(batch, -1, 4)
-    world = (points @ torch.linalg.inv(cameras.world_to_cam).transpose(1, 2))[..., :3]
-    to_camera = cameras.centers()[:, None, None, :] - world.view(batch, height, width, 3)
+    to_camera = directions_to_camera(output, cameras)
     to_light = torch.nn.functional.normalize(torch.tensor(direction), dim=0)
-    halfway = torch.nn.functional.normalize(
-        torch.nn.functional.normalize(to_camera, dim=-1) + to_light, dim=-1
-    )
+    halfway = torch.nn.functional.normalize(to_camera + to_light, dim=-1)
     lit = (output.normals * to_light).sum(-1) > 0
     lobe = (output.normals * halfway).sum(-1).clamp_min(0) ** shininess * lit
     return (strength * lobe)[..., None] * output.alpha
