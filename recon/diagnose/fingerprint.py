@@ -268,13 +268,12 @@ def _partial_correlations_of(
 ) -> torch.Tensor:
     """_partial_correlations of a few columns: features, lamberts [N, C] -> [C]."""
     square = lamberts * lamberts
-    ones = torch.ones_like(target)
     # sum of L^p for p = 0..4, and the moments of target and feature with [1, L, L^2]
     power_sums = torch.stack(
         [
             torch.full_like(lamberts[0], float(len(target))),
-            ones @ lamberts,
-            ones @ square,
+            lamberts.sum(0),
+            square.sum(0),
             (square * lamberts).sum(0),
             (square * square).sum(0),
         ]

@@ -32,14 +32,6 @@ SETTINGS = DiagnoseConfig(cast_shadow=CastShadowConfig(placebo_lights=200, map_r
 SUN = (0.4, 1.0, 0.3)
 
 
-@pytest.fixture(autouse=True)
-def single_thread():
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
-
-
 def _sun_light(direction: tuple[float, float, float]) -> Lighting:
     lighting = Lighting.constant(0.35)
     toward = torch.nn.functional.normalize(torch.tensor(direction), dim=0)
