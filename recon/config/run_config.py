@@ -892,8 +892,8 @@ class DecisionConfig:
         "Floor of the cast-shadow evidence (recon.diagnose.cast_shadow): how far the partial correlation of the relight residual with the relight sun's shadow from the fitted mesh must exceed the placebo directions' 95th percentile (docs/decisions/0203-diagnosis-interreflection-shadows.md).",
     )
     cast_shadow_alpha: float = setting(
-        0.01,
-        "Level of the cast-shadow evidence's placebo-direction test (the share of placebo directions reaching the relight sun's correlation): conventional, not tuned.",
+        0.05,
+        "Level of the cast-shadow evidence's placebo-direction test (the share of placebo directions reaching the relight sun's correlation): the level of the 95th percentile its excess is measured over, as the lobe's; at 0.01 it asked to beat every one of ~170 placebo directions, and a direction just past the separation shares the sun's shadow (docs/decisions/0211-shadows-specular-mitsuba.md).",
     )
     fingerprint_minimum: float = setting(
         0.02,
@@ -1165,8 +1165,27 @@ class CastShadowConfig:
         "Interior relight pixels the evidence uses at most, an even stride through them: its cost is pixels x directions.",
     )
     enabled: bool = setting(True, "Measure the cast-shadow evidence for the shadows candidate.")
+    silhouette_occluders: bool = setting(
+        True,
+        "Also predict the relight sun's shadows from the observed silhouettes' visual hull (thin parts a short fit drops: a spout, legs); each direction keeps the larger correlation of the two occluders, the placebo directions too (docs/decisions/0211-shadows-specular-mitsuba.md).",
+    )
+    silhouette_voxel_pixels: float = setting(
+        1.0,
+        "Voxel of the silhouette hull's carving grid, in the views' median pixel footprint at the object: finer voxels carve the masks' aliasing into the hull (at 48 px the teapot's relight shadows read r = 0.30 at one pixel, 0.21 at half a pixel).",
+    )
+    silhouette_margin: float = setting(
+        1.5,
+        "Half size of the silhouette hull's grid as a multiple of the fitted mesh's half extent (the hull must fit inside; an occupied border drops the hull).",
+    )
+    identifiable_shadowed: float = setting(
+        0.02,
+        "Share of the sun-facing relight pixels the fitted mesh or the silhouettes must shadow for the relight split to count as a test of cast shadows (it then voids the fingerprint's 'one light cannot tell' condition; below it the condition asks for a sun the object shadows itself).",
+    )
 
     def __post_init__(self) -> None:
+        check_range(self.silhouette_margin, "silhouette_margin", low=1.0)
+        check_range(self.silhouette_voxel_pixels, "silhouette_voxel_pixels", low=0.01)
+        check_range(self.identifiable_shadowed, "identifiable_shadowed", low=0.0, high=1.0)
         for name in ("placebo_lights", "map_resolution", "minimum_pixels", "maximum_pixels"):
             check_range(getattr(self, name), name, low=1)
         check_range(

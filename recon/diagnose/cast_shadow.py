@@ -36,10 +36,12 @@ measured (the fingerprint still speaks).
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import torch
 
+from recon.camera import Cameras
 from recon.config.run_config import DiagnoseConfig
 from recon.diagnose.data import DiagnosisData
 from recon.diagnose.lobe import (
@@ -58,6 +60,7 @@ from recon.effects.light_transport import (
 )
 from recon.effects.registry import effects_with_evidence
 from recon.mesh.mesh import Mesh
+from recon.optimize.visual_hull import border_share, carve
 
 if TYPE_CHECKING:  # producers imports this module to register the producer
     from recon.diagnose.producers import EvidenceInputs
@@ -65,6 +68,8 @@ if TYPE_CHECKING:  # producers imports this module to register the producer
 KIND = "cast_shadow"
 # Directions whose shadow maps are drawn together (memory, not a tuned number).
 DIRECTIONS_PER_CHUNK = 32
+# Points marched through the silhouette hull together (memory, not a tuned number).
+POINTS_PER_MARCH = 1024
 # Shadow-map depth test as recon.effects.light_transport.Shadows draws it (texels): a bias of
 # 2 + 2 tan(angle to the normal) and a softness of half a texel, so lit surfaces stay lit.
 BIAS_TEXELS = 2.0
@@ -97,6 +102,93 @@ def sun_visibility(
         return torch.cat(rows).double()
 
 
+@dataclass(frozen=True)
+class SilhouetteHull:
+    """The observed silhouettes' visual hull as an occupancy grid: an occluder for the cast
+    shadows that holds the object's thin parts (a spout, a handle, legs, ears), which a short
+    fit at 48 px shrinks or drops while every view's mask still shows them. A superset of the
+    object (concavities no silhouette sees into stay filled).
+
+    occupancy: [R, R, R] bool over the cube center + [-radius, radius]^3 (index order x, y, z).
+    """
+
+    occupancy: torch.Tensor
+    center: torch.Tensor
+    radius: float
+
+    @classmethod
+    def carve(
+        cls,
+        views: list[tuple[Cameras, torch.Tensor]],
+        mesh: Mesh,
+        voxel_pixels: float,
+        margin: float,
+    ) -> SilhouetteHull | None:
+        """The hull of every (cameras, masks [B, H, W, 1]) set, intersected, on a grid around
+        the fitted mesh (its half extent x margin) whose voxel is voxel_pixels of the views'
+        median pixel footprint at the object (finer voxels than the masks resolve carve their
+        aliasing into the hull); None when the masks do not bound the object (occupied grid
+        border, e.g. masks that are all 1) or carve everything away."""
+        verts = mesh.verts.detach().float().cpu()
+        center = (verts.min(0).values + verts.max(0).values) / 2
+        radius = float((verts - center).abs().max()) * margin
+        footprints = torch.cat(
+            [
+                (cameras.centers().float().cpu() - center).norm(dim=-1)
+                / cameras.intrinsics[:, 0, 0].float().cpu()
+                for cameras, _ in views
+            ]
+        )
+        voxel = voxel_pixels * float(footprints.median())
+        resolution = max(8, math.ceil(2 * radius / voxel))
+        occupancy = None
+        with torch.no_grad():
+            for cameras, masks in views:
+                carved, _ = carve(
+                    cameras.to("cpu"),
+                    masks.detach().float().cpu(),
+                    resolution,
+                    radius,
+                    center=center,
+                )
+                occupancy = carved if occupancy is None else occupancy * carved
+        if occupancy is None or float(occupancy.sum()) == 0 or border_share(occupancy) > 0:
+            return None
+        return cls(occupancy.bool(), center, radius)
+
+    def visibility(self, points: torch.Tensor, directions: torch.Tensor) -> torch.Tensor:
+        """Visibility [K, N] in {0, 1} of directional lights along unit directions [K, 3] from
+        surface points [N, 3]: a point is shadowed when the ray toward the light leaves the
+        hull and enters it again. A fitted surface point lies inside the hull or near its skin,
+        so the first stretch inside is its own body, not an occluder. Marched at half a voxel
+        (the hull's resolution); no gradient."""
+        resolution = self.occupancy.shape[0]
+        step = self.radius / resolution  # half a voxel
+        steps = math.ceil(2 * math.sqrt(3) * self.radius / step)
+        distances = (torch.arange(steps, dtype=torch.float32) + 1) * step
+        origin = (points.detach().float().cpu() - self.center) / (2 * self.radius) + 0.5
+        rows = []
+        with torch.no_grad():
+            for direction in directions.detach().float().cpu():
+                march = direction / (2 * self.radius)
+                visible = torch.ones(origin.shape[0])
+                for start in range(0, origin.shape[0], POINTS_PER_MARCH):
+                    samples = (
+                        origin[start : start + POINTS_PER_MARCH, None]
+                        + distances[None, :, None] * march
+                    )  # [n, S, 3] in grid units / R
+                    index = (samples * resolution).floor().long()
+                    inside = ((index >= 0) & (index < resolution)).all(-1)
+                    index = index.clamp(0, resolution - 1)
+                    occupied = self.occupancy[index[..., 0], index[..., 1], index[..., 2]] & inside
+                    left = torch.cumsum((~occupied).int(), 1) > 0
+                    visible[start : start + POINTS_PER_MARCH] = (
+                        1.0 - (occupied & left).any(1).float()
+                    )
+                rows.append(visible)
+        return torch.stack(rows).double()
+
+
 def _partial_correlation(
     residual: torch.Tensor, feature: torch.Tensor, nuisance: torch.Tensor
 ) -> tuple[float, float]:
@@ -114,15 +206,21 @@ def _partial_correlation(
 
 
 def cast_shadow_statistic(
-    relight: DiagnosisData, settings: DiagnoseConfig
-) -> dict[str, float | int] | None:
+    relight: DiagnosisData, settings: DiagnoseConfig, hull: SilhouetteHull | None = None
+) -> dict[str, float | int | str] | None:
     """The cast-shadow statistic of the relight views (rendered under their own light), its
     placebo-direction null and the recovered share of the sun's light the shadows remove, or
     None when the relight light has no directional sun, turns with the camera, or too few
-    pixels are seen. Keys: correlation, p_value, placebo_quantile, placebo_lights, strength
-    (the coefficient of the missing-shadow term: about 1 when a hard shadow removes all of the
-    sun's light), shadowed (share of pixels facing the sun that the mesh shadows), pixels,
-    views."""
+    pixels are seen.
+
+    Two occluders predict the shadows: the fitted mesh and, given, the silhouettes' hull
+    (thin parts the fit lost). Each direction's statistic is the larger of the two
+    correlations, for the relight sun as for every placebo direction, so the null is the same
+    maximum. Keys: correlation, p_value, placebo_quantile, placebo_lights, strength (the
+    coefficient of the missing-shadow term: about 1 when a hard shadow removes all of the sun's
+    light), shadowed (share of pixels facing the sun that the deciding occluder shadows),
+    shadowed_mesh, shadowed_silhouettes (-1 without a hull), occluder ('fitted mesh' or
+    'silhouettes'), pixels, views."""
     options = settings.cast_shadow
     if relight.lighting.frame == "camera" or not relight.lighting.directional:
         return None
@@ -150,46 +248,71 @@ def cast_shadow_statistic(
     separation = math.cos(math.radians(options.placebo_separation_degrees))
     placebos = placebos[(placebos @ direction) < separation]
     directions = torch.cat([direction[None], placebos])
-    visibility = sun_visibility(relight.mesh, points, normals, directions, options.map_resolution)
+    occluders = {
+        "fitted mesh": sun_visibility(
+            relight.mesh, points, normals, directions, options.map_resolution
+        )
+    }
+    if hull is not None:
+        occluders["silhouettes"] = hull.visibility(points, directions)
     one_cell = torch.zeros_like(view)
     residual = project_out(residual[:, None], one_cell, view, rendered)[:, 0]
     lambert = (normals @ directions.T).clamp_min(0.0) * rendered[:, None]  # [N, K]
-    missing = -(1 - visibility.T) * lambert
-    projected = project_out(torch.cat([lambert, missing], 1), one_cell, view, rendered)
+    lambert_projected = project_out(lambert, one_cell, view, rendered)
     count = directions.shape[0]
-    scores = [
-        _partial_correlation(residual, projected[:, count + k], projected[:, k])
-        for k in range(count)
-    ]
-    correlation, coefficient = scores[0]
-    null = torch.tensor([score[0] for score in scores[1:]], dtype=torch.float64)
+    scored = {}
+    for occluder, visibility in occluders.items():
+        missing = project_out(-(1 - visibility.T) * lambert, one_cell, view, rendered)
+        scored[occluder] = [
+            _partial_correlation(residual, missing[:, k], lambert_projected[:, k])
+            for k in range(count)
+        ]
+    # Each direction's statistic: the larger correlation over the occluders (nan: no shadow).
+    best = torch.tensor(
+        [[score[k][0] for k in range(count)] for score in scored.values()], dtype=torch.float64
+    ).nan_to_num(-1.0)
+    statistic = best.max(0).values
+    chosen = list(scored)[int(best[:, 0].argmax())]
+    _, coefficient = scored[chosen][0]
+    null = statistic[1:]
+    correlation = float(statistic[0])
     facing = (normals @ direction) > 0.1
-    shadowed = visibility[0][facing] < 0.5
+
+    def shadowed(visibility: torch.Tensor) -> float:
+        hidden = visibility[0][facing] < 0.5
+        return float(hidden.double().mean()) if hidden.numel() else 0.0
+
     return {
         "correlation": correlation,
         "p_value": float((1 + (null >= correlation).sum()) / (1 + null.numel())),
         "placebo_quantile": float(torch.quantile(null, 0.95)) if null.numel() else math.nan,
         "placebo_lights": int(null.numel()),
         "strength": coefficient,
-        "shadowed": float(shadowed.double().mean()) if shadowed.numel() else 0.0,
+        "shadowed": shadowed(occluders[chosen]),
+        "shadowed_mesh": shadowed(occluders["fitted mesh"]),
+        "shadowed_silhouettes": shadowed(occluders["silhouettes"]) if hull else -1.0,
+        "occluder": chosen,
         "pixels": int(view.numel()),
         "views": relight.view_count,
     }
 
 
 def cast_shadow_evidence(
-    relight: DiagnosisData, name: str, settings: DiagnoseConfig
+    relight: DiagnosisData,
+    name: str,
+    settings: DiagnoseConfig,
+    hull: SilhouetteHull | None = None,
 ) -> Evidence | None:
-    """Whether the relight residual falls where the fitted mesh shadows the relight sun,
-    beyond placebo directions (threshold and passed are the decision config's; the decision
-    re-derives them); None when it cannot be measured."""
-    measured = cast_shadow_statistic(relight, settings)
+    """Whether the relight residual falls where the fitted mesh (or the silhouettes' hull)
+    shadows the relight sun, beyond placebo directions (threshold and passed are the decision
+    config's; the decision re-derives them); None when it cannot be measured."""
+    measured = cast_shadow_statistic(relight, settings, hull)
     if measured is None:
         return None
     decision = settings.decision
     reason = (
-        f"{name}: the relight views are darker than the render where the fitted mesh shadows "
-        f"the relight sun (r = {measured['correlation']:.3f} over {measured['views']} views, "
+        f"{name}: the relight views are darker than the render where the {measured['occluder']} "
+        f"shadow the relight sun (r = {measured['correlation']:.3f} over {measured['views']} views, "
         f"p = {measured['p_value']:.2g} against {measured['placebo_lights']} placebo "
         "directions); its excess over the placebo directions' 95th percentile"
     )
@@ -213,5 +336,68 @@ def cast_shadow_producer(
     wanted = [name for name in effects_with_evidence(KIND) if name in names]
     if not settings.cast_shadow.enabled or not wanted or inputs.relight is None:
         return []
-    evidence = [cast_shadow_evidence(inputs.relight, name, settings) for name in wanted]
-    return [item for item in evidence if item is not None]
+    hull = silhouette_hull(inputs, settings) if settings.cast_shadow.silhouette_occluders else None
+    by_name = {candidate.name: candidate for candidate in candidates}
+    records = []
+    for name in wanted:
+        evidence = cast_shadow_evidence(inputs.relight, name, settings, hull)
+        if evidence is None:
+            continue
+        records.append(evidence)
+        answered = answered_condition(by_name[name], evidence, settings)
+        if answered is not None:
+            records.append(answered)
+    return records
+
+
+def answered_condition(
+    candidate: Candidate, evidence: Evidence, settings: DiagnoseConfig
+) -> Evidence | None:
+    """The candidate's failed identifiability condition "one light cannot tell baked shadows
+    from a darker albedo" (recon.diagnose.fingerprint), revised by the relight split's
+    cast-shadow test, or None when it has none. Where an occluder shadows at least
+    diagnose.cast_shadow.identifiable_shadowed of the sun-facing relight pixels, the second
+    light was there and was tested: the condition is void (the cast-shadow test decides,
+    whatever its outcome). Where neither does, the capture it asks for is a relight sun that
+    the object shadows itself, not the relight split it already has."""
+    condition = candidate.evidence_of("identifiability")
+    if condition is None or condition.passed or not condition.counts:
+        return None
+    details = evidence.details
+    shadowed = max(details["shadowed_mesh"], details["shadowed_silhouettes"])
+    if shadowed >= settings.cast_shadow.identifiable_shadowed:
+        return replace(
+            condition,
+            void=(
+                f"the relight split tested it: its sun is shadowed on {shadowed:.1%} of the "
+                "sun-facing pixels, and the cast-shadow evidence decides"
+            ),
+        )
+    return replace(
+        condition,
+        details={
+            **condition.details,
+            "capture": (
+                "a relight light whose sun the object shadows itself (this relight split's sun "
+                f"is shadowed on {shadowed:.1%} of the sun-facing pixels by the fitted mesh or "
+                "the silhouettes)"
+            ),
+        },
+    )
+
+
+def silhouette_hull(inputs: EvidenceInputs, settings: DiagnoseConfig) -> SilhouetteHull | None:
+    """The visual hull of every split's observed masks (training, held-out, relight) around
+    the fitted mesh, or None without a relight split or masks that bound the object."""
+    if inputs.relight is None:
+        return None
+    views = [
+        (captures.cameras, captures.masks)
+        for captures in (inputs.training, inputs.heldout)
+        if captures is not None and captures.mask_source != "none"
+    ]
+    views.append((inputs.relight.cameras, inputs.relight.observed_alpha))
+    options = settings.cast_shadow
+    return SilhouetteHull.carve(
+        views, inputs.relight.mesh, options.silhouette_voxel_pixels, options.silhouette_margin
+    )

@@ -156,3 +156,107 @@ def test_the_producer_is_registered_and_reads_the_relight_split_only(scene):
     assert [item.candidate for item in evidence] == ["shadows"] and evidence[0].passed
     disabled = replace(SETTINGS, cast_shadow=replace(SETTINGS.cast_shadow, enabled=False))
     assert cast_shadow_producer(inputs, candidates, disabled) == []
+
+
+def a_slab_with_a_fin():
+    """A slab with a thin fin standing on it (the world) and the slab alone (what a short fit
+    at low resolution keeps: a thin part is lost, as the teapot's spout and handle are at
+    48 px), seen from 6 relight views and 12 more views for the silhouettes: (world, fitted,
+    relight cameras, silhouette cameras)."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    slab = trimesh.creation.box(extents=[2.0, 0.1, 2.0]).subdivide().subdivide().subdivide()
+    slab.apply_translation([0.0, -0.3, 0.0])
+    fin = trimesh.creation.box(extents=[0.08, 0.8, 0.7])
+    fin.apply_translation([0.0, 0.15, 0.0])
+
+    def mesh_of(parts) -> Mesh:
+        merged = trimesh.util.concatenate(parts)
+        verts = torch.tensor(merged.vertices, dtype=torch.float32)
+        colours = 0.5 + 0.3 * torch.stack(
+            [
+                torch.sin(3 * verts[:, 0] + 1),
+                torch.cos(4 * verts[:, 2]),
+                torch.sin(2 * verts[:, 0]),
+            ],
+            -1,
+        )
+        return Mesh(verts, torch.tensor(merged.faces), vertex_colors=colours)
+
+    world, fitted = mesh_of([slab, fin]), mesh_of([slab])
+    cameras = orbit_cameras(6, (40, 40), distance=3.2, elevation_deg=40)
+    silhouette_cameras = orbit_cameras(12, (40, 40), distance=3.2, elevation_deg=15)
+    torch.set_num_threads(previous)
+    return world, fitted, cameras, silhouette_cameras
+
+
+# A low relight sun across the fin: its shadow falls over the slab.
+LOW_SUN = (1.0, 0.7, 0.2)
+
+
+@pytest.fixture(scope="module")
+def fin_scene():
+    return a_slab_with_a_fin()
+
+
+def _fin_views(fin_scene, shadow_from=None):
+    """Relight views of the world (slab and fin) under LOW_SUN against the fitted slab alone,
+    carrying the cast shadows of a sun along shadow_from (None: none), and the silhouette hull
+    of all 18 views' masks."""
+    from recon.diagnose.cast_shadow import SilhouetteHull
+
+    world, fitted, cameras, silhouette_cameras = fin_scene
+    lighting = _sun_light(LOW_SUN)
+    with torch.no_grad():
+        seen = Renderer().render(world, cameras, lighting)
+        observed = seen.color
+        if shadow_from is not None:
+            effect = Shadows(map_resolution=128)
+            effect.strength.fill_(1.0)
+            other = _sun_light(shadow_from)
+            unshadowed = Renderer().render(world, cameras, other)
+            shadowed = effect(unshadowed, EffectContext(world, other, cameras))
+            observed = observed - (unshadowed.color - shadowed.color)
+        output = Renderer().render(fitted, cameras, lighting)
+        others = Renderer().render(world, silhouette_cameras, lighting).alpha
+    generator = torch.Generator().manual_seed(0)
+    observed = observed + 0.003 * torch.randn(observed.shape, generator=generator)
+    data = build_diagnosis_data(observed, seen.alpha, output, cameras, lighting, fitted)
+    hull = SilhouetteHull.carve(
+        [(silhouette_cameras, others), (cameras, seen.alpha)], fitted, 1.0, 1.5
+    )
+    return data, hull
+
+
+def _decided_with(data, hull) -> Candidate:
+    candidate = Candidate("shadows")
+    candidate.add(cast_shadow_evidence(data, "shadows", SETTINGS, hull))
+    return decide(candidate, SETTINGS.decision)
+
+
+def test_a_thin_part_the_fit_lost_still_shadows_through_the_silhouettes(fin_scene):
+    data, hull = _fin_views(fin_scene, shadow_from=LOW_SUN)
+    assert hull is not None
+    # The fitted slab shadows nothing: from the fitted mesh alone there is no shadow to test.
+    without = _decided_with(data, None)
+    assert not without.significant, without.why
+    candidate = _decided_with(data, hull)
+    measured = candidate.evidence_of("cast_shadow").details
+    assert candidate.significant and measured["occluder"] == "silhouettes", candidate.why
+    assert measured["shadowed_silhouettes"] > 0.05 > measured["shadowed_mesh"], measured
+
+
+def test_the_silhouettes_name_no_shadow_that_is_not_there_or_not_the_suns(fin_scene):
+    # No shadow at all, and the fin's shadow of a sun 80 degrees away from the relight sun.
+    for shadow_from in (None, (-0.6, 0.7, 0.9)):
+        data, hull = _fin_views(fin_scene, shadow_from)
+        assert hull is not None
+        candidate = _decided_with(data, hull)
+        assert not candidate.significant, (shadow_from, candidate.why)
+
+
+def test_masks_that_do_not_bound_the_object_give_no_hull(fin_scene):
+    from recon.diagnose.cast_shadow import SilhouetteHull
+
+    _, fitted, cameras, _ = fin_scene
+    assert SilhouetteHull.carve([(cameras, torch.ones(6, 40, 40, 1))], fitted, 1.0, 1.5) is None
