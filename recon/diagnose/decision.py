@@ -22,6 +22,8 @@ agreement     clear         a per-view colour gain shared by separate halves of 
 lobe          clear         the view-to-view residual (training and held-out views) follows a
                             highlight's lobe under the fitted light beyond placebo lights
                             (recon.diagnose.lobe); ranks after clearing residual evidence
+relight_lobe  clear         the same lobe test on the relight split under its known light
+                            (recon.diagnose.lobe); measured on other data (independent)
 cast_shadow   clear         the relight split's residual is darker where the fitted mesh
                             shadows the relight sun, beyond placebo directions
                             (recon.diagnose.cast_shadow); measured on other data than the
@@ -276,6 +278,15 @@ DECISION_TABLE: tuple[Rule, ...] = (
         threshold=lobe_threshold,
         passes=_beats_placebos(lambda config: config.lobe_alpha),
         parameters_from=("lobe", "absorption", "probe"),
+    ),
+    Rule(
+        "relight_lobe",
+        "clear",
+        measured=True,
+        threshold=lobe_threshold,
+        passes=_beats_placebos(lambda config: config.lobe_alpha),
+        parameters_from=("relight_lobe", "lobe", "absorption", "probe"),
+        independent=True,
     ),
     Rule(
         "cast_shadow",

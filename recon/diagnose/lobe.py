@@ -56,6 +56,9 @@ if TYPE_CHECKING:  # producers imports this module to register the producer
     from recon.diagnose.producers import EvidenceInputs
 
 KIND = "lobe"
+# The same test on the relight split under its known light (diagnose.lobe.relight): no fitted
+# light's error there, and the relight sun's highlights sit elsewhere on the surface.
+RELIGHT_KIND = "relight_lobe"
 # Lights whose lobes are projected together (memory, not a tuned number).
 LIGHTS_PER_CHUNK = 32
 # Channel weights of the luminance the residual is measured in (Rec. 709).
@@ -273,18 +276,21 @@ def lobe_statistic(
 
 
 def lobe_evidence(
-    parts: list[DiagnosisData], name: str, settings: DiagnoseConfig
+    parts: list[DiagnosisData], name: str, settings: DiagnoseConfig, kind: str = KIND
 ) -> Evidence | None:
-    """Whether the residual of the views follows a highlight's lobe under the fitted light
-    beyond placebo lights (threshold and passed are the decision config's; the decision
-    re-derives them); None when it cannot be measured (no light direction, too few pixels)."""
+    """Whether the residual of the views follows a highlight's lobe under their light beyond
+    placebo lights (threshold and passed are the decision config's; the decision re-derives
+    them); None when it cannot be measured (no light direction, too few pixels). kind: 'lobe'
+    (the training and held-out views under the fitted light) or 'relight_lobe' (the relight
+    split under its own, known light)."""
     measured = lobe_statistic(parts, settings)
     if measured is None:
         return None
     decision = settings.decision
     threshold = lobe_threshold(name, decision)
+    light = "the relight split's known light" if kind == RELIGHT_KIND else "the fitted light"
     reason = (
-        f"{name}: the residual follows a highlight's lobe under the fitted light from view to "
+        f"{name}: the residual follows a highlight's lobe under {light} from view to "
         f"view (exponent {measured['exponent']:g}, r = {measured['correlation']:.3f} over "
         f"{measured['views']} views, p = {measured['p_value']:.2g} against "
         f"{measured['placebo_lights']} placebo lights); its excess over the placebo lights' "
@@ -292,7 +298,7 @@ def lobe_evidence(
     )
     parameters = {"strength": measured["strength"], "exponent": measured["exponent"]}
     return placebo_excess_evidence(
-        KIND, name, measured, threshold, decision.lobe_alpha, reason, parameters
+        kind, name, measured, threshold, decision.lobe_alpha, reason, parameters
     )
 
 
@@ -333,4 +339,8 @@ def lobe_producer(
         return []
     parts = [inputs.training_views(settings.band_pixels), inputs.data]
     evidence = [lobe_evidence(parts, name, settings) for name in wanted]
+    if inputs.relight is not None and settings.lobe.relight:
+        evidence += [
+            lobe_evidence([inputs.relight], name, settings, RELIGHT_KIND) for name in wanted
+        ]
     return [item for item in evidence if item is not None]
