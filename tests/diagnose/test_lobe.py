@@ -158,3 +158,62 @@ def test_a_blurred_lambertian_object_gives_no_lobe_a_glossy_one_still_does():
     )
     measured = lobe_statistic([glossy], settings)
     assert measured["p_value"] < 0.01 and measured["correlation"] > 0.5, measured
+
+
+def _relight_inputs(relight_specular: float, exposure_sigma: float = 0.0):
+    """EvidenceInputs whose training and held-out views are a Lambertian torus (nothing for
+    the lobe under the fitted light) and whose relight split, under another known light, is
+    the torus with a highlight of relight_specular (and a per-view exposure)."""
+    from recon.diagnose.data import FittedModel
+    from recon.diagnose.producers import EvidenceInputs
+    from recon.io.datasets import CaptureSet
+
+    heldout, _ = glossy_torus_views(views=6, size=40, specular=0.0, seed=1)
+    training, _ = glossy_torus_views(views=9, size=40, specular=0.0, seed=2)
+    relight, _ = glossy_torus_views(
+        views=8,
+        size=40,
+        specular=relight_specular,
+        shininess=30.0,
+        light_direction=(0.8, 0.5, -0.3),
+        exposure_sigma=exposure_sigma,
+        seed=3,
+    )
+    captures = CaptureSet(
+        training.cameras, training.observed, training.observed_alpha, training.names, "train"
+    )
+    model = FittedModel(training.mesh, training.lighting)
+    return EvidenceInputs(heldout, None, None, captures, model, relight=relight)
+
+
+def test_a_highlight_under_the_relight_splits_known_light_is_named_from_it():
+    from recon.diagnose.lobe import lobe_producer
+
+    inputs = _relight_inputs(relight_specular=0.3)
+    evidence = {
+        item.kind: item for item in lobe_producer(inputs, [Candidate("specular")], SETTINGS)
+    }
+    assert not evidence["lobe"].passed, evidence["lobe"].reason
+    assert evidence["relight_lobe"].passed, evidence["relight_lobe"].reason
+    assert "relight split's known light" in evidence["relight_lobe"].reason
+    candidate = Candidate("specular")
+    for item in evidence.values():
+        candidate.add(item)
+    decide(candidate, SETTINGS.decision)
+    assert candidate.significant and candidate.decided_by == "relight_lobe", candidate.why
+    without = replace(SETTINGS, lobe=replace(SETTINGS.lobe, relight=False))
+    assert [item.kind for item in lobe_producer(inputs, [Candidate("specular")], without)] == [
+        "lobe"
+    ]
+
+
+def test_a_relight_split_with_a_per_view_exposure_and_no_highlight_gives_no_lobe():
+    from recon.diagnose.lobe import lobe_producer
+
+    inputs = _relight_inputs(relight_specular=0.0, exposure_sigma=0.1)
+    candidate = Candidate("specular")
+    for item in lobe_producer(inputs, [candidate], SETTINGS):
+        candidate.add(item)
+    decide(candidate, SETTINGS.decision)
+    assert candidate.evidence_of("relight_lobe") is not None
+    assert not candidate.significant, candidate.why
