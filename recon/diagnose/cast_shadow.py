@@ -27,6 +27,15 @@ The check, on the relight views' interior pixels (N, luminance):
    correlation's excess over the placebo directions' 95th percentile; the p-value is the share
    of placebo directions that reach it.
 
+V comes from two occluders: the fitted mesh's shadow map and the observed silhouettes' visual
+hull (SilhouetteHull). A short fit at 48 px drops thin parts (the teapot's spout and handle,
+spot's ears: the fitted meshes shadow 1-2 % of the sun-facing surface where the true ones
+shadow 9-12 %), while every view's mask still holds them. Each direction's statistic is the
+larger correlation of the two, for the relight sun and every placebo direction alike
+(docs/decisions/0211-shadows-specular-mitsuba.md). Where an occluder shadows the relight sun,
+the relight split has tested the shadows: the fingerprint's "one light cannot tell" condition
+is void (answered_condition).
+
 The decision (recon.diagnose.decision, row 'cast_shadow') names the candidate when the excess
 clears diagnose.decision.cast_shadow_minimum and p < diagnose.decision.cast_shadow_alpha. The
 evidence needs a relight split whose light has a directional sun; without it nothing is

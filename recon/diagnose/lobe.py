@@ -36,6 +36,11 @@ only: silhouette pixels carry the misalignment):
 
 The decision (recon.diagnose.decision, row 'lobe') names the candidate when the statistic clears
 diagnose.decision.lobe_allowance and the p-value is below diagnose.decision.lobe_alpha.
+
+The same test runs on the relight split under its known light (evidence 'relight_lobe',
+diagnose.lobe.relight): there the fitted light's own error is absent, which on a poor fit
+(the Mitsuba bunny at 48 px) hides the highlight under the fitted light
+(docs/decisions/0211-shadows-specular-mitsuba.md).
 """
 
 from __future__ import annotations
