@@ -170,30 +170,40 @@ class SilhouetteHull:
         surface points [N, 3]: a point is shadowed when the ray toward the light leaves the
         hull and enters it again. A fitted surface point lies inside the hull or near its skin,
         so the first stretch inside is its own body, not an occluder. Marched at half a voxel
-        (the hull's resolution); no gradient."""
+        (the hull's resolution) until the ray leaves the grid; no gradient."""
         resolution = self.occupancy.shape[0]
-        step = self.radius / resolution  # half a voxel
-        steps = math.ceil(2 * math.sqrt(3) * self.radius / step)
-        distances = (torch.arange(steps, dtype=torch.float32) + 1) * step
+        # One free voxel of padding on every side: samples outside the grid read it (clamped).
+        padded = torch.nn.functional.pad(self.occupancy, (1, 1, 1, 1, 1, 1)).flatten()
+        side = resolution + 2
+        step = 0.5 / resolution  # half a voxel, in grid units (the grid spans 0..1)
         origin = (points.detach().float().cpu() - self.center) / (2 * self.radius) + 0.5
         rows = []
         with torch.no_grad():
             for direction in directions.detach().float().cpu():
-                march = direction / (2 * self.radius)
+                march = direction / (2 * self.radius)  # grid units per world unit
+                # March only until the ray leaves the grid (the farthest point of the chunk).
+                bound = torch.where(march > 0, 1.0 - origin, -origin) / torch.where(
+                    march.abs() > 1e-12, march, torch.full_like(march, 1e-12)
+                )
+                exits = bound.abs().min(dim=-1).values  # [N] world units to the grid's border
                 visible = torch.ones(origin.shape[0])
                 for start in range(0, origin.shape[0], POINTS_PER_MARCH):
-                    samples = (
-                        origin[start : start + POINTS_PER_MARCH, None]
-                        + distances[None, :, None] * march
-                    )  # [n, S, 3] in grid units / R
-                    index = (samples * resolution).floor().long()
-                    inside = ((index >= 0) & (index < resolution)).all(-1)
-                    index = index.clamp(0, resolution - 1)
-                    occupied = self.occupancy[index[..., 0], index[..., 1], index[..., 2]] & inside
-                    left = torch.cumsum((~occupied).int(), 1) > 0
-                    visible[start : start + POINTS_PER_MARCH] = (
-                        1.0 - (occupied & left).any(1).float()
-                    )
+                    chunk = origin[start : start + POINTS_PER_MARCH]
+                    reach = float(exits[start : start + POINTS_PER_MARCH].max())
+                    steps = max(1, math.ceil(reach * float(march.norm()) / step) + 1)
+                    distances = (torch.arange(steps, dtype=torch.float32) + 1) * step
+                    unit = march / march.norm()
+                    samples = chunk[:, None] + distances[None, :, None] * unit  # [n, S, 3]
+                    index = ((samples * resolution).floor().long() + 1).clamp(0, side - 1)
+                    flat = (index[..., 0] * side + index[..., 1]) * side + index[..., 2]
+                    occupied = padded[flat]  # [n, S]
+                    # Shadowed: a free sample before an occupied one (the ray left the hull
+                    # and entered it again).
+                    free = ~occupied
+                    first_free = torch.where(free.any(1), free.float().argmax(1), steps)
+                    last_occupied = steps - 1 - occupied.flip(1).float().argmax(1)
+                    hidden = occupied.any(1) & (first_free < last_occupied)
+                    visible[start : start + POINTS_PER_MARCH] = 1.0 - hidden.float()
                 rows.append(visible)
         return torch.stack(rows).double()
 
