@@ -163,12 +163,13 @@ def identifiability_producer(
         evidence.append(_as_condition(condition))
     elif agreement is not None and "detectable" in agreement.details:
         # Judged by the smallest per-view change the agreement's test names on this data (the
-        # fit's per-view colour noise), not by the change it found.
+        # fit's per-view colour noise); a change it found at least that large was identified.
         condition = white_balance_evidence(
             float(agreement.details["detectable"]),
             float(agreement.details["noise"]),
             int(agreement.details.get("views", 0)),
             options,
+            found=float(agreement.statistic) if agreement.passed else None,
         )
         evidence.append(_as_condition(condition))
     return evidence
