@@ -903,8 +903,13 @@ class DecisionConfig:
         0.01,
         "Level of the visibility fingerprint's placebo-light test (the share of placebo lights reaching the fitted light's correlation): conventional, not tuned.",
     )
+    relight_lobe_minimum: float = setting(
+        0.05,
+        "Floor of the relight split's lobe evidence (kind relight_lobe; the lobe's own allowance applies when higher): the relight split's floor, as the cast shadow's. Its 8 views hold half the lobe's pixels; without a highlight its excess reached +0.031 (Mitsuba bunny, exposure) and +0.074 (Mitsuba spot, shadows), with one +0.099 to +0.396 (docs/decisions/0211-shadows-specular-mitsuba.md).",
+    )
 
     def __post_init__(self) -> None:
+        check_range(self.relight_lobe_minimum, "relight_lobe_minimum", low=0.0, high=1.0)
         check_range(self.agreement_minimum, "agreement_minimum", low=0.0, high=1.0)
         check_range(self.agreement_alpha, "agreement_alpha", low=0.0, high=1.0)
         check_range(self.lobe_minimum, "lobe_minimum", low=0.0, high=1.0)

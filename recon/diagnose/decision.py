@@ -283,7 +283,9 @@ DECISION_TABLE: tuple[Rule, ...] = (
         "relight_lobe",
         "clear",
         measured=True,
-        threshold=lobe_threshold,
+        threshold=lambda effect, config: max(
+            lobe_threshold(effect, config), config.relight_lobe_minimum
+        ),
         passes=_beats_placebos(lambda config: config.lobe_alpha),
         parameters_from=("relight_lobe", "lobe", "absorption", "probe"),
         independent=True,

@@ -293,6 +293,8 @@ def lobe_evidence(
         return None
     decision = settings.decision
     threshold = lobe_threshold(name, decision)
+    if kind == RELIGHT_KIND:
+        threshold = max(threshold, decision.relight_lobe_minimum)
     light = "the relight split's known light" if kind == RELIGHT_KIND else "the fitted light"
     reason = (
         f"{name}: the residual follows a highlight's lobe under {light} from view to "

@@ -455,3 +455,30 @@ def test_a_colour_gain_shared_by_separate_halves_is_not_vetoed_in_the_domains_th
     # Unless the agreement also passed: it tested the image position, whichever row decided.
     probed.add(evidence("agreement", "white_balance", 0.06, p_value=0.001, views=8))
     assert decide(probed, CONFIG).status == "significant"
+
+
+def test_the_relight_lobe_has_the_relight_splits_floor_and_decides_independently():
+    config = DecisionConfig()
+
+    def lobe_like(kind: str, excess: float) -> Candidate:
+        candidate = Candidate("specular")
+        candidate.add(
+            Evidence(
+                kind=kind,
+                candidate="specular",
+                statistic=excess,
+                threshold=0.0,
+                passed=True,
+                reason=f"{kind}: excess",
+                details={"p_value": 0.006, "correlation": 0.1, "placebo_quantile": 0.1 - excess},
+            )
+        )
+        return decide(candidate, config)
+
+    # An excess of 0.03 clears the lobe's floor (0.02) but not the relight split's (0.05):
+    # 8 relight views hold half the lobe's pixels, and no-highlight cases reached +0.031.
+    assert config.lobe_minimum < 0.03 < config.relight_lobe_minimum
+    assert lobe_like("lobe", 0.03).significant
+    assert not lobe_like("relight_lobe", 0.03).significant
+    named = lobe_like("relight_lobe", 0.1)
+    assert named.significant and named.decided_by == "relight_lobe", named.why
