@@ -79,6 +79,9 @@ KIND = "cast_shadow"
 DIRECTIONS_PER_CHUNK = 32
 # Points marched through the silhouette hull together (memory, not a tuned number).
 POINTS_PER_MARCH = 1024
+# Most voxels a side of the silhouette hull (memory: a high-resolution capture's pixel footprint
+# would ask for billions of voxels; at 48 px the grid is 45-60 a side).
+MAXIMUM_HULL_RESOLUTION = 160
 # Shadow-map depth test as recon.effects.light_transport.Shadows draws it (texels): a bias of
 # 2 + 2 tan(angle to the normal) and a softness of half a texel, so lit surfaces stay lit.
 BIAS_TEXELS = 2.0
@@ -149,7 +152,7 @@ class SilhouetteHull:
             ]
         )
         voxel = voxel_pixels * float(footprints.median())
-        resolution = max(8, math.ceil(2 * radius / voxel))
+        resolution = min(MAXIMUM_HULL_RESOLUTION, max(8, math.ceil(2 * radius / voxel)))
         occupancy = None
         with torch.no_grad():
             for cameras, masks in views:
