@@ -37,9 +37,10 @@ only: silhouette pixels carry the misalignment):
 The decision (recon.diagnose.decision, row 'lobe') names the candidate when the statistic clears
 diagnose.decision.lobe_allowance and the p-value is below diagnose.decision.lobe_alpha.
 
-The same test runs on the relight split under its known light (evidence 'relight_lobe',
-diagnose.lobe.relight): there the fitted light's own error is absent, which on a poor fit
-(the Mitsuba bunny at 48 px) hides the highlight under the fitted light
+The same test can run on the relight split under its known light (evidence 'relight_lobe',
+diagnose.lobe.relight, off by default): there the fitted light's own error is absent, which on
+a poor fit (the Mitsuba bunny at 48 px) hides the highlight under the fitted light; but the
+Mitsuba spot's relight split reads a lobe without a highlight in 2 of 14 cases
 (docs/decisions/0211-shadows-specular-mitsuba.md).
 """
 

@@ -160,6 +160,9 @@ def test_a_blurred_lambertian_object_gives_no_lobe_a_glossy_one_still_does():
     assert measured["p_value"] < 0.01 and measured["correlation"] > 0.5, measured
 
 
+RELIGHT_SETTINGS = replace(SETTINGS, lobe=replace(SETTINGS.lobe, relight=True))
+
+
 def _relight_inputs(relight_specular: float, exposure_sigma: float = 0.0):
     """EvidenceInputs whose training and held-out views are a Lambertian torus (nothing for
     the lobe under the fitted light) and whose relight split, under another known light, is
@@ -190,9 +193,8 @@ def test_a_highlight_under_the_relight_splits_known_light_is_named_from_it():
     from recon.diagnose.lobe import lobe_producer
 
     inputs = _relight_inputs(relight_specular=0.3)
-    evidence = {
-        item.kind: item for item in lobe_producer(inputs, [Candidate("specular")], SETTINGS)
-    }
+    evidence = lobe_producer(inputs, [Candidate("specular")], RELIGHT_SETTINGS)
+    evidence = {item.kind: item for item in evidence}
     assert not evidence["lobe"].passed, evidence["lobe"].reason
     assert evidence["relight_lobe"].passed, evidence["relight_lobe"].reason
     assert "relight split's known light" in evidence["relight_lobe"].reason
@@ -201,8 +203,8 @@ def test_a_highlight_under_the_relight_splits_known_light_is_named_from_it():
         candidate.add(item)
     decide(candidate, SETTINGS.decision)
     assert candidate.significant and candidate.decided_by == "relight_lobe", candidate.why
-    without = replace(SETTINGS, lobe=replace(SETTINGS.lobe, relight=False))
-    assert [item.kind for item in lobe_producer(inputs, [Candidate("specular")], without)] == [
+    # Off by default (docs/decisions/0211-shadows-specular-mitsuba.md): the lobe alone.
+    assert [item.kind for item in lobe_producer(inputs, [Candidate("specular")], SETTINGS)] == [
         "lobe"
     ]
 
@@ -212,7 +214,7 @@ def test_a_relight_split_with_a_per_view_exposure_and_no_highlight_gives_no_lobe
 
     inputs = _relight_inputs(relight_specular=0.0, exposure_sigma=0.1)
     candidate = Candidate("specular")
-    for item in lobe_producer(inputs, [candidate], SETTINGS):
+    for item in lobe_producer(inputs, [candidate], RELIGHT_SETTINGS):
         candidate.add(item)
     decide(candidate, SETTINGS.decision)
     assert candidate.evidence_of("relight_lobe") is not None
