@@ -67,17 +67,18 @@ class RelightResponse(torch.nn.Module):
         self,
         light_basis: torch.Tensor,
         fit_gamma: bool = True,
-        blur_basis: torch.Tensor | None = None,
+        image_basis: torch.Tensor | None = None,
     ) -> None:
         super().__init__()
         self.view_count = light_basis.shape[0]
         self.log_gain = torch.nn.Parameter(torch.zeros(self.view_count, 3))
         self.light_basis = light_basis
-        # A blur's first-order change (the relight render's Laplacian, render_laplacian), one
-        # strength per view; None: no blur term.
-        self.blur_basis = blur_basis
-        self.blur = torch.nn.Parameter(
-            torch.zeros(self.view_count), requires_grad=blur_basis is not None
+        # [B, H, W, 3, K] first-order changes of the relight render (render_laplacian: a
+        # blur's), K strengths per view; None: none.
+        self.image_basis = image_basis
+        count = 0 if image_basis is None else image_basis.shape[-1]
+        self.image_strength = torch.nn.Parameter(
+            torch.zeros(self.view_count, count), requires_grad=image_basis is not None
         )
         self.light_error = torch.nn.Parameter(torch.zeros(light_basis.shape[-1]))
         self.response = ResponseCurve()
@@ -99,14 +100,17 @@ class RelightResponse(torch.nn.Module):
         light_error = (self.light_basis.to(curved) * self.light_error.to(curved)).sum(-1)
         absorbed = (1 + light_error[..., None]).clamp_min(0.1)
         prediction = curved * self.log_gain.exp()[:, None, None, :] / absorbed
-        if self.blur_basis is not None:
-            prediction = prediction + self.blur[:, None, None, None] * self.blur_basis.to(curved)
+        if self.image_basis is not None:
+            strength = self.image_strength[:, None, None, None, :].to(curved)
+            prediction = prediction + (strength * self.image_basis.to(curved)).sum(-1)
         return prediction
 
 
 def render_laplacian(rendered: torch.Tensor) -> torch.Tensor:
-    """[B, H, W, 3] the 5-point Laplacian of a render [B, H, W, 3] (edges replicated): a blur
-    by a kernel of variance s^2 adds s^2 / 2 times it, to first order."""
+    """[B, H, W, 3, 1] the 5-point Laplacian of a render [B, H, W, 3] (edges replicated): a
+    blur by a kernel of variance s^2 adds s^2 / 2 times it, to first order. (A shift's first
+    order, the render's gradients, was tried beside it: on the blind check's stored fits it
+    raised the clean fits' compression, docs/decisions/0212-response-curve-relight.md.)"""
     batch, height, width, channels = rendered.shape
     planes = rendered.permute(0, 3, 1, 2).reshape(batch * channels, 1, height, width)
     padded = torch.nn.functional.pad(planes, (1, 1, 1, 1), mode="replicate")
@@ -114,7 +118,7 @@ def render_laplacian(rendered: torch.Tensor) -> torch.Tensor:
         [[0.0, 1.0, 0.0], [1.0, -4.0, 1.0], [0.0, 1.0, 0.0]], dtype=rendered.dtype
     ).to(rendered.device)
     laplacian = torch.nn.functional.conv2d(padded, kernel[None, None])
-    return laplacian.reshape(batch, channels, height, width).permute(0, 2, 3, 1)
+    return laplacian.reshape(batch, channels, height, width).permute(0, 2, 3, 1)[..., None]
 
 
 def _fit(
@@ -239,15 +243,15 @@ def exponent_interval(
             lit, relight.rendered / under_fitted.clamp_min(DARK), torch.ones_like(under_fitted)
         ).double()
         gamma = float(module.response.log_gamma.exp())
-        blur = module.blur.detach().double()[:, None, None, None]
-        blur_term = 0.0 if module.blur_basis is None else blur * module.blur_basis.double()
-        scaled = prediction - blur_term  # the gained, curved render
-        # d prediction / d (log gain of channel c, blur) per pixel and channel: [B, H, W, 3, 4].
-        nuisance = torch.diag_embed(scaled)
-        blur_slope = (
-            torch.zeros_like(scaled) if module.blur_basis is None else module.blur_basis.double()
-        )
-        nuisance = torch.cat([nuisance, blur_slope[..., None]], dim=-1)
+        if module.image_basis is None:
+            image_slope = torch.zeros(*prediction.shape, 0, dtype=torch.float64)
+        else:
+            image_slope = module.image_basis.double()
+        strength = module.image_strength.detach().double()[:, None, None, None, :]
+        scaled = prediction - (strength * image_slope).sum(-1)  # the gained, curved render
+        # d prediction / d (log gain of channel c, image strengths) per pixel and channel:
+        # [B, H, W, 3, 3 + K].
+        nuisance = torch.cat([torch.diag_embed(scaled), image_slope], dim=-1)
         exponent_slope = scaled * gamma * ratio.log()  # d prediction / d log gamma
         residual = (prediction - relight.observed.double()) * relight.region.double()
         nuisance = nuisance * relight.region.double()[..., None]
@@ -260,8 +264,9 @@ def exponent_interval(
                 torch.stack([exponent_slope**2, exponent_slope * residual], dim=-1),
             ],
             dim=-1,
-        ).sum(dim=-2, keepdim=True)  # summed over channels: [B, H, W, 1, 26]
-        sums = _tile_sums(stacked, settings.relight_tile_pixels)[:, :, 0]  # [B, T, 26]
+        ).sum(dim=-2, keepdim=True)  # summed over channels: [B, H, W, 1, N^2 + 2 N + 2]
+        sums = _tile_sums(stacked, settings.relight_tile_pixels)[:, :, 0]  # [B, T, ...]
+        size = nuisance.shape[-1]
         batch, tiles = sums.shape[:2]
         generator = torch.Generator().manual_seed(seed)
         picks = torch.randint(
@@ -270,11 +275,13 @@ def exponent_interval(
         counts = torch.zeros(settings.bootstrap_samples, batch * tiles, dtype=torch.float64)
         counts.scatter_add_(1, picks, torch.ones_like(picks, dtype=torch.float64))
         grouped = torch.einsum("sbt,btk->sbk", counts.reshape(-1, batch, tiles), sums)
-        normal = grouped[..., :16].reshape(*grouped.shape[:2], 4, 4)
-        # An unused nuisance (no blur term, a channel nowhere lit) keeps its row solvable.
-        normal = normal + 1e-12 * torch.eye(4, dtype=torch.float64)
-        mixed, nuisance_gradient = grouped[..., 16:20], grouped[..., 20:24]
-        curvature_own, gradient_own = grouped[..., 24], grouped[..., 25]
+        square = size * size
+        normal = grouped[..., :square].reshape(*grouped.shape[:2], size, size)
+        # An unused nuisance (a channel nowhere lit) keeps its row solvable.
+        normal = normal + 1e-12 * torch.eye(size, dtype=torch.float64)
+        mixed = grouped[..., square : square + size]
+        nuisance_gradient = grouped[..., square + size : square + 2 * size]
+        curvature_own, gradient_own = grouped[..., -2], grouped[..., -1]
         solved = torch.linalg.solve(normal, torch.stack([mixed, nuisance_gradient], dim=-1))
         curvature = (curvature_own - (mixed * solved[..., 0]).sum(-1)).sum(-1)
         gradient = (gradient_own - (mixed * solved[..., 1]).sum(-1)).sum(-1)
@@ -326,8 +333,8 @@ def relight_response_probe(
     # exponent is pinned by s2 alone and comes out low even on clean fits; recorded as
     # gamma_with_light_error) and beside a blur strength per view (a defocus smooths the
     # observed ratio: diagnose.relight_blur_nuisance). Its interval is the run's own null.
-    blur_basis = render_laplacian(relight.rendered) if settings.relight_blur_nuisance else None
-    estimate = RelightResponse(light_basis[..., :0], blur_basis=blur_basis)
+    image_basis = render_laplacian(relight.rendered) if settings.relight_blur_nuisance else None
+    estimate = RelightResponse(light_basis[..., :0], image_basis=image_basis)
     _fit(estimate, under_fitted, relight, first + second, torch.zeros_like(first), settings)
     gamma = float(estimate.response.log_gamma.detach().exp())
     low, high = exponent_interval(estimate, under_fitted, relight, settings, seed)

@@ -227,7 +227,7 @@ def test_the_linearised_interval_matches_refits():
     relight, under_fitted, _ = relight_case(gamma=0.8, noise=0.05)
     basis = torch.zeros(*relight.observed.shape[:3], 0)
     laplacian = render_laplacian(relight.rendered)
-    fitted = RelightResponse(basis, blur_basis=laplacian)
+    fitted = RelightResponse(basis, image_basis=laplacian)
 
     def fit(module: RelightResponse, weight: torch.Tensor) -> float:
         render = lambda: module(under_fitted, relight.rendered)  # noqa: E731
@@ -249,7 +249,7 @@ def test_the_linearised_interval_matches_refits():
         counts = counts.reshape(batch, rows, columns)
         weight = counts.repeat_interleave(tile, 1).repeat_interleave(tile, 2)
         weight = weight[:, :height, :width, None] * relight.region
-        refits.append(fit(RelightResponse(basis, blur_basis=laplacian), weight))
+        refits.append(fit(RelightResponse(basis, image_basis=laplacian), weight))
     refits = torch.tensor(refits)
     assert low < 0.8 < high
     assert abs(low - float(refits.quantile(0.05))) < 0.015, (low, refits)
