@@ -849,7 +849,8 @@ class DecisionConfig:
         doc="Per effect: the reduction over the control refit its absorption lower bound must clear.",
     )
     relight_allowance: float = setting(
-        0.03, "The relight split's response-curve probe: reduction its lower bound must clear."
+        0.03,
+        "The relight split's response-curve probe: what the lower bound of its compression (1 - the shading ratio's exponent) must clear.",
     )
     flat_field_allowance: float = setting(
         0.02,
