@@ -903,6 +903,15 @@ class DecisionConfig:
         0.01,
         "Level of the visibility fingerprint's placebo-light test (the share of placebo lights reaching the fitted light's correlation): conventional, not tuned.",
     )
+    beyond_confusers_allowance: dict[str, float] = setting(
+        factory=lambda: {
+            "defocus_blur": 0.031,
+            "lens_distortion": 0.02,
+            "motion_blur": 0.02,
+            "pose_error": 0.045,
+        },
+        doc="Per geometric effect (recon.diagnose.geometric_judgement.beyond_confusers): the reduction its probe must keep on top of every confuser's probe (lower bound of the least); a null that scales with the fit, since a poor silhouette fit that any warp or blur reduces is reduced by the confusers too. Twice the largest on the blind check's clean synthetic fits (b48v18, all scenes; floored at minimum_share; docs/decisions/0213-geometric-allowances.md).",
+    )
 
     def __post_init__(self) -> None:
         check_range(self.agreement_minimum, "agreement_minimum", low=0.0, high=1.0)

@@ -304,6 +304,10 @@ def lens_distortion_evidence(
         "covered_radius": radius,
         "views": views,
         "confused_with": ["pose_error"],
+        # The probe's own comparison with a pose correction (and the other confusers) measured
+        # the answer this condition predicts from a reference distortion: where it decides, the
+        # condition does not qualify it.
+        "settled_by": ["beyond_confusers"],
     }
     if radial is not None:
         details["judged"] = {"k1": radial[0], "k2": radial[1]}
