@@ -1042,7 +1042,7 @@ class IdentifiabilityConfig:
     )
     minimum_distinguishable_pixels: float = setting(
         0.5,
-        "RMS (pixels) of the distortion flow no per-view zoom, shift and rotation reproduces, below which a pose correction explains it as well.",
+        "RMS (pixels) of the distortion flow no per-view zoom, shift and rotation reproduces, below which a pose correction explains it as well. Provenance: docs/decisions/0209-geometric-misses.md (the remainder's share of the held-out error against the lens probe's allowance gives the same verdicts on every blind scene but the torus); a prediction only: where the lens probe kept more than its allowance on top of every confuser's probe, pose included (decision row beyond_confusers), the measurement settles it (docs/decisions/0213-geometric-allowances.md).",
     )
     maximum_edge_coherence: float = setting(
         0.8,
