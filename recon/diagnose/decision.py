@@ -87,7 +87,12 @@ from dataclasses import dataclass, replace
 from typing import Any, Literal
 
 from recon.config.run_config import DecisionConfig, DiagnoseConfig
-from recon.diagnose.geometric_judgement import BEYOND, beyond_confusers, rejudge
+from recon.diagnose.geometric_judgement import (
+    BEYOND,
+    beyond_confusers,
+    measured_condition,
+    rejudge,
+)
 from recon.diagnose.identifiability import judge_expected_share
 from recon.diagnose.records import Candidate, Diagnosis, Evidence
 from recon.effects.registry import diagnosis_facts
@@ -389,6 +394,7 @@ def decide(candidate: Candidate, config: DecisionConfig) -> Candidate:
         lambda effect: probe_threshold(effect, config),
         None if allowance is None else (lambda effect: allowance),
     )
+    candidate.evidence = measured_condition(candidate.evidence)
     probe_clears = any(
         item.counts and item.passed for item in candidate.evidence if item.kind in ("probe", BEYOND)
     )

@@ -247,3 +247,87 @@ def beyond_confusers(
         judged.details["probe_lower_bound"] = check.details.get("probe_lower_bound")
         kept = [judged if item is check else item for item in kept]
     return kept + [derived]
+
+
+# The confusers that move or spread pixels: a prediction that one of them explains a candidate
+# as well is measured by the candidate's pair record with it.
+MEASURED_CONFUSERS = ("pose_error", "motion_blur", "defocus_blur")
+
+
+def measured_condition(evidence: list[Evidence]) -> list[Evidence]:
+    """One candidate's evidence with an identifiability condition that asks to be measured
+    (details["measured_by"] == "pairs": the lens distortion's, predicted from a reference
+    distortion) judged by the run's own records instead, where they exist: the candidate's
+    probe passed its per-run null (placebo fields of its size), and its pair records say what
+    it keeps on top of each confuser that moves or spreads pixels. A confuser is told apart when
+    that lower bound exceeds the null's placebo 95th percentile (this run's, not a constant);
+    the condition passes when every one is, else it names those that explain it as well. The
+    prediction is kept (details["prediction"]) and the judgement derived again each time."""
+    condition = next(
+        (
+            item
+            for item in evidence
+            if item.kind == "identifiability"
+            and (item.details.get("measured_by") == "pairs" or "prediction" in item.details)
+        ),
+        None,
+    )
+    if condition is None:
+        return evidence
+    prediction = (
+        Evidence.from_json(condition.details["prediction"])
+        if "prediction" in condition.details
+        else condition
+    )
+    check = next(
+        (item for item in evidence if item.kind == KIND and item.details.get("pairs")), None
+    )
+    null = next((item for item in evidence if item.kind == "null"), None)
+    records = [
+        record
+        for record in (check.details["pairs"] if check is not None else [])
+        if record["confuser"] in MEASURED_CONFUSERS
+    ]
+    if not records or null is None or not null.counts or not null.passed:
+        judged = prediction
+    else:
+        judged = _judge_measured(prediction, records, max(0.0, float(null.threshold)))
+    return [judged if item is condition else item for item in evidence]
+
+
+def _judge_measured(prediction: Evidence, records: list[dict], placebo: float) -> Evidence:
+    """The condition from the pair records against the placebo null's 95th percentile."""
+    name = prediction.candidate
+    kept = {record["confuser"]: record["on_top_of_confuser"] for record in records}
+    alike = [confuser for confuser, entry in kept.items() if not entry["interval"][0] > placebo]
+    least = min(kept, key=lambda confuser: kept[confuser]["interval"][0])
+    details = {
+        **{key: value for key, value in prediction.details.items() if key != "measured_by"},
+        "prediction": prediction.to_json(),
+        "on_top_of": kept,
+        "placebo_95th": placebo,
+        "confused_with": alike,
+    }
+    if not alike:
+        reason = (
+            f"{name} is identifiable here: on top of each of {', '.join(kept)} its probe still "
+            f"removes at least {_percent(kept[least])} of the held-out error (least: on top of "
+            f"{least}), more than placebo fields of its size ({100 * placebo:.1f} %, 95th "
+            "percentile)"
+        )
+        return Evidence(
+            prediction.kind, name, kept[least]["interval"][0], placebo, True, reason, details
+        )
+    worst = min(alike, key=lambda confuser: kept[confuser]["interval"][0])
+    capture = prediction.details.get("capture")
+    details["capture"] = f"{capture}, or a higher resolution" if capture else "a higher resolution"
+    others = [confuser for confuser in alike if confuser != worst]
+    also = f" (and {', '.join(others)})" if others else ""
+    reason = (
+        f"{worst}{also} explains it as well here: on top of {worst}'s probe the {name} probe "
+        f"removes {_percent(kept[worst])} of the held-out error, no more than placebo fields of "
+        f"its size ({100 * placebo:.1f} %, 95th percentile)"
+    )
+    return Evidence(
+        prediction.kind, name, kept[worst]["interval"][0], placebo, False, reason, details
+    )

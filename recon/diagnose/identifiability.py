@@ -308,6 +308,9 @@ def lens_distortion_evidence(
         # the answer this condition predicts from a reference distortion: where it decides, the
         # condition does not qualify it.
         "settled_by": ["beyond_confusers"],
+        # A prediction: the decision judges it by the run's pair records where the probe
+        # measured a distortion (recon.diagnose.geometric_judgement.measured_condition).
+        "measured_by": "pairs",
     }
     if radial is not None:
         details["judged"] = {"k1": radial[0], "k2": radial[1]}

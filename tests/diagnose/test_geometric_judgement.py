@@ -188,3 +188,80 @@ def test_effects_without_an_allowance_or_records_derive_nothing():
     ]
     plain = [item for item in records if item.kind != KIND]
     assert beyond_confusers(plain, lambda effect: 0.1, lambda effect: 0.02) == plain
+
+
+def lens_condition():
+    """The lens condition as the producer predicts it from a reference distortion."""
+    details = {
+        "confused_with": ["pose_error"],
+        "capture": "views with the object near the image edges",
+        "settled_by": [BEYOND],
+        "measured_by": "pairs",
+    }
+    reason = "a 3.4 px distortion is a per-view zoom and shift but for 0.10 px"
+    return Evidence("identifiability", "lens_distortion", 0.1, 0.5, False, reason, details)
+
+
+# A lens distortion on the bunny at 48 px: the lens probe beats the pose correction (4.5 % on
+# top of it), but a blur's probe removes as much (on top of the defocus probe: 0.0 %).
+BUNNY_LENS = [
+    pair(
+        "lens_distortion",
+        "pose_error",
+        (0.089, 0.065),
+        (0.016, 0.0),
+        (0.065, 0.045),
+        (-0.01, -0.039),
+    ),
+    pair(
+        "lens_distortion",
+        "defocus_blur",
+        (0.089, 0.065),
+        (0.145, 0.1),
+        (0.017, 0.0),
+        (0.078, 0.044),
+    ),
+    pair(
+        "lens_distortion",
+        "response_curve",
+        (0.089, 0.065),
+        (0.01, 0.0),
+        (0.09, 0.071),
+        (0.012, 0.002),
+    ),
+]
+
+
+def test_the_lens_condition_is_measured_by_the_runs_pairs_not_predicted():
+    lens = geometric("lens_distortion", (0.089, 0.065), BUNNY_LENS)
+    lens.add(lens_condition())
+    decided = decide(lens, CONFIG)
+    condition = decided.evidence_of("identifiability")
+    # Not "pose explains it" (it does not: 4.5 % beyond it) but the blur, measured against this
+    # run's placebo null (1 %), not a fixed number of pixels.
+    assert not condition.passed and condition.details["confused_with"] == ["defocus_blur"]
+    assert condition.threshold == 0.01 and "defocus_blur explains it as well" in condition.reason
+    assert decided.status == "not_identifiable" and "defocus_blur" in decided.why
+    # Re-decided from the stored record: the same judgement, from the kept prediction.
+    again = decide(Candidate.from_json(decided.to_json()), CONFIG)
+    assert again.evidence_of("identifiability").to_json() == condition.to_json()
+
+
+def test_a_measured_lens_condition_passes_where_every_confuser_is_told_apart():
+    apart = [
+        replace_on_top(record, (0.05, 0.03)) if record["confuser"] == "defocus_blur" else record
+        for record in BUNNY_LENS
+    ]
+    lens = geometric("lens_distortion", (0.089, 0.065), apart)
+    lens.add(lens_condition())
+    condition = decide(lens, CONFIG).evidence_of("identifiability")
+    assert condition.passed and condition.statistic == 0.03
+    # Without a passed null the probe measured nothing: the prediction stands.
+    unmeasured = geometric("lens_distortion", (0.089, 0.065), apart, null_passed=False)
+    unmeasured.add(lens_condition())
+    kept = decide(unmeasured, CONFIG).evidence_of("identifiability")
+    assert not kept.passed and kept.reason == lens_condition().reason
+
+
+def replace_on_top(record, on_top):
+    return {**record, "on_top_of_confuser": entry(*on_top)}
