@@ -299,7 +299,10 @@ def _judge_measured(prediction: Evidence, records: list[dict], placebo: float) -
     """The condition from the pair records against the placebo null's 95th percentile."""
     name = prediction.candidate
     kept = {record["confuser"]: record["on_top_of_confuser"] for record in records}
-    alike = [confuser for confuser, entry in kept.items() if not entry["interval"][0] > placebo]
+    alike = sorted(
+        (confuser for confuser, entry in kept.items() if not entry["interval"][0] > placebo),
+        key=lambda confuser: kept[confuser]["interval"][0],
+    )  # the one that leaves it least first (the decision names the first as its alternative)
     least = min(kept, key=lambda confuser: kept[confuser]["interval"][0])
     details = {
         **{key: value for key, value in prediction.details.items() if key != "measured_by"},
@@ -318,7 +321,7 @@ def _judge_measured(prediction: Evidence, records: list[dict], placebo: float) -
         return Evidence(
             prediction.kind, name, kept[least]["interval"][0], placebo, True, reason, details
         )
-    worst = min(alike, key=lambda confuser: kept[confuser]["interval"][0])
+    worst = alike[0]
     capture = prediction.details.get("capture")
     details["capture"] = f"{capture}, or a higher resolution" if capture else "a higher resolution"
     others = [confuser for confuser in alike if confuser != worst]

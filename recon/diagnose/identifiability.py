@@ -362,7 +362,14 @@ def motion_blur_evidence(data: DiagnosisData, options: IdentifiabilityConfig) ->
     blur."""
     coherence = edge_coherence(data)
     passed = coherence <= options.maximum_edge_coherence
-    details = {"edge_coherence": coherence, "confused_with": ["defocus_blur"]}
+    # A prediction from the edges: where the probe measured a blur (its per-run null passed),
+    # the decision judges it by what the probe keeps on top of the defocus and pose probes
+    # (recon.diagnose.geometric_judgement.measured_condition).
+    details = {
+        "edge_coherence": coherence,
+        "confused_with": ["defocus_blur"],
+        "measured_by": "pairs",
+    }
     if passed:
         reason = (
             f"motion_blur is identifiable: the views' edges run in many directions (coherence "
