@@ -265,3 +265,46 @@ def test_a_measured_lens_condition_passes_where_every_confuser_is_told_apart():
 
 def replace_on_top(record, on_top):
     return {**record, "on_top_of_confuser": entry(*on_top)}
+
+
+def test_a_motion_blur_a_defocus_probe_removes_as_well_is_not_identifiable():
+    # The bunny's motion blur at 48 px: below the teapot's bar alone (0.149 < 0.194), and on
+    # top of the defocus probe it keeps nothing (-1.2 %), while the edges run in many
+    # directions (the prediction passed): measured, it is no silent miss.
+    records = [
+        pair(
+            "motion_blur",
+            "pose_error",
+            (0.19, 0.149),
+            (0.08, 0.04),
+            (0.083, 0.035),
+            (-0.041, -0.07),
+        ),
+        pair(
+            "motion_blur",
+            "defocus_blur",
+            (0.19, 0.149),
+            (0.185, 0.14),
+            (0.016, -0.012),
+            (0.01, -0.009),
+        ),
+        pair(
+            "motion_blur",
+            "lens_distortion",
+            (0.19, 0.149),
+            (0.032, 0.01),
+            (0.171, 0.147),
+            (0.01, 0.001),
+        ),
+    ]
+    motion = geometric("motion_blur", (0.19, 0.149), records)
+    details = {"edge_coherence": 0.3, "confused_with": ["defocus_blur"], "measured_by": "pairs"}
+    motion.add(
+        Evidence(
+            "identifiability", "motion_blur", 0.3, 0.8, True, "edges in many directions", details
+        )
+    )
+    decided = decide(motion, CONFIG)
+    assert decided.status == "not_identifiable"
+    assert "defocus_blur explains it as well here" in decided.why
+    assert decided.evidence_of("identifiability").details["confused_with"] == ["defocus_blur"]
