@@ -485,7 +485,7 @@ def decide(candidate: Candidate, config: DecisionConfig) -> Candidate:
     return candidate
 
 
-def _settles(candidate: Candidate, kinds) -> bool:
+def _settles(candidate: Candidate, kinds: list[str] | tuple[str, ...]) -> bool:
     """Whether clearing evidence of one of the kinds passed: it measured the answer the
     condition predicts (whether or not its row is the one that decided)."""
     return any(

@@ -227,8 +227,8 @@ def beyond_confusers(
     threshold = float(beyond_allowance(name))
     passed = statistic > threshold
     reason = (
-        f"on top of every confuser's probe {name}'s still removes part of the held-out error "
-        f"(least: on top of {least['confuser']}, {_percent(least['on_top_of_confuser'])}); "
+        f"{name}'s probe still removes part of the held-out error on top of every confuser's "
+        f"(least: on top of {least['confuser']}'s, {_percent(least['on_top_of_confuser'])}); "
         "lower bound"
     )
     derived = Evidence(
