@@ -1199,7 +1199,7 @@ class BounceConfig:
         "Fibonacci directions over the sphere along which each point gathers sky light and bounced light (ray cast against the fitted mesh).",
     )
     cells: int = setting(
-        24,
+        40,
         "Cells a side of the grid over the triangles projected along each ray direction (speed only: each ray is tested against its cell's triangles).",
     )
     placebo_lights: int = setting(

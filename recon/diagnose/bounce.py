@@ -115,53 +115,47 @@ def first_hits(
             cell, owner = cell[order], owner[order]
             per_cell = torch.bincount(cell, minlength=cells * cells)
             offsets = torch.cumsum(per_cell, 0) - per_cell
-            slot = torch.arange(cell.numel()) - offsets[cell]
-            table = torch.full((cells * cells, int(per_cell.max())), -1, dtype=torch.int64)
-            table[cell, slot] = owner
 
-            # Edge functions of the projected triangles.
+            # Per face: its first corner, two edges (projected), the determinant, the depths.
             base = corners[:, 0]
             edge_one, edge_two = corners[:, 1] - base, corners[:, 2] - base
             determinant = edge_one[:, 0] * edge_two[:, 1] - edge_one[:, 1] * edge_two[:, 0]
+            usable = determinant.abs() > 1e-20
+            safe = torch.where(usable, determinant, torch.ones_like(determinant))
             face_depth = depth[faces]  # [F, 3]
+            packed = torch.cat(
+                [base, edge_one / safe[:, None], edge_two / safe[:, None], face_depth], dim=1
+            )  # [F, 9]
 
             point = origins @ axes  # [N, 2]
             start = origins @ direction  # [N]
             where = ((point - low) / size).floor().long()
             inside = ((where >= 0) & (where < cells)).all(dim=1)
-            where = where.clamp(0, cells - 1)
-            candidates = table[where[:, 0] * cells + where[:, 1]]  # [N, M]
-            valid = (candidates >= 0) & inside[:, None]
-            candidates = candidates.clamp_min(0)
-            offset = point[:, None, :] - base[candidates]  # [N, M, 2]
-            det = determinant[candidates]
-            safe = torch.where(det.abs() > 1e-20, det, torch.ones_like(det))
-            one = (
-                offset[..., 0] * edge_two[candidates, 1] - offset[..., 1] * edge_two[candidates, 0]
-            ) / safe
-            two = (
-                edge_one[candidates, 0] * offset[..., 1] - edge_one[candidates, 1] * offset[..., 0]
-            ) / safe
+            query_cell = where[:, 0].clamp(0, cells - 1) * cells + where[:, 1].clamp(0, cells - 1)
+            # (query, candidate face) pairs: every face of the query's cell, no padding.
+            counts = torch.where(inside, per_cell[query_cell], torch.zeros_like(query_cell))
+            query = torch.repeat_interleave(torch.arange(origins.shape[0]), counts)
+            first = torch.cumsum(counts, 0) - counts
+            slot = torch.arange(query.numel()) - first[query]
+            face = owner[offsets[query_cell[query]] + slot]
+            data = packed[face]
+            offset = point[query] - data[:, 0:2]
+            one = offset[:, 0] * data[:, 5] - offset[:, 1] * data[:, 4]
+            two = data[:, 2] * offset[:, 1] - data[:, 3] * offset[:, 0]
             zero = 1 - one - two
-            covered = (
-                valid
-                & (det.abs() > 1e-20)
+            along = zero * data[:, 6] + one * data[:, 7] + two * data[:, 8]
+            ahead = (
+                usable[face]
                 & (zero >= -EDGE_SLACK)
                 & (one >= -EDGE_SLACK)
                 & (two >= -EDGE_SLACK)
+                & (along > start[query])
             )
-            corner_depth = face_depth[candidates]  # [N, M, 3]
-            along = (
-                zero * corner_depth[..., 0]
-                + one * corner_depth[..., 1]
-                + two * corner_depth[..., 2]
-            )
-            ahead = covered & (along > start[:, None])
-            along = torch.where(ahead, along, torch.full_like(along, math.inf))
-            nearest, slot_index = along.min(dim=1)
-            found = torch.isfinite(nearest)
-            chosen = candidates.gather(1, slot_index[:, None])[:, 0]
-            hits[k] = torch.where(found, chosen, torch.full_like(chosen, -1))
+            query, face, along = query[ahead], face[ahead], along[ahead]
+            nearest = torch.full((origins.shape[0],), math.inf, dtype=torch.float64)
+            nearest = nearest.scatter_reduce(0, query, along, reduce="amin")
+            winner = along == nearest[query]
+            hits[k].scatter_(0, query[winner], face[winner])
         return hits
 
 
@@ -259,6 +253,16 @@ class Receivers:
         toward = (outward[hits.clamp_min(0)] * directions[:, None, :]).sum(-1) < 0
         return Receivers(lifted, normals, hits, cosine, toward & (hits >= 0))
 
+    def part(self, which: slice) -> Receivers:
+        """The receivers of a slice of the points."""
+        return Receivers(
+            self.points[which],
+            self.normals[which],
+            self.hits[:, which],
+            self.cosine[:, which],
+            self.facing[:, which],
+        )
+
     def sun_visible(self, mesh: Mesh, suns: torch.Tensor, cells: int) -> torch.Tensor:
         """[S, N] 1 where the ray toward each sun escapes the mesh."""
         verts = mesh.verts.detach().double().cpu()
@@ -315,40 +319,45 @@ def bounce_features(
     verts = mesh.verts.detach().double().cpu()
     faces = mesh.faces.cpu()
     points, _ = view_directions(relight)
-    pixels = Receivers.cast(
-        mesh, points.double()[keep], relight.normals.double()[keep], directions, options.cells
+    # The pixels and the faces' centres cast together: one grid per direction.
+    receivers = Receivers.cast(
+        mesh,
+        torch.cat([points.double()[keep], verts[faces].mean(dim=1)]),
+        torch.cat([relight.normals.double()[keep], face_normals(verts, faces)]),
+        directions,
+        options.cells,
     )
-    surface = Receivers.cast(
-        mesh, verts[faces].mean(dim=1), face_normals(verts, faces), directions, options.cells
-    )
+    count = int(keep.sum())
+    pixels, surface = receivers.part(slice(0, count)), receivers.part(slice(count, None))
     albedo = face_albedo(mesh)
     trained = Light.of(fitted, directions)
     relit = Light.of(relight.lighting, directions)
     floor = options.visibility_floor
-
-    def lit(receivers: Receivers, light: Light) -> tuple[torch.Tensor, torch.Tensor]:
-        visible = receivers.sun_visible(mesh, light.sun_directions, options.cells)
-        return receivers.irradiance(light, visible)
+    # Every sun's visibility at once: the relight light's, the fitted light's, the placebos'.
+    strongest = int(relit.sun_irradiance.argmax())
+    suns = torch.cat([relit.sun_directions[strongest][None], placebo_suns])
+    relit_count, trained_count = len(relit.sun_irradiance), len(trained.sun_irradiance)
+    seen = receivers.sun_visible(
+        mesh, torch.cat([relit.sun_directions, trained.sun_directions, suns]), options.cells
+    )
+    relit_seen, trained_seen = seen[:relit_count], seen[relit_count : relit_count + trained_count]
+    placebo_seen = seen[relit_count + trained_count :]  # [1 + P, N + F]
 
     # The training light: the albedo with its baked occlusion undone, and its own bounce.
-    face_visible, face_model = lit(surface, trained)
+    face_visible, face_model = surface.irradiance(trained, trained_seen[:, count:])
     true_albedo = albedo * face_model / face_visible.clamp_min(floor * face_model).clamp_min(1e-12)
-    train_visible, train_model = lit(pixels, trained)
+    train_visible, train_model = pixels.irradiance(trained, trained_seen[:, :count])
     train_visible = train_visible.clamp_min(floor * train_model).clamp_min(1e-12)
     train_bounce = pixels.bounce(true_albedo * face_visible)
 
-    relit_visible, relit_model = lit(pixels, relit)
+    relit_visible, relit_model = pixels.irradiance(relit, relit_seen[:, :count])
     rendered = (relight.rendered.double() * torch.tensor(LUMINANCE, dtype=torch.float64)).sum(-1)
     fitted_albedo = rendered[keep] / relit_model.clamp_min(1e-12)
     direct = fitted_albedo * (train_model * relit_visible / train_visible - relit_model)
 
-    # The relight sun and its placebos: sun visibility of all of them at once.
-    strongest = int(relit.sun_irradiance.argmax())
-    suns = torch.cat([relit.sun_directions[strongest][None], placebo_suns])
-    pixels_base = pixels.sun_visible(mesh, relit.sun_directions, options.cells)  # [S, N]
-    surface_base = surface.sun_visible(mesh, relit.sun_directions, options.cells)
-    pixels_seen = pixels.sun_visible(mesh, suns, options.cells)  # [1 + P, N]
-    surface_seen = surface.sun_visible(mesh, suns, options.cells)
+    # The relight sun and its placebos.
+    pixels_base, surface_base = relit_seen[:, :count], relit_seen[:, count:]
+    pixels_seen, surface_seen = placebo_seen[:, :count], placebo_seen[:, count:]
     columns = []
     share = torch.zeros_like(rendered[keep])
     for index, sun in enumerate(suns):

@@ -39,7 +39,7 @@ from recon.render.rasterize import scatter_to_image
 from recon.render.renderer import Renderer
 from recon.render.shading import DirectionalLight, Lighting
 
-SETTINGS = DiagnoseConfig(bounce=BounceConfig(directions=48, placebo_lights=60))
+SETTINGS = DiagnoseConfig(bounce=BounceConfig(directions=32, cells=12, placebo_lights=40))
 TRAINING_SUN = (0.6, 0.6, 0.6)
 # Lights the inner face of wall A (normal +x), not wall B's (normal +z): A bounces onto B.
 RELIGHT_SUN = (1.0, 0.5, -0.1)
@@ -47,13 +47,13 @@ RELIGHT_SUN = (1.0, 0.5, -0.1)
 
 def a_corner() -> tuple[Mesh, object]:
     """Two walls meeting at a right angle (inner faces x = -0.5 and z = -0.5), colourful,
-    seen from 6 views at 40 x 40: (mesh, cameras)."""
+    seen from 6 views at 32 x 32: (mesh, cameras)."""
     first = trimesh.creation.box(extents=[0.1, 1.2, 1.2])
     first.apply_translation([-0.55, 0.0, 0.0])
     second = trimesh.creation.box(extents=[1.1, 1.2, 0.1])
     second.apply_translation([0.05, 0.0, -0.55])
     merged = trimesh.util.concatenate(
-        [first.subdivide().subdivide().subdivide(), second.subdivide().subdivide().subdivide()]
+        [first.subdivide().subdivide(), second.subdivide().subdivide()]
     )
     verts = torch.tensor(merged.vertices, dtype=torch.float32)
     colours = 0.6 + 0.15 * torch.stack(
@@ -65,7 +65,7 @@ def a_corner() -> tuple[Mesh, object]:
         -1,
     )
     mesh = Mesh(verts, torch.tensor(merged.faces), vertex_colors=colours)
-    return mesh, orbit_cameras(6, (40, 40), distance=3.2, elevation_deg=30)
+    return mesh, orbit_cameras(6, (32, 32), distance=3.2, elevation_deg=30)
 
 
 def _sun_light(direction: tuple[float, float, float], ambient: float) -> Lighting:
@@ -83,7 +83,7 @@ def _irradiance(mesh: Mesh, points: torch.Tensor, normals: torch.Tensor, lightin
     directions = fibonacci_directions(SETTINGS.bounce.directions).double()
     receivers = Receivers.cast(mesh, points, normals, directions, SETTINGS.bounce.cells)
     light = Light.of(lighting, directions)
-    return receivers.irradiance(light, receivers.sun_visible(mesh, light.sun_directions, 24))
+    return receivers.irradiance(light, receivers.sun_visible(mesh, light.sun_directions, 12))
 
 
 def world_bounce(mesh: Mesh, radiosity: torch.Tensor) -> torch.Tensor:
@@ -203,21 +203,22 @@ def test_first_hits_agree_with_brute_force(scene):
 
 def test_the_predicted_bounce_is_the_worlds(scene):
     # The evidence's one bounce (ray-cast gathering from the faces) against the world's
-    # (vertex-to-face form factors), both under the relight light, at the relight pixels.
+    # (vertex-to-face form factors, coarse near the walls' shared edge), both under the
+    # relight light, at the relight pixels.
     data, _ = _views(scene)
     mesh, cameras, albedo = scene
     keep = interior_pixels(data)
-    directions = fibonacci_directions(SETTINGS.bounce.directions).double()
+    directions = fibonacci_directions(128).double()  # the gathering's sampling, finer
     points, _ = view_directions(data)
     pixels = Receivers.cast(
-        mesh, points.double()[keep], data.normals.double()[keep], directions, 24
+        mesh, points.double()[keep], data.normals.double()[keep], directions, 12
     )
     verts = mesh.verts.double()
     surface = Receivers.cast(
-        mesh, verts[mesh.faces].mean(dim=1), face_normals(verts, mesh.faces), directions, 24
+        mesh, verts[mesh.faces].mean(dim=1), face_normals(verts, mesh.faces), directions, 12
     )
     light = Light.of(data.lighting, directions)
-    lit, _ = surface.irradiance(light, surface.sun_visible(mesh, light.sun_directions, 24))
+    lit, _ = surface.irradiance(light, surface.sun_visible(mesh, light.sun_directions, 12))
     predicted = pixels.bounce(face_albedo(mesh) * lit)
     normals = vertex_normals(mesh.verts, mesh.faces).double()
     visible, _ = _irradiance(mesh, verts, normals, data.lighting)
@@ -225,7 +226,7 @@ def test_the_predicted_bounce_is_the_worlds(scene):
     world = _per_pixel(world_bounce(mesh, albedo * visible), mesh, output, len(cameras))
     world = world[..., 0][keep].double()
     correlation = torch.corrcoef(torch.stack([predicted, world]))[0, 1]
-    assert correlation > 0.9, float(correlation)
+    assert correlation > 0.85, float(correlation)
     assert 0.7 < float(predicted.mean() / world.mean()) < 1.4
 
 
