@@ -225,9 +225,9 @@ class Light:
 
 @dataclass
 class Receivers:
-    """Surface points that gather light: normals [N, 3], the face each sky direction's ray hits
-    first [K, N] (-1: the sky), the cosines [K, N] max(0, n . w_k) and whether the hit face
-    faces the point [K, N]."""
+    """Surface points that gather light: points [N, 3] (lifted off the surface), normals
+    [N, 3], the face each direction's ray hits first [K, N] (-1: the sky), the cosines [K, N]
+    max(0, n . w_k) and whether the hit face faces the point [K, N]."""
 
     points: torch.Tensor
     normals: torch.Tensor
@@ -243,6 +243,8 @@ class Receivers:
         directions: torch.Tensor,
         cells: int,
     ) -> Receivers:
+        """Receivers at points [N, 3] with normals [N, 3], each lifted LIFT of the mesh's
+        diagonal along its normal, casting along the unit directions [K, 3]."""
         verts = mesh.verts.detach().double().cpu()
         diagonal = float((verts.max(0).values - verts.min(0).values).norm())
         normals = torch.nn.functional.normalize(normals.double(), dim=-1)
