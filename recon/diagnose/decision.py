@@ -29,6 +29,11 @@ cast_shadow   clear         the relight split's residual is darker where the fit
                             shadows the relight sun, beyond placebo directions
                             (recon.diagnose.cast_shadow); measured on other data than the
                             held-out residual (independent)
+bounce        clear         the relight split's residual is brighter where the fitted mesh
+                            bounces the relight sun's light (one diffuse bounce, less the
+                            training light's the albedo absorbed), beyond placebo suns, with a
+                            strength bounced light can have (recon.diagnose.bounce);
+                            independent like cast_shadow
 fingerprint   name          the fitted albedo is darker where the fitted mesh hides the fitted
                             light, beyond placebo lights (recon.diagnose.fingerprint); its
                             slope picks shadows or interreflection (ranks after the above)
@@ -142,6 +147,14 @@ def _beats_placebos(alpha: Callable[[DecisionConfig], float]) -> Callable[..., b
         return evidence.statistic > threshold and p_value < alpha(config)
 
     return passes
+
+
+def _bounces(evidence: Evidence, threshold: float, config: DecisionConfig) -> bool:
+    """The relight residual follows the relight sun's bounce beyond placebo suns, with a
+    strength that bounced light can have (above 0, at most bounce_maximum_strength)."""
+    strength = evidence.details.get("strength", 0.0)
+    placebo = _beats_placebos(lambda settings: settings.bounce_alpha)
+    return placebo(evidence, threshold, config) and 0.0 < strength <= config.bounce_maximum_strength
 
 
 def _agrees(evidence: Evidence, threshold: float, config: DecisionConfig) -> bool:
@@ -309,6 +322,15 @@ DECISION_TABLE: tuple[Rule, ...] = (
         threshold=lambda effect, config: config.cast_shadow_minimum,
         passes=_beats_placebos(lambda config: config.cast_shadow_alpha),
         parameters_from=("cast_shadow",),
+        independent=True,
+    ),
+    Rule(
+        "bounce",
+        "clear",
+        measured=True,
+        threshold=lambda effect, config: config.bounce_minimum,
+        passes=_bounces,
+        parameters_from=("bounce",),
         independent=True,
     ),
     Rule(
