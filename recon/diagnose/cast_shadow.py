@@ -75,6 +75,11 @@ if TYPE_CHECKING:  # producers imports this module to register the producer
     from recon.diagnose.producers import EvidenceInputs
 
 KIND = "cast_shadow"
+# How the reason names each occluder, with its verb.
+OCCLUDER_PHRASES = {
+    "fitted mesh": "the fitted mesh shadows",
+    "silhouettes": "the observed silhouettes' hull shadows",
+}
 # Directions whose shadow maps are drawn together (memory, not a tuned number).
 DIRECTIONS_PER_CHUNK = 32
 # Points marched through the silhouette hull together (memory, not a tuned number).
@@ -332,9 +337,10 @@ def cast_shadow_evidence(
     if measured is None:
         return None
     decision = settings.decision
+    occluder = OCCLUDER_PHRASES[measured["occluder"]]
     reason = (
-        f"{name}: the relight views are darker than the render where the {measured['occluder']} "
-        f"shadow the relight sun (r = {measured['correlation']:.3f} over {measured['views']} views, "
+        f"{name}: the relight views are darker than the render where {occluder} the relight "
+        f"sun (r = {measured['correlation']:.3f} over {measured['views']} views, "
         f"p = {measured['p_value']:.2g} against {measured['placebo_lights']} placebo "
         "directions); its excess over the placebo directions' 95th percentile"
     )
