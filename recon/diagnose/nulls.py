@@ -145,6 +145,35 @@ def placebo_bases(
     change along a random smooth displacement field (its first-order image change). size:
     (B, H, W); shared: one field for every view's image frame (a global parameter), else one
     per view."""
+    fields = placebo_fields(pixels, size, count, geometric, settings, generator, shared)
+    return _bases_at(fields, pixels, geometric)
+
+
+def _bases_at(
+    fields: torch.Tensor, pixels: _Pixels, geometric: bool, rows: torch.Tensor | None = None
+) -> torch.Tensor:
+    """placebo_bases from placebo_fields' values [count, components, N], at the pixels rows
+    [N] bool only ([count, M, 3]; default all): each element the same product as at all."""
+    rendered, gradient_x, gradient_y = pixels.rendered, pixels.gradient_x, pixels.gradient_y
+    if rows is not None:
+        fields = fields[:, :, rows]
+        rendered, gradient_x, gradient_y = rendered[rows], gradient_x[rows], gradient_y[rows]
+    if not geometric:
+        return fields[:, 0, :, None] * rendered[None]
+    return fields[:, 0, :, None] * gradient_x[None] + fields[:, 1, :, None] * gradient_y[None]
+
+
+def placebo_fields(
+    pixels: _Pixels,
+    size: tuple[int, int, int],
+    count: int,
+    geometric: bool,
+    settings: DiagnoseConfig,
+    generator,
+    shared: bool = False,
+) -> torch.Tensor:
+    """The random smooth fields of placebo_bases read at the region's pixels, each view's
+    weighted mean removed: [count, components, N] (components 2 for a displacement, else 1)."""
     batch, height, width = size
     views = 1 if shared else batch
     cells = settings.nulls.field_cells
@@ -171,20 +200,21 @@ def placebo_bases(
     for component in range(components):
         sums = torch.zeros(count, batch).index_add_(1, pixels.view, values[:, component] * weight)
         values[:, component] -= (sums / total).index_select(1, pixels.view)
-    if not geometric:
-        return values[:, 0, :, None] * pixels.rendered[None]
-    return (
-        values[:, 0, :, None] * pixels.gradient_x[None]
-        + values[:, 1, :, None] * pixels.gradient_y[None]
-    )
+    return values
 
 
 def _least_squares(bases: torch.Tensor, target: torch.Tensor, fit: torch.Tensor) -> torch.Tensor:
     """Coefficients [P] of bases [P, N, 3] that fit target [N, 3] on the pixels fit [N]."""
-    chosen = bases[:, fit].double().flatten(1)
+    return _least_squares_at(bases[:, fit].double(), target[fit])
+
+
+def _least_squares_at(chosen: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Coefficients [P] of bases [P, M, 3] that fit target [M, 3] (float64, the fitting pixels
+    alone)."""
+    chosen = chosen.flatten(1)
     gram = chosen @ chosen.T
-    gram = gram + 1e-9 * gram.diagonal().mean().clamp_min(1e-30) * torch.eye(len(bases))
-    return torch.linalg.solve(gram, chosen @ target[fit].flatten())
+    gram = gram + 1e-9 * gram.diagonal().mean().clamp_min(1e-30) * torch.eye(len(chosen))
+    return torch.linalg.solve(gram, chosen @ target.flatten())
 
 
 def _per_view_least_squares(
@@ -244,14 +274,18 @@ def _placebo_reduction(
         # Every view's own fit at once (the views' normal equations are independent).
         theta = _per_view_least_squares(bases, residual, pixels.first, pixels.view, data.view_count)
         explained += torch.einsum("np,pnc->nc", theta.index_select(0, pixels.view), bases)
+    fit, test = pixels.first, ~pixels.first
+    heldout_explained = explained[test]
     if shared:
-        bases = placebo_bases(pixels, size, shared, geometric, settings, generator, shared=True)
-        bases = bases.double()
-        theta = _least_squares(bases, residual - explained, pixels.first)
-        explained += torch.einsum("p,pnc->nc", theta, bases.double())
-    test = ~pixels.first
+        # The bases at the fitting half for the fit, at the held-out half for the score: the
+        # same numbers as the whole bases' rows there, without [P, N, 3] float64 copies.
+        fields = placebo_fields(pixels, size, shared, geometric, settings, generator, True)
+        chosen = _bases_at(fields, pixels, geometric, fit).double()
+        theta = _least_squares_at(chosen, (residual - explained)[fit])
+        heldout = _bases_at(fields, pixels, geometric, test).double()
+        heldout_explained += torch.einsum("p,pnc->nc", theta, heldout)
     before = (residual[test] ** 2).sum()
-    after = ((residual - explained)[test] ** 2).sum()
+    after = ((residual[test] - heldout_explained) ** 2).sum()
     return float(1 - after / before.clamp_min(1e-30))
 
 
