@@ -217,6 +217,18 @@ def _least_squares_at(chosen: torch.Tensor, target: torch.Tensor) -> torch.Tenso
     return torch.linalg.solve(gram, chosen @ target.flatten())
 
 
+def _gain_least_squares(
+    fields: torch.Tensor, rendered: torch.Tensor, target: torch.Tensor
+) -> torch.Tensor:
+    """_least_squares_at of gain bases fields[p, m] * rendered[m, c] (fields [P, M], rendered
+    [M, 3], target [M, 3]) from the factored normal equations, in float64 throughout:
+    sum_mc f_p r f_q r = sum_m f_p f_q |r|^2 and sum_mc f_p r t = sum_m f_p (r . t)."""
+    fields, rendered = fields.double(), rendered.double()
+    gram = (fields * (rendered * rendered).sum(-1)) @ fields.T
+    gram = gram + 1e-9 * gram.diagonal().mean().clamp_min(1e-30) * torch.eye(len(fields))
+    return torch.linalg.solve(gram, fields @ (rendered * target).sum(-1))
+
+
 def _per_view_least_squares(
     bases: torch.Tensor, target: torch.Tensor, fit: torch.Tensor, view: torch.Tensor, views: int
 ) -> torch.Tensor:
@@ -276,7 +288,16 @@ def _placebo_reduction(
         explained += torch.einsum("np,pnc->nc", theta.index_select(0, pixels.view), bases)
     fit, test = pixels.first, ~pixels.first
     heldout_explained = explained[test]
-    if shared:
+    if shared and not geometric:
+        # A gain basis is a field times the render: its normal equations need the fields and
+        # two per-pixel sums only (no [P, N, 3] bases; the response curve has 17 of them).
+        fields = placebo_fields(pixels, size, shared, geometric, settings, generator, True)
+        theta = _gain_least_squares(
+            fields[:, 0, fit], pixels.rendered[fit], (residual - explained)[fit]
+        )
+        gains = theta @ fields[:, 0, test].double()  # [M]
+        heldout_explained += gains[:, None] * pixels.rendered[test].double()
+    elif shared:
         # The bases at the fitting half for the fit, at the held-out half for the score: the
         # same numbers as the whole bases' rows there, without [P, N, 3] float64 copies.
         fields = placebo_fields(pixels, size, shared, geometric, settings, generator, True)

@@ -10,7 +10,7 @@ from recon.render.rasterize import Fragments, gather_rows, scatter_to_image
 # Attributes at least this wide are interpolated a block of INTERPOLATION_BLOCK_ROWS pixels at
 # a time when no gradient is needed (interpolate_packed): their temporaries then stay in cache.
 WIDE_ATTRIBUTES = 16
-INTERPOLATION_BLOCK_ROWS = 2048
+INTERPOLATION_BLOCK_ROWS = 1024
 
 
 def interpolate(
