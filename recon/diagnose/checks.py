@@ -163,12 +163,13 @@ def identifiability_producer(
         evidence.append(_as_condition(condition))
     elif agreement is not None and "detectable" in agreement.details:
         # Judged by the smallest per-view change the agreement's test names on this data (the
-        # fit's per-view colour noise), not by the change it found.
+        # fit's per-view colour noise); a change it found at least that large was identified.
         condition = white_balance_evidence(
             float(agreement.details["detectable"]),
             float(agreement.details["noise"]),
             int(agreement.details.get("views", 0)),
             options,
+            found=float(agreement.statistic) if agreement.passed else None,
         )
         evidence.append(_as_condition(condition))
     return evidence
@@ -252,11 +253,13 @@ def gain_producer(
 def metadata_producer(
     inputs: EvidenceInputs, candidates: list[Candidate], settings: DiagnoseConfig
 ) -> list[Evidence]:
-    """The recovered exposure against the held-out views' EXIF exposure, when they have it."""
+    """The recovered exposure against the held-out views' EXIF exposure, when they have it.
+
+    The gains compared are the ones the exposure reports: read apart from the highlight (the
+    gain evidence) where that ran, else the probe's."""
     known = _exposure_gains(inputs)
     exposure = next((item for item in candidates if item.name == "exposure"), None)
-    probe = exposure.evidence_of("probe") if exposure is not None else None
-    ratios = (probe.details.get("parameters") or {}).get("ratios") if probe else None
+    source, ratios = _reported_exposure_ratios(exposure) if exposure is not None else ("", None)
     if known is None or ratios is None or len(ratios) != len(known):
         return []
     if len(known) < settings.metadata.minimum_views:
@@ -268,7 +271,21 @@ def metadata_producer(
     divided = inputs.heldout.known_gains is not None
     if divided:
         known = torch.ones_like(known)
-    return [metadata_evidence(ratios, known, "exposure", settings.metadata, divided=divided)]
+    evidence = metadata_evidence(ratios, known, "exposure", settings.metadata, divided=divided)
+    evidence.details["recovered_from"] = source
+    return [evidence]
+
+
+def _reported_exposure_ratios(exposure: Candidate) -> tuple[str, list[float] | None]:
+    """The evidence kind and per-view ratios [B] the exposure candidate reports (decision
+    table: the gain evidence informs the parameters before the probe's); ("", None) when
+    neither measured them."""
+    for kind in ("gain", "probe"):
+        evidence = exposure.evidence_of(kind)
+        ratios = (evidence.details.get("parameters") or {}).get("ratios") if evidence else None
+        if ratios is not None:
+            return kind, ratios
+    return "", None
 
 
 CHECK_PRODUCERS = [

@@ -477,7 +477,11 @@ def judge_expected_share(name: str, share: float, allowance: float, details: dic
 
 
 def white_balance_evidence(
-    detectable: float, noise: float, views: int, options: IdentifiabilityConfig
+    detectable: float,
+    noise: float,
+    views: int,
+    options: IdentifiabilityConfig,
+    found: float | None = None,
 ) -> Evidence:
     """A white balance is identified by how the views' colours change from view to view (the
     agreement of separate halves of each view, recon.diagnose.agreement); a colour cast common
@@ -486,7 +490,10 @@ def white_balance_evidence(
     noise (how far the halves of a view disagree; a white balance cancels in it): detectable is
     the smallest RMS change the agreement's test names on this data, judged against
     options.white_balance_reference_spread. Not on the change the views show: a capture with no
-    white-balance change identifies one as well as a capture with one."""
+    white-balance change identifies one as well as a capture with one. The one exception is a
+    change the agreement found (found, its RMS log gain, given only when its test named it): at
+    or above detectable, this data identified that change, whatever the reference would say
+    about a smaller one."""
     reference = options.white_balance_reference_spread
     details = {
         "detectable_spread": detectable,
@@ -506,6 +513,15 @@ def white_balance_evidence(
             f"{common}; more held-out views would settle the change from view to view"
         )
         return Evidence(KIND, "white_balance", detectable, reference, False, reason, details)
+    if found is not None and found >= detectable:
+        reason = (
+            f"white_balance is identifiable as a change from view to view: the one found "
+            f"({100 * found:.1f} %, RMS log gain) stands out of this fit's per-view colour "
+            f"noise ({100 * noise:.1f} %, separate halves of each view, {views} views; a change "
+            f"below {100 * detectable:.1f} % would hide in it); {common}"
+        )
+        details["found_spread"] = found
+        return Evidence(KIND, "white_balance", detectable, reference, True, reason, details)
     if detectable <= reference:
         reason = (
             f"white_balance is identifiable as a change from view to view: one of "

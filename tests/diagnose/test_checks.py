@@ -178,6 +178,28 @@ def test_vignetting_short_of_the_corners_and_distortion_against_pose_are_registe
     assert not reference.details["capture"].endswith(",")
 
 
+def test_metadata_compares_the_gains_the_exposure_reports(tmp_path):
+    # The exposure reports the gains read apart from the highlight (the gain evidence) where
+    # they were measured; the EXIF check must judge those, not the probe's, which a highlight
+    # moves.
+    times = [0.01, 0.02, 0.01, 0.005, 0.01, 0.016, 0.008, 0.0125, 0.01]
+    exif_photo_folder(tmp_path, times)
+    heldout = read_captures(tmp_path, "train", DatasetConfig(background_key=[1.0, 1.0, 1.0]))
+    gains = exif_exposure_gains(heldout.metadata)
+    data, _ = glossy_torus_views(views=len(heldout), size=32, specular=0.0)
+    exposure = Candidate("exposure")
+    flat = {"parameters": {"ratios": [1.0] * len(heldout)}}
+    exposure.add(Evidence("probe", "exposure", 0.1, 0.02, True, "probe", flat))
+    inputs = SimpleNamespace(data=data, heldout=heldout)
+    (from_probe,) = metadata_producer(inputs, [exposure], DiagnoseConfig())
+    assert not from_probe.passed and from_probe.details["recovered_from"] == "probe"
+    measured = {"parameters": {"ratios": (1.03 * gains).tolist()}}
+    exposure.add(Evidence("gain", "exposure", 0.3, 0.0, True, "gain", measured))
+    (from_gain,) = metadata_producer(inputs, [exposure], DiagnoseConfig())
+    assert from_gain.passed and from_gain.details["recovered_from"] == "gain"
+    assert from_gain.details["median_ratio_error"] < 1e-6
+
+
 def test_metadata_with_fewer_held_out_views_than_the_minimum_is_no_evidence(tmp_path):
     # A small capture's held-out split can be one or two views: no correlation across views is
     # possible, so there is no metadata evidence, and the diagnosis goes on (not an error).

@@ -140,7 +140,14 @@ def test_white_balance_identifiability_is_the_colour_noise_not_the_change_found(
     assert clear.passed and not hidden.passed
     assert hidden.reason.startswith("white_balance is not identifiable from this data, because")
     assert "colour noise (8.0 %" in hidden.reason
-    for item in (clear, hidden):
+    # A change the agreement found above what the noise hides was identified by this data: no
+    # "hides a change below" beside a found white balance; one found below it is still hidden.
+    found = white_balance_evidence(2.0 * reference, 0.08, 8, options, found=2.5 * reference)
+    assert found.passed and "the one found (12.5 %" in found.reason
+    assert "would hide in it" in found.reason
+    weak = white_balance_evidence(2.0 * reference, 0.08, 8, options, found=1.5 * reference)
+    assert not weak.passed and weak.reason == hidden.reason
+    for item in (clear, hidden, found):
         assert "common to every view is absorbed by the albedo" in item.reason
         assert item.threshold == reference
 
