@@ -247,11 +247,6 @@ def placebo_fields(
     return values
 
 
-def _least_squares(bases: torch.Tensor, target: torch.Tensor, fit: torch.Tensor) -> torch.Tensor:
-    """Coefficients [P] of bases [P, N, 3] that fit target [N, 3] on the pixels fit [N]."""
-    return _least_squares_at(bases[:, fit].double(), target[fit])
-
-
 def _least_squares_at(chosen: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """Coefficients [P] of bases [P, M, 3] that fit target [M, 3] (float64, the fitting pixels
     alone)."""
