@@ -66,12 +66,24 @@ def evidence_statistic(evidence, statistic: str) -> float | None:
     return float(value)
 
 
+def beyond_statistic(candidate) -> float | None:
+    """The point reduction a geometric candidate's probe keeps on top of its strongest confuser
+    (the least over its specificity pair records; the statistic of its "beyond_confusers"
+    evidence, whose lower bound the decision compares), or None without records."""
+    check = candidate.evidence_of("specificity")
+    records = (check.details.get("pairs") if check is not None else None) or []
+    values = [record["on_top_of_confuser"]["reduction"] for record in records]
+    values = [value for value in values if value is not None and value == value]
+    return min(values) if values else None
+
+
 def clean_statistics(
     diagnosis: dict, present: tuple[str, ...] = (), statistic: str = "per_rule"
 ) -> dict[str, float]:
     """The statistics of one clean diagnosis (diagnosis.json, either schema) that its thresholds
     are compared with, by threshold name (benchmarks.blind.decide): each probe's, absorption
-    refit's and relight probe's reduction, the agreement's shared colour spread, the flat
+    refit's and relight probe's reduction, each geometric probe's point reduction on top of its
+    strongest confuser (beyond_statistic), the agreement's shared colour spread, the flat
     field's deviation and the visibility fingerprint's excess over its placebo lights. present: effects the data
     holds although nothing was injected (a
     path tracer's cast shadows): their statistics measure the effect, not the null, and are left
@@ -110,6 +122,9 @@ def clean_statistics(
         lobe = candidate.evidence_of("lobe")
         if lobe is not None:
             keep(f"lobe.{candidate.name}", lobe.statistic)
+        beyond = beyond_statistic(candidate)
+        if beyond is not None:
+            keep(f"beyond.{candidate.name}", beyond)
         flat_field = candidate.evidence_of("flat_field")
         if flat_field is not None:
             keep("flat_field", flat_field.statistic)
@@ -138,6 +153,7 @@ def threshold_floors() -> dict[str, float]:
             absorption_allowance={},
             agreement_allowance={},
             lobe_allowance={},
+            beyond_confusers_allowance={name: 0.0 for name in defaults.beyond_confusers_allowance},
             relight_allowance=defaults.minimum_share,
         )
     )

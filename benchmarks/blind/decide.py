@@ -6,6 +6,7 @@ A threshold set maps names to values:
     absorption.<effect>   the reduction over the control refit an absorption bound must clear
     agreement.<effect>    the per-view colour spread separate halves of each view must share
     lobe.<effect>         the partial correlation of the view-to-view residual with a lobe
+    beyond.<effect>       the reduction a geometric probe must keep on top of every confuser's
     relight               the relight probe's allowance
     flat_field            the flat-field deviation that makes vignetting significant
     fingerprint           the visibility fingerprint's excess over its placebo lights that makes it
@@ -29,6 +30,7 @@ def code_thresholds(config: DecisionConfig | None = None) -> dict[str, float]:
     from recon.diagnose.decision import (
         absorption_threshold,
         agreement_threshold,
+        beyond_threshold,
         lobe_threshold,
         probe_threshold,
     )
@@ -44,6 +46,9 @@ def code_thresholds(config: DecisionConfig | None = None) -> dict[str, float]:
     # The effects with lobe evidence are the default config's (specular).
     for effect in sorted(DecisionConfig().lobe_allowance):
         thresholds[f"lobe.{effect}"] = lobe_threshold(effect, config)
+    # The effects with geometric pair records are the default config's (the four geometric ones).
+    for effect in sorted(DecisionConfig().beyond_confusers_allowance):
+        thresholds[f"beyond.{effect}"] = beyond_threshold(effect, config)
     thresholds["relight"] = config.relight_allowance
     thresholds["flat_field"] = config.flat_field_allowance
     thresholds["fingerprint"] = config.fingerprint_minimum
@@ -69,6 +74,7 @@ def diagnose_section(thresholds: dict[str, float]) -> dict:
             "absorption_allowance": per_effect("absorption"),
             "agreement_allowance": per_effect("agreement"),
             "lobe_allowance": per_effect("lobe"),
+            "beyond_confusers_allowance": per_effect("beyond"),
             "relight_allowance": thresholds["relight"],
             "flat_field_allowance": thresholds["flat_field"],
             "fingerprint_minimum": thresholds["fingerprint"],

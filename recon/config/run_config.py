@@ -903,6 +903,27 @@ class DecisionConfig:
         0.01,
         "Level of the visibility fingerprint's placebo-light test (the share of placebo lights reaching the fitted light's correlation): conventional, not tuned.",
     )
+    bounce_minimum: float = setting(
+        0.05,
+        "Floor of the bounce evidence (recon.diagnose.bounce): how far the correlation of the relight residual with the relight sun's one diffuse bounce off the fitted mesh must exceed the placebo suns' 95th percentile (docs/decisions/0210-interreflection-bounce.md).",
+    )
+    bounce_alpha: float = setting(
+        0.01,
+        "Level of the bounce evidence's placebo-sun test (the share of placebo suns reaching the relight sun's correlation): conventional, not tuned.",
+    )
+    bounce_maximum_strength: float = setting(
+        2.5,
+        "Largest strength of the bounce evidence (the residual's coefficient on the predicted one bounce) that is bounced light: all bounces together give at most 1 / (1 - albedo) of one bounce, 2.5 at albedo 0.6; a pattern that needs more is something else following the relight sun (docs/decisions/0210-interreflection-bounce.md).",
+    )
+    beyond_confusers_allowance: dict[str, float] = setting(
+        factory=lambda: {
+            "defocus_blur": 0.031,
+            "lens_distortion": 0.02,
+            "motion_blur": 0.02,
+            "pose_error": 0.045,
+        },
+        doc="Per geometric effect (recon.diagnose.geometric_judgement.beyond_confusers): the reduction its probe must keep on top of every confuser's probe (lower bound of the least); a null that scales with the fit, since a poor silhouette fit that any warp or blur reduces is reduced by the confusers too. Twice the largest on the blind check's clean synthetic fits (b48v18, all scenes; floored at minimum_share; docs/decisions/0213-geometric-allowances.md).",
+    )
 
     def __post_init__(self) -> None:
         check_range(self.agreement_minimum, "agreement_minimum", low=0.0, high=1.0)
@@ -911,6 +932,9 @@ class DecisionConfig:
         check_range(self.lobe_alpha, "lobe_alpha", low=0.0, high=1.0)
         check_range(self.cast_shadow_minimum, "cast_shadow_minimum", low=0.0, high=1.0)
         check_range(self.cast_shadow_alpha, "cast_shadow_alpha", low=0.0, high=1.0)
+        check_range(self.bounce_minimum, "bounce_minimum", low=0.0, high=1.0)
+        check_range(self.bounce_alpha, "bounce_alpha", low=0.0, high=1.0)
+        check_range(self.bounce_maximum_strength, "bounce_maximum_strength", low=0.0)
         for name in ("minimum_share", "absorption_minimum_share", "regression_minimum_share"):
             check_range(getattr(self, name), name, low=0.0, high=1.0)
         check_range(self.fingerprint_minimum, "fingerprint_minimum", low=0.0, high=1.0)
@@ -1033,7 +1057,7 @@ class IdentifiabilityConfig:
     )
     minimum_distinguishable_pixels: float = setting(
         0.5,
-        "RMS (pixels) of the distortion flow no per-view zoom, shift and rotation reproduces, below which a pose correction explains it as well.",
+        "RMS (pixels) of the distortion flow no per-view zoom, shift and rotation reproduces, below which a pose correction explains it as well. Provenance: docs/decisions/0209-geometric-misses.md (the remainder's share of the held-out error against the lens probe's allowance gives the same verdicts on every blind scene but the torus); a prediction only: where the lens probe kept more than its allowance on top of every confuser's probe, pose included (decision row beyond_confusers), the measurement settles it (docs/decisions/0213-geometric-allowances.md).",
     )
     maximum_edge_coherence: float = setting(
         0.8,
@@ -1172,6 +1196,55 @@ class CastShadowConfig:
         check_range(
             self.placebo_separation_degrees, "placebo_separation_degrees", low=0.0, high=180.0
         )
+
+
+@dataclass
+class BounceConfig:
+    """The bounce evidence (recon.diagnose.bounce): the relight split's residual against the
+    relight sun's one diffuse bounce off the fitted mesh, against placebo suns."""
+
+    directions: int = setting(
+        64,
+        "Fibonacci directions over the sphere along which each point gathers sky light and bounced light (ray cast against the fitted mesh).",
+    )
+    cells: int = setting(
+        40,
+        "Cells a side of the grid over the triangles projected along each ray direction (speed only: each ray is tested against its cell's triangles).",
+    )
+    placebo_lights: int = setting(
+        200,
+        "Directions of the Fibonacci sphere tried as placebo suns (those near the relight sun are left out).",
+    )
+    placebo_separation_degrees: float = setting(
+        45.0,
+        "Least angle between a placebo sun and the relight sun: nearer ones light the same faces.",
+    )
+    visibility_floor: float = setting(
+        0.05,
+        "Least share of a point's unoccluded training irradiance its occluded irradiance is taken to be (the ratios divide by it; a point the mesh hides entirely is noise).",
+    )
+    minimum_pixels: int = setting(
+        200, "Interior relight pixels below which no bounce evidence is measured."
+    )
+    maximum_pixels: int = setting(
+        4000,
+        "Interior relight pixels the evidence uses at most, an even stride through them: its cost is pixels x (directions + placebo suns).",
+    )
+    enabled: bool = setting(True, "Measure the bounce evidence for the interreflection candidate.")
+
+    def __post_init__(self) -> None:
+        for name in (
+            "directions",
+            "cells",
+            "placebo_lights",
+            "minimum_pixels",
+            "maximum_pixels",
+        ):
+            check_range(getattr(self, name), name, low=1)
+        check_range(
+            self.placebo_separation_degrees, "placebo_separation_degrees", low=0.0, high=180.0
+        )
+        check_range(self.visibility_floor, "visibility_floor", low=1e-6, high=1.0)
 
 
 @dataclass
@@ -1345,6 +1418,10 @@ class DiagnoseConfig:
     )
     exposure_gain_iterations: int = setting(
         30, "Alternating least-squares steps of the exposure's highlight-free per-view gains."
+    )
+    bounce: BounceConfig = setting(
+        factory=BounceConfig,
+        doc="The bounce evidence: the relight split's residual against the relight sun's one diffuse bounce off the fitted mesh.",
     )
 
     def __post_init__(self) -> None:

@@ -201,8 +201,12 @@ def _recovered_distortion(
     distortion against a pose correction by its flow over the object (its corner shift is an
     extrapolation, reported only); (None, None) for one that did not clear (then the condition
     judges the reference strength: whether even a strong distortion would hide in a pose
-    error). A record without k1 is judged by its corner shift alone."""
-    if not candidate.significant:
+    error). A record without k1 is judged by its corner shift alone. A probe whose null from
+    this run passed (it removes more than placebo fields of its size) measured a distortion
+    too: that one is judged, not the reference (a 7 px one is not a 3 px one)."""
+    null = candidate.evidence_of("null")
+    measured = null is not None and null.counts and null.passed
+    if not (candidate.significant or measured):
         return None, None
     for kind in ("absorption", "probe"):
         item = candidate.evidence_of(kind)

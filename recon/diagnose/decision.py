@@ -15,6 +15,9 @@ flat_field    overrule      measures the falloff itself: decides alone, either w
 probe         clear         held-out reduction's lower bound above its allowance: significant
 absorption    clear         the same for the absorption refit (unless voided)
 relight       clear         the same for the relight split's probe
+beyond_       clear         a geometric probe's least reduction on top of each confuser's
+confusers                   probe above its allowance (derived again at every decision from
+                            the specificity records; recon.diagnose.geometric_judgement)
 agreement     clear         a per-view colour gain shared by separate halves of each view
                             above its allowance, beyond permuted views (recon.diagnose.agreement);
                             its halves split the image position, intensity, n.h and n.v, so a
@@ -26,6 +29,11 @@ cast_shadow   clear         the relight split's residual is darker where the fit
                             shadows the relight sun, beyond placebo directions
                             (recon.diagnose.cast_shadow); measured on other data than the
                             held-out residual (independent)
+bounce        clear         the relight split's residual is brighter where the fitted mesh
+                            bounces the relight sun's light (one diffuse bounce, less the
+                            training light's the albedo absorbed), beyond placebo suns, with a
+                            strength bounced light can have (recon.diagnose.bounce);
+                            independent like cast_shadow
 fingerprint   name          the fitted albedo is darker where the fitted mesh hides the fitted
                             light, beyond placebo lights (recon.diagnose.fingerprint); its
                             slope picks shadows or interreflection (ranks after the above)
@@ -68,7 +76,7 @@ above, ``passed`` (for null, specificity and identifiability: whether the candid
 check) and a one-line ``reason``; ``details["instead"]`` on a failed specificity check names the
 mismatch, ``details["capture"]`` on a failed identifiability check the capture that would settle
 it, and its ``details["settled_by"]`` the evidence kinds that measured that capture's answer (a
-candidate they decided is not qualified by it). The table keeps the producer's ``threshold`` and ``passed`` for these kinds (only the built-in
+significant candidate for which one of them passed is not qualified by it). The table keeps the producer's ``threshold`` and ``passed`` for these kinds (only the built-in
 rows are re-thresholded from ``DecisionConfig``).
 
 Ranking (``rank_key``): significant first; then evidence from a held-out residual or a direct
@@ -84,7 +92,12 @@ from dataclasses import dataclass, replace
 from typing import Any, Literal
 
 from recon.config.run_config import DecisionConfig, DiagnoseConfig
-from recon.diagnose.geometric_judgement import rejudge
+from recon.diagnose.geometric_judgement import (
+    BEYOND,
+    beyond_confusers,
+    measured_condition,
+    rejudge,
+)
 from recon.diagnose.identifiability import judge_expected_share
 from recon.diagnose.records import Candidate, Diagnosis, Evidence
 from recon.effects.registry import diagnosis_facts
@@ -107,6 +120,14 @@ def absorption_threshold(effect: str, config: DecisionConfig) -> float:
     return max(floor, config.absorption_allowance.get(effect, config.minimum_share))
 
 
+def beyond_threshold(effect: str, config: DecisionConfig) -> float | None:
+    """What a geometric probe must keep on top of every confuser's (floored); None for an effect
+    without such an allowance (its records derive no "beyond_confusers" evidence)."""
+    if effect not in config.beyond_confusers_allowance:
+        return None
+    return max(config.minimum_share, config.beyond_confusers_allowance[effect])
+
+
 def agreement_threshold(effect: str, config: DecisionConfig) -> float:
     """The per-view colour spread an agreement evidence must clear (floored)."""
     return max(config.agreement_minimum, config.agreement_allowance.get(effect, 0.0))
@@ -126,6 +147,14 @@ def _beats_placebos(alpha: Callable[[DecisionConfig], float]) -> Callable[..., b
         return evidence.statistic > threshold and p_value < alpha(config)
 
     return passes
+
+
+def _bounces(evidence: Evidence, threshold: float, config: DecisionConfig) -> bool:
+    """The relight residual follows the relight sun's bounce beyond placebo suns, with a
+    strength that bounced light can have (above 0, at most bounce_maximum_strength)."""
+    strength = evidence.details.get("strength", 0.0)
+    placebo = _beats_placebos(lambda settings: settings.bounce_alpha)
+    return placebo(evidence, threshold, config) and 0.0 < strength <= config.bounce_maximum_strength
 
 
 def _agrees(evidence: Evidence, threshold: float, config: DecisionConfig) -> bool:
@@ -260,6 +289,15 @@ DECISION_TABLE: tuple[Rule, ...] = (
         outlives_null=True,
     ),
     Rule(
+        BEYOND,
+        "clear",
+        measured=True,
+        strength=True,
+        threshold=beyond_threshold,
+        passes=_lower_bound_clears,
+        parameters_from=("gain", "probe"),
+    ),
+    Rule(
         "agreement",
         "clear",
         measured=True,
@@ -284,6 +322,15 @@ DECISION_TABLE: tuple[Rule, ...] = (
         threshold=lambda effect, config: config.cast_shadow_minimum,
         passes=_beats_placebos(lambda config: config.cast_shadow_alpha),
         parameters_from=("cast_shadow",),
+        independent=True,
+    ),
+    Rule(
+        "bounce",
+        "clear",
+        measured=True,
+        threshold=lambda effect, config: config.bounce_minimum,
+        passes=_bounces,
+        parameters_from=("bounce",),
         independent=True,
     ),
     Rule(
@@ -363,8 +410,16 @@ def _first_cleared(candidate: Candidate, skip: tuple[str, ...] = ()) -> Evidence
 def decide(candidate: Candidate, config: DecisionConfig) -> Candidate:
     """Decide one candidate in place from its evidence and the config; returns it."""
     candidate.evidence = [rethreshold(item, config) for item in candidate.evidence]
-    probe = candidate.evidence_of("probe")
-    probe_clears = probe is not None and probe.counts and probe.passed
+    allowance = beyond_threshold(candidate.name, config)
+    candidate.evidence = beyond_confusers(
+        candidate.evidence,
+        lambda effect: probe_threshold(effect, config),
+        None if allowance is None else (lambda effect: allowance),
+    )
+    candidate.evidence = measured_condition(candidate.evidence)
+    probe_clears = any(
+        item.counts and item.passed for item in candidate.evidence if item.kind in ("probe", BEYOND)
+    )
     # (Measured for every probe that could clear: it matters where the probe clears.)
     failed_nulls = [
         item for item in _role_evidence(candidate, "null") if not item.passed and probe_clears
@@ -408,7 +463,9 @@ def decide(candidate: Candidate, config: DecisionConfig) -> Candidate:
         item
         for item in _role_evidence(candidate, "qualify")
         if not item.passed
-        and not (status == "significant" and deciding.kind in item.details.get("settled_by", ()))
+        and not (
+            status == "significant" and _settles(candidate, item.details.get("settled_by", ()))
+        )
     ]
     if unidentifiable:
         condition = unidentifiable[0]
@@ -448,6 +505,16 @@ def decide(candidate: Candidate, config: DecisionConfig) -> Candidate:
     kinds = RULES[deciding.kind].parameters_from if candidate.significant else ()
     candidate.parameters = _parameters(candidate, kinds or UNDECIDED_PARAMETERS)
     return candidate
+
+
+def _settles(candidate: Candidate, kinds: list[str] | tuple[str, ...]) -> bool:
+    """Whether clearing evidence of one of the kinds passed: it measured the answer the
+    condition predicts (whether or not its row is the one that decided)."""
+    return any(
+        item.counts and item.passed and RULES[item.kind].role == "clear"
+        for item in candidate.evidence
+        if item.kind in kinds and item.kind in RULES
+    )
 
 
 def _settled(veto: Evidence, domains: tuple[str, ...]) -> bool:

@@ -147,7 +147,7 @@ class VisibilityFingerprint:
                 "capture": "views under a second, known light whose sun the object shadows "
                 "itself (a relight split)",
                 # the relight split's evidences measure under that second light
-                "settled_by": ["cast_shadow", "relight"],
+                "settled_by": ["cast_shadow", "relight", "bounce"],
                 "slope": self.slope,
                 "interval": list(self.interval),
                 "p_value": self.p_value,

@@ -11,15 +11,28 @@ A verdict applies to the probe's claim only: when the candidate's probe lower bo
 (``details["probe_lower_bound"]``) does not clear its allowance, the probes' comparison does not
 speak to it (an absorption refit sees a distortion the fit bent into the geometry, which the
 probes cannot), and the check passes as not judged.
+
+The same records give a second way for a probe to clear (``beyond_confusers``, the decision
+table's "beyond_confusers" row): what it still removes on top of each confuser's probe. A
+poor silhouette fit (the path-traced teapot at 48 px) is reduced by any warp or blur, so each
+geometric probe alone removes 10 % of a clean fit's error and the allowances calibrated on it
+(twice that) hide a real pose error elsewhere; on top of the confusers that common part is
+gone (the clean teapot's pose probe keeps 2 %, a pose error 8-30 %). It is a null that
+scales with the fit: the confusers are this run's own placebos of the same family, and the
+allowance (``diagnose.decision.beyond_confusers_allowance``) is calibrated on clean fits
+as the probes' are. Where it clears, the comparison is judged even if the probe alone does
+not clear (the candidate's claim is then the records').
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 
 from recon.diagnose.records import Evidence
 
 KIND = "specificity"
+BEYOND = "beyond_confusers"
 
 
 def _excess(entry: dict, allowance: float) -> float:
@@ -189,4 +202,135 @@ def rejudge(evidence: Evidence, allowance: Callable[[str], float]) -> Evidence:
         judged.reason,
         judged.details,
         evidence.void,
+    )
+
+
+def beyond_confusers(
+    evidence: list[Evidence],
+    allowance: Callable[[str], float],
+    beyond_allowance: Callable[[str], float] | None,
+) -> list[Evidence]:
+    """One candidate's evidence with its "beyond_confusers" Evidence derived again from its
+    geometric specificity records (any stored one is replaced): statistic the least lower bound
+    of what its probe removes on top of a confuser's, threshold beyond_allowance(candidate).
+    Where it clears and the specificity check was not judged (the probe alone does not clear),
+    the check is judged with the probes' allowances (allowance), as it would be for a probe that
+    cleared. beyond_allowance None (an effect without one): nothing is derived."""
+    kept = [item for item in evidence if item.kind != BEYOND]
+    check = next((item for item in kept if item.kind == KIND and item.details.get("pairs")), None)
+    if check is None or beyond_allowance is None:
+        return kept
+    records = check.details["pairs"]
+    name = check.candidate
+    least = min(records, key=lambda record: record["on_top_of_confuser"]["interval"][0])
+    statistic = float(least["on_top_of_confuser"]["interval"][0])
+    threshold = float(beyond_allowance(name))
+    passed = statistic > threshold
+    reason = (
+        f"{name}'s probe still removes part of the held-out error on top of every confuser's "
+        f"(least: on top of {least['confuser']}'s, {_percent(least['on_top_of_confuser'])}); "
+        "lower bound"
+    )
+    derived = Evidence(
+        BEYOND,
+        name,
+        statistic,
+        threshold,
+        passed,
+        reason,
+        {"confuser": least["confuser"], "reduction": least["on_top_of_confuser"]["reduction"]},
+        check.void,
+    )
+    if passed and check.details.get("not_judged"):
+        judged = judge(name, records, float(check.details.get("margin", 0.0)), None, allowance)
+        judged = replace(judged, void=check.void)
+        judged.details["probe_lower_bound"] = check.details.get("probe_lower_bound")
+        kept = [judged if item is check else item for item in kept]
+    return kept + [derived]
+
+
+# The confusers that move or spread pixels: a prediction that one of them explains a candidate
+# as well is measured by the candidate's pair record with it.
+MEASURED_CONFUSERS = ("pose_error", "motion_blur", "defocus_blur")
+
+
+def measured_condition(evidence: list[Evidence]) -> list[Evidence]:
+    """One candidate's evidence with an identifiability condition that asks to be measured
+    (details["measured_by"] == "pairs": the lens distortion's, predicted from a reference
+    distortion) judged by the run's own records instead, where they exist: the candidate's
+    probe passed its per-run null (placebo fields of its size), and its pair records say what
+    it keeps on top of each confuser that moves or spreads pixels. A confuser is told apart when
+    that lower bound exceeds the null's placebo 95th percentile (this run's, not a constant);
+    the condition passes when every one is, else it names those that explain it as well. The
+    prediction is kept (details["prediction"]) and the judgement derived again each time."""
+    condition = next(
+        (
+            item
+            for item in evidence
+            if item.kind == "identifiability"
+            and (item.details.get("measured_by") == "pairs" or "prediction" in item.details)
+        ),
+        None,
+    )
+    if condition is None:
+        return evidence
+    prediction = (
+        Evidence.from_json(condition.details["prediction"])
+        if "prediction" in condition.details
+        else condition
+    )
+    check = next(
+        (item for item in evidence if item.kind == KIND and item.details.get("pairs")), None
+    )
+    null = next((item for item in evidence if item.kind == "null"), None)
+    records = [
+        record
+        for record in (check.details["pairs"] if check is not None else [])
+        if record["confuser"] in MEASURED_CONFUSERS
+    ]
+    if not records or null is None or not null.counts or not null.passed:
+        judged = prediction
+    else:
+        judged = _judge_measured(prediction, records, max(0.0, float(null.threshold)))
+    return [judged if item is condition else item for item in evidence]
+
+
+def _judge_measured(prediction: Evidence, records: list[dict], placebo: float) -> Evidence:
+    """The condition from the pair records against the placebo null's 95th percentile."""
+    name = prediction.candidate
+    kept = {record["confuser"]: record["on_top_of_confuser"] for record in records}
+    alike = sorted(
+        (confuser for confuser, entry in kept.items() if not entry["interval"][0] > placebo),
+        key=lambda confuser: kept[confuser]["interval"][0],
+    )  # the one that leaves it least first (the decision names the first as its alternative)
+    least = min(kept, key=lambda confuser: kept[confuser]["interval"][0])
+    details = {
+        **{key: value for key, value in prediction.details.items() if key != "measured_by"},
+        "prediction": prediction.to_json(),
+        "on_top_of": kept,
+        "placebo_95th": placebo,
+        "confused_with": alike,
+    }
+    if not alike:
+        reason = (
+            f"{name} is identifiable here: on top of each of {', '.join(kept)} its probe still "
+            f"removes at least {_percent(kept[least])} of the held-out error (least: on top of "
+            f"{least}), more than placebo fields of its size ({100 * placebo:.1f} %, 95th "
+            "percentile)"
+        )
+        return Evidence(
+            prediction.kind, name, kept[least]["interval"][0], placebo, True, reason, details
+        )
+    worst = alike[0]
+    capture = prediction.details.get("capture")
+    details["capture"] = f"{capture}, or a higher resolution" if capture else "a higher resolution"
+    others = [confuser for confuser in alike if confuser != worst]
+    also = f" (and {', '.join(others)})" if others else ""
+    reason = (
+        f"{worst}{also} explains it as well here: on top of {worst}'s probe the {name} probe "
+        f"removes {_percent(kept[worst])} of the held-out error, no more than placebo fields of "
+        f"its size ({100 * placebo:.1f} %, 95th percentile)"
+    )
+    return Evidence(
+        prediction.kind, name, kept[worst]["interval"][0], placebo, False, reason, details
     )

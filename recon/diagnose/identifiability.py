@@ -304,6 +304,13 @@ def lens_distortion_evidence(
         "covered_radius": radius,
         "views": views,
         "confused_with": ["pose_error"],
+        # The probe's own comparison with a pose correction (and the other confusers) measured
+        # the answer this condition predicts from a reference distortion: where it decides, the
+        # condition does not qualify it.
+        "settled_by": ["beyond_confusers"],
+        # A prediction: the decision judges it by the run's pair records where the probe
+        # measured a distortion (recon.diagnose.geometric_judgement.measured_condition).
+        "measured_by": "pairs",
     }
     if radial is not None:
         details["judged"] = {"k1": radial[0], "k2": radial[1]}
@@ -355,7 +362,14 @@ def motion_blur_evidence(data: DiagnosisData, options: IdentifiabilityConfig) ->
     blur."""
     coherence = edge_coherence(data)
     passed = coherence <= options.maximum_edge_coherence
-    details = {"edge_coherence": coherence, "confused_with": ["defocus_blur"]}
+    # A prediction from the edges: where the probe measured a blur (its per-run null passed),
+    # the decision judges it by what the probe keeps on top of the defocus and pose probes
+    # (recon.diagnose.geometric_judgement.measured_condition).
+    details = {
+        "edge_coherence": coherence,
+        "confused_with": ["defocus_blur"],
+        "measured_by": "pairs",
+    }
     if passed:
         reason = (
             f"motion_blur is identifiable: the views' edges run in many directions (coherence "

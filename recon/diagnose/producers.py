@@ -64,6 +64,7 @@ PRODUCERS: list[EvidenceProducer] = []
 
 def _register_checks() -> None:
     """Issue 20's checks (recon.diagnose.checks), imported late: they read EvidenceInputs."""
+    from recon.diagnose.bounce import bounce_producer
     from recon.diagnose.cast_shadow import cast_shadow_producer
     from recon.diagnose.checks import CHECK_PRODUCERS
     from recon.diagnose.geometric_checks import GEOMETRIC_PRODUCERS
@@ -72,6 +73,7 @@ def _register_checks() -> None:
     # The lobe first: the specificity checks see specular's verdict with it.
     PRODUCERS.append(lobe_producer)
     PRODUCERS.append(cast_shadow_producer)
+    PRODUCERS.append(bounce_producer)
     PRODUCERS.extend(CHECK_PRODUCERS)
     PRODUCERS.extend(GEOMETRIC_PRODUCERS)
 

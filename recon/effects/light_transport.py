@@ -693,7 +693,7 @@ class Interreflection(ModelEffect):
     name = "interreflection"
     diagnosis = DiagnosisFacts(
         family="light_transport",
-        evidence=("fingerprint",),
+        evidence=("fingerprint", "bounce"),
         fingerprint_side="bounced",
         confusable=("shadows",),
         identifiable_when="views under a second light, or concave regions that see each other",

@@ -124,3 +124,43 @@ def test_a_clean_path_traced_like_fit_gets_no_pose_error():
     assert _named(clean, calibrate.calibrate_thresholds(CLEAN, statistic="lower_bound")) == [
         "pose_error"
     ]
+
+
+def _geometric(pose: tuple[float, float], on_top: tuple[float, float]) -> dict:
+    """A diagnosis whose pose probe (lower bound, point) was compared with a motion blur's:
+    on_top is what the pose probe keeps on top of the blur's probe (lower bound, point)."""
+
+    def entry(low, point):
+        return {"reduction": point, "interval": [low, 2 * point - low]}
+
+    pose_error = Candidate("pose_error")
+    pose_error.add(_evidence("probe", "pose_error", *pose))
+    record = {
+        "candidate": "pose_error",
+        "confuser": "motion_blur",
+        "alone": entry(*pose),
+        "confuser_alone": entry(0.05, 0.09),
+        "on_top_of_confuser": entry(*on_top),
+        "confuser_on_top": entry(-0.02, 0.01),
+        "allowance": 0.1,
+        "confuser_allowance": 0.1,
+    }
+    details = {"pairs": [record], "margin": 0.0, "probe_lower_bound": pose[0]}
+    pose_error.add(Evidence("specificity", "pose_error", on_top[0], 0.1, True, "", details))
+    return Diagnosis(candidates=[pose_error]).to_json()
+
+
+def test_the_beyond_allowance_is_calibrated_on_what_a_probe_keeps_over_its_confusers():
+    # A poor clean fit (the path-traced teapot): its pose probe removes 10.5 % alone, 2.2 % on
+    # top of the motion blur's probe; a good one removes little either way.
+    clean = [_geometric((0.044, 0.105), (-0.031, 0.022)), _geometric((0.0, 0.02), (-0.01, 0.0))]
+    thresholds = calibrate.calibrate_thresholds(clean)
+    assert thresholds["probe.pose_error"] == pytest.approx(0.21)
+    assert thresholds["beyond.pose_error"] == pytest.approx(0.044)
+    # A pose error below the poor fit's bar alone (16.8 % < 21 %) but 12.5 % beyond the blur.
+    assert _named(_geometric((0.168, 0.263), (0.125, 0.168)), thresholds) == ["pose_error"]
+    # Another poor clean fit, scored on these thresholds: nothing beyond its confusers.
+    assert _named(_geometric((0.06, 0.12), (-0.02, 0.03)), thresholds) == []
+    # The section a config takes carries the allowance.
+    section = calibrate.calibration_record(thresholds, [], {})["diagnose"]["decision"]
+    assert section["beyond_confusers_allowance"]["pose_error"] == pytest.approx(0.044)

@@ -227,3 +227,23 @@ def test_a_falloff_the_flat_field_measured_is_not_vetoed_by_its_residual_signatu
     assert specificity_producer(inputs, [measured], DiagnoseConfig()) == []
     (checked,) = specificity_producer(inputs, [Candidate("vignetting")], DiagnoseConfig())
     assert checked.kind == "specificity" and checked.candidate == "vignetting"
+
+
+def test_a_distortion_whose_null_passed_is_judged_not_the_reference():
+    # The probe did not clear its allowance, but removes more than placebo fields of its size:
+    # it measured a distortion (7.4 px at the corners), and that one is judged, not 3.4 px.
+    from recon.diagnose.checks import _recovered_distortion
+
+    def lens(null_passed):
+        parameters = {"k1": -0.22, "k2": 3.9, "corner_shift_px": 7.4}
+        result = Candidate("lens_distortion")
+        result.add(
+            Evidence(
+                "probe", "lens_distortion", 0.036, 0.087, False, "probe", {"parameters": parameters}
+            )
+        )
+        result.add(Evidence("null", "lens_distortion", 0.036, 0.006, null_passed, "placebo"))
+        return result
+
+    assert _recovered_distortion(lens(True)) == (7.4, (-0.22, 3.9))
+    assert _recovered_distortion(lens(False)) == (None, None)

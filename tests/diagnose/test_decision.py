@@ -455,3 +455,45 @@ def test_a_colour_gain_shared_by_separate_halves_is_not_vetoed_in_the_domains_th
     # Unless the agreement also passed: it tested the image position, whichever row decided.
     probed.add(evidence("agreement", "white_balance", 0.06, p_value=0.001, views=8))
     assert decide(probed, CONFIG).status == "significant"
+
+
+def test_a_lens_condition_is_settled_where_the_probe_beat_its_confusers():
+    # A reference distortion's condition says a pose correction explains it as well; the lens
+    # probe measured otherwise (it keeps 2.6 % on top of every confuser, pose included, beyond
+    # the allowance): significant, not "not identifiable" nor "lens or pose".
+    def lens(beyond_passes):
+        result = candidate("lens_distortion", probe=(0.036, 0.064))
+        kept = 0.026 if beyond_passes else 0.005
+
+        def entry(low):
+            return {"reduction": low + 0.014, "interval": [low, low + 0.028]}
+
+        record = {
+            "candidate": "lens_distortion",
+            "confuser": "pose_error",
+            "alone": entry(0.036),
+            "confuser_alone": entry(0.03),
+            "on_top_of_confuser": entry(kept),
+            "confuser_on_top": entry(0.0),
+            "allowance": 0.087,
+            "confuser_allowance": 0.211,
+        }
+        details = {"pairs": [record], "margin": 0.0, "probe_lower_bound": 0.036}
+        result.add(Evidence("specificity", "lens_distortion", kept, 0.087, True, "", details))
+        result.add(
+            condition(
+                "lens_distortion",
+                "a radial distortion is a per-view zoom and shift but for 0.10 px",
+                capture="views with the object near the image edges",
+                confused_with=["pose_error"],
+                settled_by=["beyond_confusers"],
+            )
+        )
+        return result
+
+    config = DecisionConfig(probe_allowance={"lens_distortion": 0.087})
+    settled = decide(lens(True), config)
+    assert settled.status == "significant" and settled.decided_by == "beyond_confusers"
+    # Where the probe kept nothing beyond its confusers the condition still answers.
+    unsettled = decide(lens(False), config)
+    assert unsettled.status == "not_identifiable" and "0.10 px" in unsettled.why
