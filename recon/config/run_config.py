@@ -849,7 +849,8 @@ class DecisionConfig:
         doc="Per effect: the reduction over the control refit its absorption lower bound must clear.",
     )
     relight_allowance: float = setting(
-        0.03, "The relight split's response-curve probe: reduction its lower bound must clear."
+        0.03,
+        "The relight split's response-curve probe: what the lower bound of its compression (1 - the shading ratio's exponent) must clear.",
     )
     flat_field_allowance: float = setting(
         0.02,
@@ -1423,6 +1424,14 @@ class DiagnoseConfig:
         factory=BounceConfig,
         doc="The bounce evidence: the relight split's residual against the relight sun's one diffuse bounce off the fitted mesh.",
     )
+    relight_grazing_cosines: list[float] = setting(
+        factory=lambda: [-0.1, 0.3],
+        doc="The relight probe leaves out pixels whose fitted normal's cosine to the relight split's dominant light lies between these two: near that light's terminator an error of the fitted normal moves the predicted shading ratio most, and the noisy ratio reads as a compressive exponent on clean fits (docs/decisions/0212-response-curve-relight.md).",
+    )
+    relight_blur_nuisance: bool = setting(
+        True,
+        "The relight probe's exponent is fitted beside one blur strength per view (the relight render's Laplacian, a blur's first-order change): a defocus smooths the observed shading ratio, which otherwise reads as a compressive exponent (docs/decisions/0212-response-curve-relight.md).",
+    )
 
     def __post_init__(self) -> None:
         for name in (
@@ -1444,6 +1453,14 @@ class DiagnoseConfig:
         for power in self.exposure_highlight_powers:
             check_range(power, "exposure_highlight_powers", low=1)
         check_range(self.exposure_gain_iterations, "exposure_gain_iterations", low=1)
+        if len(self.relight_grazing_cosines) != 2:
+            raise ConfigFieldError(
+                "relight_grazing_cosines",
+                f"expected [low, high], got {self.relight_grazing_cosines}",
+            )
+        low, high = self.relight_grazing_cosines
+        check_range(low, "relight_grazing_cosines", low=-1.0, high=1.0)
+        check_range(high, "relight_grazing_cosines", low=low, high=1.0)
         check_range(self.regression_interior_margin, "regression_interior_margin", low=0)
         for name in (
             "relight_shadowed_share",

@@ -153,29 +153,41 @@ def relight_evidence(
         if "relight" not in diagnosis_facts(candidate.name).evidence:
             continue
         record = relight_response_probe(relight, under_fitted, fitted_lighting, settings)
-        low, high = record["interval"]
-        reason = "relight split's response probe: reduction's lower bound"
+        gamma = record["parameters"]["gamma"]
+        low, high = record["compression_interval"]
+        reason = (
+            f"relight split's shading ratio to the power {gamma:.2f} (90 % interval "
+            f"{1 - high:.2f}-{1 - low:.2f}); compression's lower bound (1 - its upper end)"
+        )
         if record["expanding"] and settings.relight_compressive_only:
-            exponent = record["parameters"]["gamma_with_light_error"]
             reason = (
-                f"relight split's response probe: the ratio to the relight render is expanded "
-                f"(exponent {exponent:.2f} > 1: light the diffuse model lacks where it is "
-                "bright, e.g. a highlight, not a camera's compressive curve); reduction's lower "
-                "bound"
+                f"relight split's shading ratio is expanded (exponent {gamma:.2f} > 1: light "
+                "the diffuse model lacks where it is bright, e.g. a highlight, not a camera's "
+                "compressive curve); compression's lower bound"
+            )
+        if not record["specific"]:
+            reason = (
+                f"relight split's shading ratio to the power {gamma:.2f}, but the exponent "
+                "removes no held-out error beyond the fitted light's own balance (reduction's "
+                f"lower bound {record['interval'][0]:.3f} <= 0): not specific to a tone curve; "
+                "compression's lower bound, capped at 0"
             )
         candidate.add(
             Evidence(
                 kind="relight",
                 candidate=candidate.name,
-                statistic=low,
+                statistic=record["lower_bound"],
                 threshold=float("nan"),
                 passed=False,
                 reason=reason,
                 details={
                     "reduction": record["reduction"],
-                    "interval": [low, high],
+                    "interval": record["interval"],
+                    "compression": record["compression"],
+                    "compression_interval": [low, high],
                     "parameters": record["parameters"],
                     "expanding": record["expanding"],
+                    "specific": record["specific"],
                 },
             )
         )
