@@ -120,16 +120,30 @@ def colour_gains(
     their energy, so the brightest, a highlight's, dominate); a camera's white balance moves
     every pixel's ratio alike. Pixels darker than dark_fraction of the view's brightest (in the
     photo or the render) are left out: their ratios are noise."""
+    return _colour_gains(_colour_ratios(data, dark_fraction), weight)
+
+
+def _colour_ratios(data: DiagnosisData, dark_fraction: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """What colour_gains reads of data whatever the weight: the colour log ratios [B, H, W, 2]
+    and the pixels bright enough in both photo and render [B, H, W] bool."""
     observed, rendered = data.observed.double(), data.rendered.double()
     ratios = torch.log(observed.clamp_min(1e-6)) - torch.log(rendered.clamp_min(1e-6))
     colour = torch.stack([ratios[..., 0] - ratios[..., 1], ratios[..., 2] - ratios[..., 1]], -1)
     observed_luminance, rendered_luminance = observed.mean(dim=-1), rendered.mean(dim=-1)
-    gains = torch.zeros(observed.shape[0], 2, dtype=torch.float64)
+    bright = torch.zeros(observed.shape[:3], dtype=torch.bool, device=observed.device)
     for view in range(observed.shape[0]):
-        bright = (observed_luminance[view] > dark_fraction * observed_luminance[view].max()) & (
-            rendered_luminance[view] > dark_fraction * rendered_luminance[view].max()
-        )
-        chosen = (weight[view, ..., 0] > 0) & bright
+        bright[view] = (
+            observed_luminance[view] > dark_fraction * observed_luminance[view].max()
+        ) & (rendered_luminance[view] > dark_fraction * rendered_luminance[view].max())
+    return colour, bright
+
+
+def _colour_gains(ratios: tuple[torch.Tensor, torch.Tensor], weight: torch.Tensor) -> torch.Tensor:
+    """colour_gains from _colour_ratios (computed once for the many halves of split_gains)."""
+    colour, bright = ratios
+    gains = torch.zeros(colour.shape[0], 2, dtype=torch.float64)
+    for view in range(colour.shape[0]):
+        chosen = (weight[view, ..., 0] > 0) & bright[view]
         if chosen.any():
             gains[view] = colour[view][chosen].median(dim=0).values
     return gains - gains.mean(dim=0, keepdim=True)
@@ -189,9 +203,10 @@ def split_gains(
     (view_covariates) explain removed, and the degrees of freedom left over views."""
     weight = interior(data, settings.colour_erode_pixels)
     first, second = [], []
+    ratios = _colour_ratios(data, settings.colour_dark_fraction)
     for one, other in half_masks(data, weight):
-        first.append(colour_gains(data, one, settings.colour_dark_fraction))
-        second.append(colour_gains(data, other, settings.colour_dark_fraction))
+        first.append(_colour_gains(ratios, one))
+        second.append(_colour_gains(ratios, other))
     projection, freedom = residual_projection(view_covariates(data, settings))
     return projection @ torch.cat(first, dim=1), projection @ torch.cat(second, dim=1), freedom
 

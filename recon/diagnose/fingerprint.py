@@ -246,57 +246,55 @@ def _placebo_rotations(direction: torch.Tensor, count: int, separation_degrees: 
 
 
 def _partial_correlations(
-    target: torch.Tensor, features: torch.Tensor, lamberts: torch.Tensor, chunk: int = 16
+    target: torch.Tensor, features: torch.Tensor, lamberts: torch.Tensor, rows: int = 512
 ) -> torch.Tensor:
     """Partial correlation [K] of target [N] with each feature column [N, K] given
     [1, L_k, L_k^2] of its own lambert column [N, K].
 
-    From the normal equations, chunk columns at a time: the residuals' inner products after
-    projecting out the nuisance are the raw ones less m^T G^-1 m (G the nuisance's 3 x 3 Gram
-    matrix, m its moments with target and feature), so only [N, chunk] temporaries are built."""
-    values = [
-        _partial_correlations_of(
-            target, features[:, start : start + chunk], lamberts[:, start : start + chunk]
+    From the normal equations: the residuals' inner products after projecting out the nuisance
+    are the raw ones less m^T G^-1 m (G the nuisance's 3 x 3 Gram matrix, m its moments with
+    target and feature). The sums they need are gathered a block of rows at a time, so the
+    [rows, K] temporaries stay in cache (one pass over the [N, K] inputs)."""
+    columns = features.shape[1]
+    # Per column: sums of L^1..L^4, target L, target L^2, F, F L, F L^2, target F, F^2.
+    sums = torch.zeros(11, columns, dtype=features.dtype, device=features.device)
+    for start in range(0, features.shape[0], rows):
+        lambert, feature = lamberts[start : start + rows], features[start : start + rows]
+        part = target[start : start + rows]
+        square = lambert * lambert
+        sums += torch.stack(
+            [
+                lambert.sum(0),
+                square.sum(0),
+                (square * lambert).sum(0),
+                (square * square).sum(0),
+                part @ lambert,
+                part @ square,
+                feature.sum(0),
+                (feature * lambert).sum(0),
+                (feature * square).sum(0),
+                part @ feature,
+                (feature * feature).sum(0),
+            ]
         )
-        for start in range(0, features.shape[1], chunk)
-    ]
-    return torch.cat(values)
-
-
-def _partial_correlations_of(
-    target: torch.Tensor, features: torch.Tensor, lamberts: torch.Tensor
-) -> torch.Tensor:
-    """_partial_correlations of a few columns: features, lamberts [N, C] -> [C]."""
-    square = lamberts * lamberts
-    # sum of L^p for p = 0..4, and the moments of target and feature with [1, L, L^2]
-    power_sums = torch.stack(
-        [
-            torch.full_like(lamberts[0], float(len(target))),
-            lamberts.sum(0),
-            square.sum(0),
-            (square * lamberts).sum(0),
-            (square * square).sum(0),
-        ]
-    )  # [5, C]
+    count = torch.full_like(sums[0], float(len(target)))
+    power_sums = torch.cat([count[None], sums[:4]])  # [5, C]: sum of L^p for p = 0..4
     index = torch.arange(3)
     gram = power_sums[index[:, None] + index[None, :]].permute(2, 0, 1)  # [C, 3, 3]
-    target_moments = torch.stack(
-        [target.sum().expand(lamberts.shape[1]), target @ lamberts, target @ square], 1
-    )
-    feature_moments = torch.stack(
-        [features.sum(0), (features * lamberts).sum(0), (features * square).sum(0)], 1
-    )
+    # the moments of target and feature with [1, L, L^2]
+    target_moments = torch.stack([target.sum().expand(columns), sums[4], sums[5]], 1)
+    feature_moments = torch.stack([sums[6], sums[7], sums[8]], 1)
     moments = torch.stack([target_moments, feature_moments], 2)  # [C, 3, 2]
     scale = gram.diagonal(dim1=1, dim2=2).mean(-1)[:, None, None]
     coefficients = torch.linalg.solve(
         gram + 1e-12 * scale * torch.eye(3, dtype=gram.dtype), moments
     )
     explained = moments.transpose(1, 2) @ coefficients  # [C, 2, 2]
-    cross = target @ features
+    cross = sums[9]
     raw = torch.stack(
         [
             torch.stack([(target @ target).expand_as(cross), cross], 1),
-            torch.stack([cross, (features * features).sum(0)], 1),
+            torch.stack([cross, sums[10]], 1),
         ],
         1,
     )  # [C, 2, 2]

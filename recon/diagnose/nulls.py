@@ -22,6 +22,7 @@ from __future__ import annotations
 import copy
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import torch
 
@@ -130,6 +131,46 @@ class _Pixels:
             first=first[inside],
         )
 
+    @cached_property
+    def energy(self) -> torch.Tensor:
+        """[N] the render's squared norm per pixel (the placebo fields' mean weights)."""
+        return (self.rendered**2).sum(-1)
+
+    @cached_property
+    def halves(self) -> _Halves:
+        """What every placebo draw reads of the two halves (computed once per pixels)."""
+        fit = self.first.nonzero().squeeze(1)
+        test = (~self.first).nonzero().squeeze(1)
+        rendered_fit = self.rendered.index_select(0, fit).double()
+        rendered_test = self.rendered.index_select(0, test).double()
+        residual_fit = self.residual.index_select(0, fit)
+        residual_test = self.residual.index_select(0, test)
+        return _Halves(
+            fit=fit,
+            test=test,
+            rendered_test=rendered_test,
+            residual_test=residual_test,
+            energy_fit=(rendered_fit * rendered_fit).sum(-1),
+            correlation_fit=(rendered_fit * residual_fit).sum(-1),
+            before=(residual_test**2).sum(),
+        )
+
+
+@dataclass
+class _Halves:
+    """A _Pixels' fitting half (fit [F]) and held-out half (test [T]), as indices, with the
+    float64 render and residual there and the per-pixel sums of a gain placebo's normal
+    equations: energy_fit [F] sum_c r^2, correlation_fit [F] sum_c r * residual; before: the
+    held-out residual's squared sum."""
+
+    fit: torch.Tensor
+    test: torch.Tensor
+    rendered_test: torch.Tensor
+    residual_test: torch.Tensor
+    energy_fit: torch.Tensor
+    correlation_fit: torch.Tensor
+    before: torch.Tensor
+
 
 def placebo_bases(
     pixels: _Pixels,
@@ -145,6 +186,35 @@ def placebo_bases(
     change along a random smooth displacement field (its first-order image change). size:
     (B, H, W); shared: one field for every view's image frame (a global parameter), else one
     per view."""
+    fields = placebo_fields(pixels, size, count, geometric, settings, generator, shared)
+    return _bases_at(fields, pixels, geometric)
+
+
+def _bases_at(
+    fields: torch.Tensor, pixels: _Pixels, geometric: bool, rows: torch.Tensor | None = None
+) -> torch.Tensor:
+    """placebo_bases from placebo_fields' values [count, components, N], at the pixels rows
+    [N] bool only ([count, M, 3]; default all): each element the same product as at all."""
+    rendered, gradient_x, gradient_y = pixels.rendered, pixels.gradient_x, pixels.gradient_y
+    if rows is not None:
+        fields = fields[:, :, rows]
+        rendered, gradient_x, gradient_y = rendered[rows], gradient_x[rows], gradient_y[rows]
+    if not geometric:
+        return fields[:, 0, :, None] * rendered[None]
+    return fields[:, 0, :, None] * gradient_x[None] + fields[:, 1, :, None] * gradient_y[None]
+
+
+def placebo_fields(
+    pixels: _Pixels,
+    size: tuple[int, int, int],
+    count: int,
+    geometric: bool,
+    settings: DiagnoseConfig,
+    generator,
+    shared: bool = False,
+) -> torch.Tensor:
+    """The random smooth fields of placebo_bases read at the region's pixels, each view's
+    weighted mean removed: [count, components, N] (components 2 for a displacement, else 1)."""
     batch, height, width = size
     views = 1 if shared else batch
     cells = settings.nulls.field_cells
@@ -166,25 +236,45 @@ def placebo_bases(
     # A placebo must mean nothing: without its mean over the view's object (weighted by the
     # render's energy), a random gain field is partly a uniform gain (an exposure), and a
     # random displacement field partly a shift (a pose change).
-    weight = (pixels.rendered**2).sum(-1)
+    weight = pixels.energy
     total = torch.zeros(batch).index_add_(0, pixels.view, weight).clamp_min(1e-30)
     for component in range(components):
-        sums = torch.zeros(count, batch).index_add_(1, pixels.view, values[:, component] * weight)
+        # (summed along dim 0 of a transposed view: the same additions in the same order,
+        # twice as fast as along dim 1)
+        weighted = (values[:, component] * weight).T
+        sums = torch.zeros(batch, count).index_add_(0, pixels.view, weighted).T
         values[:, component] -= (sums / total).index_select(1, pixels.view)
-    if not geometric:
-        return values[:, 0, :, None] * pixels.rendered[None]
-    return (
-        values[:, 0, :, None] * pixels.gradient_x[None]
-        + values[:, 1, :, None] * pixels.gradient_y[None]
-    )
+    return values
 
 
-def _least_squares(bases: torch.Tensor, target: torch.Tensor, fit: torch.Tensor) -> torch.Tensor:
-    """Coefficients [P] of bases [P, N, 3] that fit target [N, 3] on the pixels fit [N]."""
-    chosen = bases[:, fit].double().flatten(1)
+def _least_squares_at(chosen: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Coefficients [P] of bases [P, M, 3] that fit target [M, 3] (float64, the fitting pixels
+    alone)."""
+    chosen = chosen.flatten(1)
     gram = chosen @ chosen.T
-    gram = gram + 1e-9 * gram.diagonal().mean().clamp_min(1e-30) * torch.eye(len(bases))
-    return torch.linalg.solve(gram, chosen @ target[fit].flatten())
+    gram = gram + 1e-9 * gram.diagonal().mean().clamp_min(1e-30) * torch.eye(len(chosen))
+    return torch.linalg.solve(gram, chosen @ target.flatten())
+
+
+def _gain_least_squares(
+    fields: torch.Tensor, rendered: torch.Tensor, target: torch.Tensor
+) -> torch.Tensor:
+    """_least_squares_at of gain bases fields[p, m] * rendered[m, c] (fields [P, M], rendered
+    [M, 3], target [M, 3]) from the factored normal equations, in float64 throughout:
+    sum_mc f_p r f_q r = sum_m f_p f_q |r|^2 and sum_mc f_p r t = sum_m f_p (r . t)."""
+    rendered = rendered.double()
+    return _gain_solve(fields, (rendered * rendered).sum(-1), (rendered * target).sum(-1))
+
+
+def _gain_solve(
+    fields: torch.Tensor, energy: torch.Tensor, correlation: torch.Tensor
+) -> torch.Tensor:
+    """_gain_least_squares from the per-pixel sums energy [M] (sum_c r^2) and correlation [M]
+    (sum_c r t)."""
+    fields = fields.double()
+    gram = (fields * energy) @ fields.T
+    gram = gram + 1e-9 * gram.diagonal().mean().clamp_min(1e-30) * torch.eye(len(fields))
+    return torch.linalg.solve(gram, fields @ correlation)
 
 
 def _per_view_least_squares(
@@ -244,15 +334,32 @@ def _placebo_reduction(
         # Every view's own fit at once (the views' normal equations are independent).
         theta = _per_view_least_squares(bases, residual, pixels.first, pixels.view, data.view_count)
         explained += torch.einsum("np,pnc->nc", theta.index_select(0, pixels.view), bases)
-    if shared:
-        bases = placebo_bases(pixels, size, shared, geometric, settings, generator, shared=True)
-        bases = bases.double()
-        theta = _least_squares(bases, residual - explained, pixels.first)
-        explained += torch.einsum("p,pnc->nc", theta, bases.double())
-    test = ~pixels.first
-    before = (residual[test] ** 2).sum()
-    after = ((residual - explained)[test] ** 2).sum()
-    return float(1 - after / before.clamp_min(1e-30))
+    fit, test = pixels.first, ~pixels.first
+    halves = pixels.halves
+    heldout_explained = explained.index_select(0, halves.test)
+    if shared and not geometric:
+        # A gain basis is a field times the render: its normal equations need the fields and
+        # two per-pixel sums only (no [P, N, 3] bases; the response curve has 17 of them).
+        fields = placebo_fields(pixels, size, shared, geometric, settings, generator, True)
+        if per_view:
+            theta = _gain_least_squares(
+                fields[:, 0, fit], pixels.rendered[fit], (residual - explained)[fit]
+            )
+        else:  # nothing explained yet: the target is the residual
+            fitting = fields[:, 0].index_select(1, halves.fit)
+            theta = _gain_solve(fitting, halves.energy_fit, halves.correlation_fit)
+        gains = theta @ fields[:, 0].index_select(1, halves.test).double()  # [M]
+        heldout_explained += gains[:, None] * halves.rendered_test
+    elif shared:
+        # The bases at the fitting half for the fit, at the held-out half for the score: the
+        # same numbers as the whole bases' rows there, without [P, N, 3] float64 copies.
+        fields = placebo_fields(pixels, size, shared, geometric, settings, generator, True)
+        chosen = _bases_at(fields, pixels, geometric, fit).double()
+        theta = _least_squares_at(chosen, (residual - explained)[fit])
+        heldout = _bases_at(fields, pixels, geometric, test).double()
+        heldout_explained += torch.einsum("p,pnc->nc", theta, heldout)
+    after = ((halves.residual_test - heldout_explained) ** 2).sum()
+    return float(1 - after / halves.before.clamp_min(1e-30))
 
 
 # The last views' placebo draws by parameter layout (per view, shared, geometric), with the
@@ -273,7 +380,9 @@ def placebo_draws(
     cache = _LAST_DRAWS[0][2]
     layout = (per_view, shared, geometric)
     if layout not in cache:
-        pixels = _Pixels.of(data, settings.block_pixels)
+        if "pixels" not in cache:  # (the same for every layout)
+            cache["pixels"] = _Pixels.of(data, settings.block_pixels)
+        pixels = cache["pixels"]
         cache[layout] = [
             _placebo_reduction(
                 pixels, data, per_view, shared, geometric, settings, settings.nulls.seed + d

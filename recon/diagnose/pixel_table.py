@@ -224,6 +224,13 @@ class GainModels:
     """
 
     def __init__(self, table: PixelTable, factors: list[str], all_pixels: bool = False) -> None:
+        # The same models of one table are asked for again and again (the specificity checks
+        # of several candidates share factors): built once per table, their fits kept.
+        kept = table.__dict__.setdefault("_gain_models", {})
+        key = (tuple(factors), bool(all_pixels))
+        if key in kept:
+            self.__dict__.update(kept[key])
+            return
         self.table = table
         self.factors = list(factors)
         cell, sizes = _cell_index(table, self.factors)
@@ -252,6 +259,8 @@ class GainModels:
         self.second_cell = inverse[second]
         self.second_observed = table.observed[second]
         self.second_rendered = table.rendered[second]
+        self._residual_sums: dict[tuple, tuple[float, int]] = {}
+        kept[key] = dict(self.__dict__)
 
     def _design(self, terms: list[Term]) -> torch.Tensor:
         """[cells * channels, columns] one-hot design of the terms."""
@@ -288,10 +297,13 @@ class GainModels:
     def residual_sum(self, terms: list[Term]) -> tuple[float, int]:
         """The model's weighted residual sum of squares over the cells' log gains and its
         rank (the parameters it really has), for nested-model F-tests."""
-        _, weighted, target = self._weighted(terms)
-        solution = torch.linalg.lstsq(weighted, target, driver="gelsd").solution
-        residual = float(((weighted @ solution - target) ** 2).sum())
-        return residual, int(torch.linalg.matrix_rank(weighted))
+        key = tuple(terms)
+        if key not in self._residual_sums:
+            _, weighted, target = self._weighted(terms)
+            solution = torch.linalg.lstsq(weighted, target, driver="gelsd").solution
+            residual = float(((weighted @ solution - target) ** 2).sum())
+            self._residual_sums[key] = (residual, int(torch.linalg.matrix_rank(weighted)))
+        return self._residual_sums[key]
 
     def heldout_errors(self, terms: list[Term]) -> torch.Tensor:
         """Per-view squared error sums [B] on the second half with the model's gains."""

@@ -447,6 +447,12 @@ class Shadows(ModelEffect):
         maps, parts = self.receivers(render_output, mesh, directions)
         texel = 2.0 / self.map_resolution  # NDC units
         softness = 0.5 * texel * self.log_softness.exp().to(dtype)
+        # Without gradients, kept for the same receivers and softness: a probe's Jacobian
+        # columns that move the strength (or another effect) leave the visibility as it was.
+        kept = getattr(self, "_visibility", None)
+        if not torch.is_grad_enabled() and kept is not None and kept[0] is parts:
+            if kept[1] == float(softness):
+                return kept[2]
         if parts[0][0] is not None:  # one map per view
             packed = torch.ones(fragments.covered_index.shape[0], dtype=dtype, device=maps.device)
             for view, (chosen, ndc, bias) in enumerate(parts):
@@ -461,7 +467,11 @@ class Shadows(ModelEffect):
         visible = scatter_to_image(
             1 - packed[:, None], fragments.covered_index, batch, height, width
         )
-        return 1 - visible
+        visibility = 1 - visible
+        self._visibility = None
+        if not torch.is_grad_enabled():
+            self._visibility = (parts, float(softness), visibility)
+        return visibility
 
     def forward(self, render_output: RenderOutput, context: EffectContext) -> RenderOutput:
         _check_shading_inputs(render_output, context, self.name)
@@ -471,11 +481,33 @@ class Shadows(ModelEffect):
             visibility = self.visibility(render_output, context.mesh, directions)
         else:
             visibility = self.visibility(render_output, context.mesh, directions[0])
+        direct = self._direct(render_output, directions, irradiance)
+        darkening = self.strength.to(color) * (1 - visibility) * direct
+        return replace(render_output, color=color - darkening * render_output.alpha.to(color))
+
+    def _direct(
+        self, render_output: RenderOutput, directions: torch.Tensor, irradiance: torch.Tensor
+    ) -> torch.Tensor:
+        """The direct light [B, H, W, C] the shadow takes away at full strength; without
+        gradients kept for the same buffers and light (it does not depend on the parameters)."""
+        color = render_output.color
+        key = (render_output.normals, render_output.albedo, color.dtype)
+        kept = getattr(self, "_direct_kept", None)
+        if (
+            not torch.is_grad_enabled()
+            and kept is not None
+            and all(one is other for one, other in zip(kept[0], key, strict=True))
+            and torch.equal(kept[1], directions)
+            and torch.equal(kept[2], irradiance)
+        ):
+            return kept[3]
         normals = render_output.normals.to(color)
         cosine = (normals * directions[:, None, None, :]).sum(-1, keepdim=True).clamp(min=0.0)
         direct = render_output.albedo.to(color) / math.pi * irradiance * cosine
-        darkening = self.strength.to(color) * (1 - visibility) * direct
-        return replace(render_output, color=color - darkening * render_output.alpha.to(color))
+        self._direct_kept = None
+        if not torch.is_grad_enabled():
+            self._direct_kept = (key, directions.clone(), irradiance.clone(), direct)
+        return direct
 
     def parameters_summary(self) -> dict:
         return {

@@ -7,6 +7,11 @@ import torch
 from recon.errors import ReconError
 from recon.render.rasterize import Fragments, gather_rows, scatter_to_image
 
+# Attributes at least this wide are interpolated a block of INTERPOLATION_BLOCK_ROWS pixels at
+# a time when no gradient is needed (interpolate_packed): their temporaries then stay in cache.
+WIDE_ATTRIBUTES = 16
+INTERPOLATION_BLOCK_ROWS = 1024
+
 
 def interpolate(
     attributes: torch.Tensor,
@@ -88,10 +93,17 @@ def interpolate_packed(
         batch_index = fragments.covered_batch
         if pixels is not None:
             batch_index = batch_index[pixels]
-        flat_index = batch_index[:, None] * vertex_count + corner_index
-        corners = gather_rows(attributes.reshape(-1, attributes.shape[-1]), flat_index)
+        corner_index = batch_index[:, None] * vertex_count + corner_index
+        table = attributes.reshape(-1, attributes.shape[-1])
     else:
-        corners = gather_rows(attributes.reshape(vertex_count, -1), corner_index)  # [N, 3, C]
+        table = attributes.reshape(vertex_count, -1)
+    if (
+        not with_derivatives
+        and table.shape[1] >= WIDE_ATTRIBUTES
+        and not (torch.is_grad_enabled() and attributes.requires_grad)
+    ):
+        return _interpolate_rows(table, corner_index, barycentrics)
+    corners = gather_rows(table, corner_index)  # [N, 3, C]
     u, v = barycentrics.unbind(-1)
     # value = u a0 + v a1 + (1 - u - v) a2 = a2 + u (a0 - a2) + v (a1 - a2)
     edge0 = corners[:, 0] - corners[:, 2]
@@ -103,3 +115,22 @@ def interpolate_packed(
     d_dx = du_dx[:, None] * edge0 + dv_dx[:, None] * edge1
     d_dy = du_dy[:, None] * edge0 + dv_dy[:, None] * edge1
     return values, torch.cat([d_dx, d_dy], dim=-1)
+
+
+def _interpolate_rows(
+    table: torch.Tensor, corner_index: torch.Tensor, barycentrics: torch.Tensor
+) -> torch.Tensor:
+    """interpolate_packed's values [N, C] for a wide table [V, C] (no autograd), a block of
+    pixels at a time: the same arithmetic per element, so the same values, without [N, 3, C]
+    temporaries far larger than the cache (a fingerprint's 174 placebo lights at 400 k pixels:
+    three times faster)."""
+    dtype = torch.promote_types(table.dtype, barycentrics.dtype)
+    values = table.new_empty(corner_index.shape[0], table.shape[1], dtype=dtype)
+    for start in range(0, corner_index.shape[0], INTERPOLATION_BLOCK_ROWS):
+        rows = slice(start, start + INTERPOLATION_BLOCK_ROWS)
+        corners = gather_rows(table, corner_index[rows])
+        u, v = barycentrics[rows].unbind(-1)
+        edge0 = corners[:, 0] - corners[:, 2]
+        edge1 = corners[:, 1] - corners[:, 2]
+        values[rows] = corners[:, 2] + u[:, None] * edge0 + v[:, None] * edge1
+    return values

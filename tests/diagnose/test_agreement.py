@@ -159,3 +159,28 @@ def test_one_held_out_view_says_why_a_change_from_view_to_view_cannot_be_seen():
     )
     assert not condition.passed
     assert "needs at least 3 held-out views" in condition.reason and "got 1" in condition.reason
+
+
+def test_split_gains_read_the_colour_ratios_once_with_the_same_gains():
+    """split_gains computes the colour ratios once for every half: the same gains as
+    colour_gains of each half on its own."""
+    from recon.diagnose.agreement import (
+        colour_gains,
+        half_masks,
+        interior,
+        residual_projection,
+        split_gains,
+        view_covariates,
+    )
+
+    data, _ = glossy_torus_views(views=5, size=32, specular=0.5, white_balance_sigma=0.1)
+    settings = DiagnoseConfig()
+    first, second, _ = split_gains(data, settings)
+    projection, _ = residual_projection(view_covariates(data, settings))
+    halves = half_masks(data, interior(data, settings.colour_erode_pixels))
+    dark = settings.colour_dark_fraction
+    plain_first = torch.cat([colour_gains(data, one, dark) for one, _ in halves], dim=1)
+    plain_second = torch.cat([colour_gains(data, other, dark) for _, other in halves], dim=1)
+    assert torch.equal(first, projection @ plain_first)
+    assert torch.equal(second, projection @ plain_second)
+    assert float(first.abs().max()) > 1e-4

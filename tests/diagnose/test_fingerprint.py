@@ -174,3 +174,6 @@ def test_partial_correlations_equal_a_column_by_column_least_squares() -> None:
     assert torch.allclose(values[:5], torch.tensor(expected, dtype=torch.float64), atol=1e-9)
     assert float(values[1]) > 3 * float(values[[0, 2, 3, 4]].abs().max())  # it stands out
     assert float(values[5]) == 0.0
+    # Gathered a block of rows at a time: the same correlations to rounding.
+    blocked = _partial_correlations(target, features, lamberts, rows=700)
+    assert torch.allclose(blocked, values, rtol=0, atol=1e-12)

@@ -221,3 +221,19 @@ def test_placebo_draws_are_drawn_once_per_layout_for_the_same_views(monkeypatch)
         original(pixels, data, 0, 2, False, settings, settings.nulls.seed + d) for d in range(3)
     ]
     assert shadows[1] == fresh
+
+
+def test_gain_normal_equations_from_the_fields_equal_those_of_the_bases():
+    """A gain placebo's least squares from its factored normal equations (fields and two
+    per-pixel sums) is the least squares of its materialised bases, field times render."""
+    from recon.diagnose.nulls import _gain_least_squares, _least_squares_at
+
+    generator = torch.Generator().manual_seed(3)
+    fields = torch.randn(5, 400, generator=generator)
+    rendered = torch.rand(400, 3, generator=generator)
+    target = torch.randn(400, 3, generator=generator, dtype=torch.float64)
+    bases = fields.double()[:, :, None] * rendered.double()[None]  # [P, M, 3]
+    plain = _least_squares_at(bases, target)
+    factored = _gain_least_squares(fields, rendered, target)
+    assert torch.allclose(factored, plain, rtol=1e-10, atol=1e-12)
+    assert float(plain.abs().max()) > 1e-3

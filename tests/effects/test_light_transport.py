@@ -151,6 +151,37 @@ def test_receivers_are_kept_without_grad_and_give_the_same_visibility(shadow_sce
     assert effect.receivers(output, mesh, direction)[1] is not first
 
 
+def test_visibility_is_kept_for_the_same_softness_without_grad(shadow_scene):
+    """A probe's Jacobian column that moves the strength leaves the visibility as it was:
+    kept for the same receivers and softness, recomputed (as a fresh module's) for another."""
+    output, mesh = shadow_scene.output, shadow_scene.mesh
+    direction = dominant_light(shadow_scene.lighting)[0]
+    effect = Shadows(map_resolution=64)
+    with torch.no_grad():
+        first = effect.visibility(output, mesh, direction)
+        effect.strength.fill_(0.5)
+        assert effect.visibility(output, mesh, direction) is first
+        effect.log_softness.fill_(0.4)
+        softer = effect.visibility(output, mesh, direction)
+        fresh = Shadows(map_resolution=64)
+        fresh.log_softness.fill_(0.4)
+        assert softer is not first and torch.equal(
+            softer, fresh.visibility(output, mesh, direction)
+        )
+        assert not torch.equal(softer, first)
+    assert effect.visibility(output, mesh, direction) is not softer  # gradients: computed
+    # The whole effect with its kept visibility and direct light: a fresh module's image.
+    context = _context(shadow_scene)
+    with torch.no_grad():
+        for strength, softness in ((0.3, 0.0), (0.6, 0.0), (0.6, 0.5)):
+            effect.strength.fill_(strength)
+            effect.log_softness.fill_(softness)
+            fresh = Shadows(map_resolution=64)
+            fresh.strength.fill_(strength)
+            fresh.log_softness.fill_(softness)
+            assert torch.equal(effect(output, context).color, fresh(output, context).color)
+
+
 def test_occlusion_is_kept_for_a_nudge_and_redrawn_for_a_move(shadow_scene):
     effect = Interreflection(directions=16, map_resolution=32)
     mesh = shadow_scene.mesh

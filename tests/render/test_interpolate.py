@@ -36,3 +36,26 @@ def test_chosen_pixels_must_be_a_mask_over_the_covered_pixels() -> None:
     fragments, faces = _fragments()
     with pytest.raises(ReconError, match="pixels: expected a bool tensor of shape"):
         interpolate_packed(torch.zeros(30, 1), fragments, faces, pixels=torch.tensor([0, 1]))
+
+
+@pytest.mark.parametrize("batched_attributes", [False, True])
+def test_wide_attributes_in_blocks_equal_the_whole_computation(
+    batched_attributes: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Wide attributes without a gradient go a block of pixels at a time: the same values,
+    bit for bit, as the one-pass computation (taken with a gradient), at chosen pixels too."""
+    from recon.render import interpolate
+
+    monkeypatch.setattr(interpolate, "INTERPOLATION_BLOCK_ROWS", 7)
+    fragments, faces = _fragments()
+    generator = torch.Generator().manual_seed(2)
+    shape = (2, 30, interpolate.WIDE_ATTRIBUTES + 3)
+    attributes = torch.randn(*(shape if batched_attributes else shape[1:]), generator=generator)
+    pixels = torch.rand(len(fragments.covered_index), generator=generator) < 0.5
+    for chosen in (None, pixels):
+        blocked = interpolate_packed(attributes, fragments, faces, pixels=chosen)
+        whole = interpolate_packed(attributes.requires_grad_(), fragments, faces, pixels=chosen)
+        attributes = attributes.detach()
+        assert len(blocked) > 2 * interpolate.INTERPOLATION_BLOCK_ROWS
+        assert whole.requires_grad and not blocked.requires_grad
+        assert torch.equal(blocked, whole.detach())
