@@ -305,16 +305,6 @@ def _per_view_least_squares(
     return theta
 
 
-def placebo_reduction(
-    data: DiagnosisData, per_view: int, shared: int, geometric: bool, settings: DiagnoseConfig, seed
-) -> float:
-    """The held-out reduction of one random placebo with per_view parameters per view and
-    shared global ones, fitted by linear least squares on the first half of the blocks (the
-    residual's projection on the placebo's basis) and scored on the second."""
-    pixels = _Pixels.of(data, settings.block_pixels)
-    return _placebo_reduction(pixels, data, per_view, shared, geometric, settings, seed)
-
-
 def _placebo_reduction(
     pixels: _Pixels,
     data: DiagnosisData,

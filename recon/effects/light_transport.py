@@ -138,15 +138,6 @@ def view_directions(cameras: Cameras, height: int, width: int, like: torch.Tenso
     return -torch.nn.functional.normalize(rays_world, dim=-1)
 
 
-def world_positions(render_output: RenderOutput, mesh: Mesh) -> torch.Tensor:
-    """World position [B, H, W, 3] of each covered pixel's surface point (0 on background)."""
-    fragments = render_output.fragments
-    packed = interpolate_packed(mesh.verts, fragments, mesh.faces)
-    batch = fragments.batch_size
-    height, width = fragments.resolution
-    return scatter_to_image(packed, fragments.covered_index, batch, height, width)
-
-
 def _fingerprint(tensor: torch.Tensor) -> tuple:
     """A cheap content key for caching (shape, sum, pseudo-randomly weighted sum)."""
     values = tensor.detach().reshape(-1).double()
