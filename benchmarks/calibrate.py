@@ -77,6 +77,19 @@ def beyond_statistic(candidate) -> float | None:
     return min(values) if values else None
 
 
+def bounce_otherwise_passes(evidence) -> bool:
+    """Whether a bounce Evidence passes every test of its decision row but the floor (the
+    placebo level and the strength bounced light can have, at the defaults): only such a clean
+    case shows how high the floor must be; one the strength refuses is silent at any floor
+    (docs/decisions/0215-interreflection-blind.md)."""
+    from recon.config.run_config import DecisionConfig
+
+    config = DecisionConfig()
+    p_value = evidence.details.get("p_value", 1.0)
+    strength = evidence.details.get("strength", 0.0)
+    return p_value < config.bounce_alpha and 0.0 < strength <= config.bounce_maximum_strength
+
+
 def clean_statistics(
     diagnosis: dict, present: tuple[str, ...] = (), statistic: str = "per_rule"
 ) -> dict[str, float]:
@@ -84,7 +97,8 @@ def clean_statistics(
     are compared with, by threshold name (benchmarks.blind.decide): each probe's, absorption
     refit's and relight probe's reduction, each geometric probe's point reduction on top of its
     strongest confuser (beyond_statistic), the agreement's shared colour spread, the flat
-    field's deviation and the visibility fingerprint's excess over its placebo lights. present: effects the data
+    field's deviation, the visibility fingerprint's excess over its placebo lights and the
+    bounce evidence's excess where it otherwise passes (bounce_otherwise_passes). present: effects the data
     holds although nothing was injected (a
     path tracer's cast shadows): their statistics measure the effect, not the null, and are left
     out (the visibility fingerprint with shadows or interreflection).
@@ -128,6 +142,9 @@ def clean_statistics(
         flat_field = candidate.evidence_of("flat_field")
         if flat_field is not None:
             keep("flat_field", flat_field.statistic)
+        bounce = candidate.evidence_of("bounce")
+        if bounce is not None and bounce_otherwise_passes(bounce):
+            keep("bounce", bounce.statistic)
     fingerprint = (stored.gap or {}).get("visibility_fingerprint") or {}
     excess = fingerprint.get("excess")
     if (

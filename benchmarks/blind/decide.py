@@ -12,6 +12,8 @@ A threshold set maps names to values:
     fingerprint           the visibility fingerprint's excess over its placebo lights that makes it
                           name an effect
     shadow_share          above this share the fingerprint names shadows, below interreflection
+    bounce                the bounce evidence's excess over its placebo suns that names
+                          interreflection
 
 ``code_thresholds()`` is the set the diagnosis uses by default (the ``diagnose.decision``
 section's defaults, resolved per effect); ``diagnose_section(thresholds)`` is the same set as a
@@ -53,13 +55,14 @@ def code_thresholds(config: DecisionConfig | None = None) -> dict[str, float]:
     thresholds["flat_field"] = config.flat_field_allowance
     thresholds["fingerprint"] = config.fingerprint_minimum
     thresholds["shadow_share"] = config.shadow_share
+    thresholds["bounce"] = config.bounce_minimum
     return thresholds
 
 
 def diagnose_section(thresholds: dict[str, float]) -> dict:
     """thresholds as a run config's ``diagnose:`` section (its ``decision`` allowances, as the
     diagnosis reads them): every probe and absorption threshold per effect, the relight,
-    flat-field, fingerprint and shadow-share values."""
+    flat-field, fingerprint, shadow-share and bounce values."""
 
     def per_effect(prefix: str) -> dict[str, float]:
         return {
@@ -79,6 +82,7 @@ def diagnose_section(thresholds: dict[str, float]) -> dict:
             "flat_field_allowance": thresholds["flat_field"],
             "fingerprint_minimum": thresholds["fingerprint"],
             "shadow_share": thresholds["shadow_share"],
+            "bounce_minimum": thresholds["bounce"],
         }
     }
 

@@ -906,11 +906,11 @@ class DecisionConfig:
     )
     bounce_minimum: float = setting(
         0.05,
-        "Floor of the bounce evidence (recon.diagnose.bounce): how far the correlation of the relight residual with the relight sun's one diffuse bounce off the fitted mesh must exceed the placebo suns' 95th percentile (docs/decisions/0210-interreflection-bounce.md).",
+        "Floor of the bounce evidence (recon.diagnose.bounce): how far the correlation of the relight residual with the relight sun's one diffuse bounce off the fitted mesh must exceed the placebo suns' 95th percentile (docs/decisions/0210-interreflection-bounce.md); the blind check's calibration raises it to twice the largest excess another scene's clean case reaches with its bounce evidence otherwise passing (docs/decisions/0215-interreflection-blind.md).",
     )
     bounce_alpha: float = setting(
         0.01,
-        "Level of the bounce evidence's placebo-sun test (the share of placebo suns reaching the relight sun's correlation): conventional, not tuned.",
+        "Level of the bounce evidence's placebo-sun test (the share of placebo suns reaching the relight sun's correlation): conventional, not tuned; at 0.05 with a floor of 0.02 the path-traced torus's response curve gets a spurious interreflection (docs/decisions/0215-interreflection-blind.md).",
     )
     bounce_maximum_strength: float = setting(
         2.5,
@@ -1260,6 +1260,10 @@ class BounceConfig:
         "Interior relight pixels the evidence uses at most, an even stride through them: its cost is pixels x (directions + placebo suns).",
     )
     enabled: bool = setting(True, "Measure the bounce evidence for the interreflection candidate.")
+    penumbra_pixels: float = setting(
+        0.0,
+        "How far, in pixels at the object, the relight sun's shadow edges may lie from where the fitted mesh puts them (a soft sun's penumbra, a misplaced occluder): the direct-light nuisance is also computed with the sun turned this many pixel footprints over the mesh's radius in four directions, each a free nuisance column, so a shadow edge is not read as bounced light. 0 (default): the point sun only; 1 silences the path-traced bob's shadows case (excess 0.025 -> -0.005) but names no further interreflection case (docs/decisions/0215-interreflection-blind.md).",
+    )
 
     def __post_init__(self) -> None:
         for name in (
@@ -1274,6 +1278,7 @@ class BounceConfig:
             self.placebo_separation_degrees, "placebo_separation_degrees", low=0.0, high=180.0
         )
         check_range(self.visibility_floor, "visibility_floor", low=1e-6, high=1.0)
+        check_range(self.penumbra_pixels, "penumbra_pixels", low=0.0)
 
 
 @dataclass

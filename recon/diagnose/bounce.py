@@ -24,7 +24,9 @@ the physics of one bounce predicts from the fitted model alone:
 
 The check, on the relight views' interior pixels (N, luminance), as recon.diagnose.cast_shadow
 does for the shadow: the residual's partial correlation with f_bounce once one gain per view
-on the render and f_direct (with a free coefficient) are projected out; its null: the same
+on the render and f_direct (with a free coefficient; also f_direct with the sun turned by the
+shadow edges' uncertainty, diagnose.bounce.penumbra_pixels, four more free columns, so a soft
+or misplaced shadow edge is not read as bounce) are projected out; its null: the same
 with the relight sun turned to placebo directions (diagnose.bounce.placebo_lights Fibonacci
 directions at least diagnose.bounce.placebo_separation_degrees away; the nuisance stays the
 true sun's). A residual that is brighter or darker in concavities for another reason (an
@@ -304,6 +306,25 @@ def _turned_suns(direction: torch.Tensor, count: int, separation_degrees: float)
     return placebos[(placebos @ direction) < math.cos(math.radians(separation_degrees))]
 
 
+def penumbra_suns(relight: DiagnosisData, sun: torch.Tensor, pixels: float) -> torch.Tensor:
+    """The unit sun direction [3] turned in four directions [4, 3] by the angle pixels pixel
+    footprints at the object (the views' median) subtend over the mesh's radius: how far a
+    shadow edge moves on the object when the sun turns by it ([0, 3] for pixels 0)."""
+    if pixels <= 0:
+        return torch.zeros(0, 3, dtype=torch.float64)
+    verts = relight.mesh.verts.detach().double().cpu()
+    center = (verts.min(0).values + verts.max(0).values) / 2
+    radius = float((verts - center).norm(dim=-1).max())
+    cameras = relight.cameras
+    footprint = (cameras.centers().detach().double().cpu() - center).norm(dim=-1) / (
+        cameras.intrinsics[:, 0, 0].detach().double().cpu()
+    )
+    slope = pixels * float(footprint.median()) / max(radius, 1e-12)
+    axes = _frame(sun)
+    turns = torch.cat([axes.T, -axes.T])  # [4, 3]
+    return torch.nn.functional.normalize(sun[None] + slope * turns, dim=-1)
+
+
 def bounce_features(
     relight: DiagnosisData,
     fitted: Lighting,
@@ -312,9 +333,10 @@ def bounce_features(
     placebo_suns: torch.Tensor,
 ) -> dict[str, torch.Tensor]:
     """The per-pixel terms of the module docstring on the kept relight pixels (keep [B, H, W]
-    bool): f_direct [N], f_bounce [N, 1 + P] (the relight sun's, then one per placebo sun
-    [P, 3]) and the predicted bounce's share of the relight direct light at each pixel
-    (B_R / E_R^vis) [N]."""
+    bool): f_direct [N, 1 + T] (the relight sun's, then one per penumbra turn of it,
+    penumbra_suns), f_bounce [N, 1 + P] (the relight sun's, then one per placebo sun [P, 3])
+    and the predicted bounce's share of the relight direct light at each pixel (B_R / E_R^vis)
+    [N]."""
     options = settings.bounce
     mesh = relight.mesh
     directions = fibonacci_directions(options.directions).double()
@@ -338,12 +360,16 @@ def bounce_features(
     # Every sun's visibility at once: the relight light's, the fitted light's, the placebos'.
     strongest = int(relit.sun_irradiance.argmax())
     suns = torch.cat([relit.sun_directions[strongest][None], placebo_suns])
+    turns = penumbra_suns(relight, relit.sun_directions[strongest], options.penumbra_pixels)
     relit_count, trained_count = len(relit.sun_irradiance), len(trained.sun_irradiance)
     seen = receivers.sun_visible(
-        mesh, torch.cat([relit.sun_directions, trained.sun_directions, suns]), options.cells
+        mesh,
+        torch.cat([relit.sun_directions, trained.sun_directions, suns, turns]),
+        options.cells,
     )
     relit_seen, trained_seen = seen[:relit_count], seen[relit_count : relit_count + trained_count]
-    placebo_seen = seen[relit_count + trained_count :]  # [1 + P, N + F]
+    placebo_seen = seen[relit_count + trained_count : len(seen) - len(turns)]  # [1 + P, N + F]
+    turned_seen = seen[len(seen) - len(turns) :]  # [T, N + F]
 
     # The training light: the albedo with its baked occlusion undone, and its own bounce.
     face_visible, face_model = surface.irradiance(trained, trained_seen[:, count:])
@@ -355,7 +381,13 @@ def bounce_features(
     relit_visible, relit_model = pixels.irradiance(relit, relit_seen[:, :count])
     rendered = (relight.rendered.double() * torch.tensor(LUMINANCE, dtype=torch.float64)).sum(-1)
     fitted_albedo = rendered[keep] / relit_model.clamp_min(1e-12)
-    direct = fitted_albedo * (train_model * relit_visible / train_visible - relit_model)
+    direct = [fitted_albedo * (train_model * relit_visible / train_visible - relit_model)]
+    # The sun turned by the shadow edges' uncertainty: where a soft or misplaced edge falls.
+    for turn, turned in zip(turns, turned_seen, strict=True):
+        visibility = relit_seen[:, :count].clone()
+        visibility[strongest] = turned[:count]
+        visible, model = pixels.irradiance(relit.turned(turn), visibility)
+        direct.append(fitted_albedo * (train_model * visible / train_visible - model))
 
     # The relight sun and its placebos.
     pixels_base, surface_base = relit_seen[:, :count], relit_seen[:, count:]
@@ -377,7 +409,7 @@ def bounce_features(
         with_bounce = (visible + bounce) / (train_visible + train_bounce)
         columns.append(fitted_albedo * train_model * (with_bounce - visible / train_visible))
     return {
-        "direct": direct,
+        "direct": torch.stack(direct, dim=1),
         "bounce": torch.stack(columns, dim=1),
         "share": share,
     }
@@ -419,7 +451,7 @@ def bounce_statistic(
     residual = (relight.residual.double() * weights).sum(-1)[keep]
     rendered = (relight.rendered.double() * weights).sum(-1)[keep]
     one_cell = torch.zeros_like(view)
-    nuisance = features["direct"][:, None]
+    nuisance = features["direct"]
     residual = project_out(residual[:, None], one_cell, view, rendered, nuisance)[:, 0]
     bounce = project_out(features["bounce"], one_cell, view, rendered, nuisance)
     norms = bounce.norm(dim=0).clamp_min(1e-30)

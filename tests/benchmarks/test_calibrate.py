@@ -13,7 +13,7 @@ import yaml
 
 from benchmarks import calibrate
 from recon.config import from_dict
-from recon.config.run_config import RunConfig
+from recon.config.run_config import DecisionConfig, RunConfig
 from recon.diagnose.records import Candidate, Diagnosis, Evidence
 from recon.errors import ReconError
 
@@ -164,3 +164,33 @@ def test_the_beyond_allowance_is_calibrated_on_what_a_probe_keeps_over_its_confu
     # The section a config takes carries the allowance.
     section = calibrate.calibration_record(thresholds, [], {})["diagnose"]["decision"]
     assert section["beyond_confusers_allowance"]["pose_error"] == pytest.approx(0.044)
+
+
+def _bounce(excess: float, p_value: float, strength: float) -> dict:
+    """A diagnosis whose interreflection candidate holds only bounce evidence."""
+    interreflection = Candidate("interreflection")
+    details = {"p_value": p_value, "strength": strength, "correlation": excess + 0.1}
+    interreflection.add(Evidence("bounce", "interreflection", excess, 0.02, False, "", details))
+    return Diagnosis(candidates=[interreflection]).to_json()
+
+
+def test_the_bounce_floor_rises_only_for_clean_cases_the_floor_alone_keeps_silent():
+    # The path-traced bunny's clean case follows the predicted bounce (excess 0.072) with a
+    # strength no bounce can have (4.2): silent at any floor, it does not raise the floor. A
+    # clean case that passes the placebo level and the strength does: twice its excess.
+    floor = DecisionConfig().bounce_minimum
+    refused = _bounce(0.072, 0.006, 4.2)
+    assert calibrate.calibrate_thresholds([refused])["bounce"] == pytest.approx(floor)
+    assert calibrate.calibrate_thresholds([_bounce(0.045, 0.3, 0.5)])["bounce"] == floor
+    passing = _bounce(0.045, 0.006, 0.5)
+    thresholds = calibrate.calibrate_thresholds([refused, passing])
+    assert thresholds["bounce"] == pytest.approx(max(floor, 0.09))
+    # A held-out case at 0.07 is named under the floor, not under the raised threshold.
+    held_out = _bounce(0.07, 0.006, 0.6)
+    assert _named(held_out, calibrate.calibrate_thresholds([refused])) == ["interreflection"]
+    assert _named(held_out, thresholds) == []
+    # Interreflection present in a calibration case: its evidence measures the effect.
+    present = [("interreflection",)]
+    assert calibrate.calibrate_thresholds([passing], present)["bounce"] == floor
+    section = calibrate.calibration_record(thresholds, [], {})["diagnose"]["decision"]
+    assert section["bounce_minimum"] == pytest.approx(0.09)

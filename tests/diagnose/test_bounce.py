@@ -12,6 +12,7 @@ views darker there (an albedo darker in the concavity, no bounce light) and nois
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
@@ -26,6 +27,7 @@ from recon.diagnose.bounce import (
     face_albedo,
     face_normals,
     first_hits,
+    penumbra_suns,
 )
 from recon.diagnose.data import build_diagnosis_data
 from recon.diagnose.decision import decide
@@ -128,36 +130,57 @@ def scene():
     return mesh, cameras, mesh.vertex_colors.mean(dim=-1).double()
 
 
-def _views(scene, bounce: float = 0.0, darker: float = 0.0, brighter: float = 0.0, seed=0):
+def _turned(direction: tuple[float, float, float], degrees: float) -> tuple[float, float, float]:
+    """direction turned by degrees about the vertical axis (y)."""
+    angle = math.radians(degrees)
+    x, y, z = direction
+    return (
+        x * math.cos(angle) + z * math.sin(angle),
+        y,
+        -x * math.sin(angle) + z * math.cos(angle),
+    )
+
+
+def _views(
+    scene,
+    bounce: float = 0.0,
+    darker: float = 0.0,
+    brighter: float = 0.0,
+    seed=0,
+    sun_error_degrees: float = 0.0,
+):
     """Relight views of the world (its direct light with the mesh's visibility, plus bounce x
     its one-bounce light) against the model fitted in that world, under the relight light.
     darker: the world's albedo is (1 - darker x the mesh's occlusion) times the scene's (the fit
     learns it); brighter: the relight views are (1 + brighter x the occlusion) times brighter, a
-    pattern that follows the concavities whatever the sun. Returns (views, training light)."""
+    pattern that follows the concavities whatever the sun; sun_error_degrees: the world's relight
+    sun stands this far from the declared one (its shading and shadow edges move). Returns
+    (views, training light)."""
     mesh, cameras, albedo = scene
     occlusion = vertex_occlusion(mesh.verts, mesh.faces).double()
     albedo = albedo * (1 - darker * occlusion)
     training = _sun_light(TRAINING_SUN, 0.3)
     fitted = _fitted(mesh, albedo, training, bounce != 0)
     relight = _sun_light(RELIGHT_SUN, 0.25)
+    world_light = _sun_light(_turned(RELIGHT_SUN, sun_error_degrees), 0.25)
     views = len(cameras)
     normals = vertex_normals(mesh.verts, mesh.faces).double()
     with torch.no_grad():
         output = Renderer().render(fitted, cameras, relight)
         world = Mesh(mesh.verts, mesh.faces, vertex_colors=albedo.float()[:, None].expand(-1, 3))
-        lit = Renderer().render(world, cameras, relight).color
+        lit = Renderer().render(world, cameras, world_light).color
         keep = output.fragments.tri_id >= 0
         points, _ = view_directions(
             build_diagnosis_data(lit, output.alpha, output, cameras, relight, world)
         )
         visible, total = _irradiance(
-            mesh, points.double()[keep], output.normals.double()[keep], relight
+            mesh, points.double()[keep], output.normals.double()[keep], world_light
         )
         share = torch.zeros(keep.shape, dtype=torch.float64)
         share[keep] = visible / total.clamp_min(1e-12)
         observed = lit * share[..., None].float()
         if bounce:
-            visible, _ = _irradiance(mesh, mesh.verts.double(), normals, relight)
+            visible, _ = _irradiance(mesh, mesh.verts.double(), normals, world_light)
             light = albedo * world_bounce(mesh, albedo * visible)
             observed = observed + bounce * _per_pixel(light, mesh, output, views)
         if brighter:
@@ -266,8 +289,6 @@ def test_a_strength_no_bounce_can_have_is_not_named(scene):
 
 
 def test_the_producer_is_registered_and_reads_the_relight_split_only(scene):
-    from dataclasses import replace
-
     from recon.diagnose.bounce import bounce_producer
     from recon.diagnose.data import FittedModel
     from recon.diagnose.producers import PRODUCERS, EvidenceInputs
@@ -283,3 +304,44 @@ def test_the_producer_is_registered_and_reads_the_relight_split_only(scene):
     assert [(item.candidate, item.kind) for item in evidence] == [("interreflection", "bounce")]
     disabled = replace(SETTINGS, bounce=replace(SETTINGS.bounce, enabled=False))
     assert bounce_producer(inputs, candidates, disabled) == []
+
+
+def test_penumbra_suns_turn_the_sun_by_the_pixel_footprint_over_the_radius(scene):
+    data, _ = _views(scene)
+    sun = torch.nn.functional.normalize(torch.tensor(RELIGHT_SUN, dtype=torch.float64), dim=0)
+    assert penumbra_suns(data, sun, 0.0).shape == (0, 3)
+    one, two = penumbra_suns(data, sun, 1.0), penumbra_suns(data, sun, 2.0)
+    assert one.shape == (4, 3)
+    torch.testing.assert_close(one.norm(dim=-1), torch.ones(4, dtype=torch.float64))
+    verts = data.mesh.verts.double()
+    center = (verts.min(0).values + verts.max(0).values) / 2
+    radius = float((verts - center).norm(dim=-1).max())
+    distance = (data.cameras.centers().double() - center).norm(dim=-1)
+    footprint = float((distance / data.cameras.intrinsics[:, 0, 0].double()).median())
+    angles = torch.rad2deg(torch.arccos((one @ sun).clamp(max=1.0)))
+    expected = math.degrees(math.atan(footprint / radius))
+    torch.testing.assert_close(angles, torch.full((4,), expected, dtype=torch.float64))
+    # Four sides: opposite turns cancel; twice the pixels, about twice the angle.
+    torch.testing.assert_close(torch.nn.functional.normalize(one.sum(0), dim=0), sun)
+    assert 1.9 < float(torch.arccos((two @ sun).clamp(max=1.0))[0] / math.radians(expected)) < 2.1
+
+
+PENUMBRA = replace(SETTINGS, bounce=replace(SETTINGS.bounce, penumbra_pixels=1.0))
+
+
+def test_a_relight_sun_a_few_pixels_off_is_not_bounce_with_the_penumbra_nuisance(scene):
+    # The world's sun stands 4 degrees (about 2 pixel footprints) from the declared one: its
+    # shading and shadow edges move. The point sun's nuisance leaves that to the bounce (it
+    # follows it beyond the placebos); the turned suns' columns take it.
+    data, training = _views(scene, sun_error_degrees=4.0)
+    point_sun = bounce_evidence(data, training, "interreflection", SETTINGS)
+    turned = bounce_evidence(data, training, "interreflection", PENUMBRA)
+    assert point_sun.statistic > 0.0 and point_sun.details["p_value"] < 0.05, point_sun.details
+    assert turned.statistic < 0.0, turned.details
+    candidate = Candidate("interreflection")
+    candidate.add(turned)
+    assert not decide(candidate, PENUMBRA.decision).significant
+    # With the bounce on top, the bounce is still measured through the nuisance.
+    bounced, training = _views(scene, bounce=1.0, sun_error_degrees=4.0)
+    measured = bounce_evidence(bounced, training, "interreflection", PENUMBRA).details
+    assert measured["correlation"] > 0.5, measured

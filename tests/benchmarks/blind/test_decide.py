@@ -58,6 +58,7 @@ def test_thresholds_as_a_diagnose_section():
     assert section["absorption_allowance"]["lens_distortion"] == 0.043
     assert section["relight_allowance"] == 0.03 and section["shadow_share"] == 0.6
     assert set(section["probe_allowance"]) == set(section["absorption_allowance"])
+    assert section["bounce_minimum"] == DecisionConfig().bounce_minimum
 
 
 def test_an_ambiguous_candidate_is_scored_as_naming_the_first():
