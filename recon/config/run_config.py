@@ -927,7 +927,7 @@ class DecisionConfig:
     )
     relight_lobe_minimum: float = setting(
         0.05,
-        "Floor of the relight split's lobe evidence (kind relight_lobe; the lobe's own allowance applies when higher): the relight split's floor, as the cast shadow's. Its 8 views hold half the lobe's pixels; without a highlight its excess reached +0.031 (Mitsuba bunny, exposure) and +0.074 (Mitsuba spot, shadows), with one +0.099 to +0.396 (docs/decisions/0211-shadows-specular-mitsuba.md).",
+        "Floor of the relight split's lobe evidence (kind relight_lobe; the lobe's own allowance applies when higher): the relight split's floor, as the cast shadow's, set before its pixels were weighted (docs/decisions/0211-shadows-specular-mitsuba.md) and kept. Weighted (lobe.relight_spread_bins), its excess without a highlight reached +0.022 on the blind check's own and Mitsuba cases, with one +0.047 to +0.407 (docs/decisions/0216-relight-specular.md).",
     )
 
     def __post_init__(self) -> None:
@@ -1159,8 +1159,12 @@ class LobeConfig:
         "Project out, per view, the render's image Laplacian (a blur's first-order change, which follows the fitted light but not the half-vector) before the lobe is correlated (docs/decisions/0208-response-specular.md).",
     )
     relight: bool = setting(
-        False,
-        "Also test the lobe on the relight split under its known light (evidence 'relight_lobe'): no fitted light's error there (the Mitsuba bunny's highlight reads r = 0.14 against placebo lights at 0.03 there, 0.035 against 0.039 on the training and held-out views). Off: the Mitsuba spot's relight split reads a lobe without any highlight in 2 of 14 cases (+0.074, +0.083), a spurious specular (docs/decisions/0211-shadows-specular-mitsuba.md).",
+        True,
+        "Also test the lobe on the relight split under its known light (evidence 'relight_lobe'): no fitted light's error there (the Mitsuba bunny's highlight reads r = 0.14 against placebo lights at 0.03 there, 0.035 against 0.039 on the training and held-out views). Its pixels are weighted by the residual's spread along the sun's cosine (relight_spread_bins): unweighted, the Mitsuba spot's relight split read a lobe without any highlight (+0.074, +0.083; docs/decisions/0211-shadows-specular-mitsuba.md, 0216-relight-specular.md).",
+    )
+    relight_spread_bins: int = setting(
+        8,
+        "Bins of the relight sun's cosine (equal pixel counts) in each of which the relight residual's robust spread (1.4826 x median absolute value, the nuisances projected out) weights the relight lobe's pixels (1 / spread, for the sun and every placebo light): a fit's residual is larger where the sun lights the surface, so unweighted a lobe under the sun reads more than placebo lights' lobes in the dim part. 1: unweighted (docs/decisions/0216-relight-specular.md).",
     )
 
     def __post_init__(self) -> None:
@@ -1168,7 +1172,13 @@ class LobeConfig:
             raise ConfigFieldError(
                 "exponents", f"expected positive exponents, got {self.exponents}"
             )
-        for name in ("cells_per_axis", "placebo_lights", "minimum_pixels", "maximum_pixels"):
+        for name in (
+            "cells_per_axis",
+            "placebo_lights",
+            "minimum_pixels",
+            "maximum_pixels",
+            "relight_spread_bins",
+        ):
             check_range(getattr(self, name), name, low=1)
         check_range(
             self.placebo_separation_degrees, "placebo_separation_degrees", low=0.0, high=180.0
