@@ -37,11 +37,16 @@ only: silhouette pixels carry the misalignment):
 The decision (recon.diagnose.decision, row 'lobe') names the candidate when the statistic clears
 diagnose.decision.lobe_allowance and the p-value is below diagnose.decision.lobe_alpha.
 
-The same test can run on the relight split under its known light (evidence 'relight_lobe',
-diagnose.lobe.relight, off by default): there the fitted light's own error is absent, which on
-a poor fit (the Mitsuba bunny at 48 px) hides the highlight under the fitted light; but the
-Mitsuba spot's relight split reads a lobe without a highlight in 2 of 14 cases
-(docs/decisions/0211-shadows-specular-mitsuba.md).
+The same test runs on the relight split under its known light (evidence 'relight_lobe',
+diagnose.lobe.relight): there the fitted light's own error is absent, which on a poor fit (the
+Mitsuba bunny at 48 px) hides the highlight under the fitted light. There its pixels are
+weighted (diagnose.lobe.relight_spread_bins): a fit's residual is several times larger where
+the relight sun lights the surface than in the dim part (normal, texture and pose errors
+scale with the light they shade), so unweighted the sun's lobe, lying where the residual is
+large, out-correlates placebo lights' lobes lying where it is small, highlight or not (the
+Mitsuba spot's relight split, docs/decisions/0211-shadows-specular-mitsuba.md). Each pixel is
+weighted by 1 / the residual's robust spread among the pixels of its bin of the sun's cosine,
+for the sun and every placebo light alike (docs/decisions/0216-relight-specular.md).
 """
 
 from __future__ import annotations
@@ -130,9 +135,7 @@ def project_out(
     return out - gains @ torch.linalg.solve(gram + ridge, gains.T @ out)
 
 
-def spread_weights(
-    residual: torch.Tensor, sun_cosine: torch.Tensor, bins: int
-) -> torch.Tensor:
+def spread_weights(residual: torch.Tensor, sun_cosine: torch.Tensor, bins: int) -> torch.Tensor:
     """[N] weights 1 / s of the pixels: s is the robust spread (1.4826 x the median absolute
     value) of residual [N] (the nuisances projected out) among the pixels of the same bin of
     sun_cosine [N], bins of equal pixel count. A residual of a fit under a sun is larger where
