@@ -26,25 +26,29 @@ c sin 2 theta`` (weights |grad alpha|) gives the view's mean width ``a`` and its
   (|(b, c)_reference - (b, c)_render| over its widening, largest over views). The edges are
   anisotropic when the observed median exceeds ``anisotropy_margin`` times the null.
 
-Evidence (kind "edges", decision row "edges", role veto): on defocus_blur, failed when the
-edges are anisotropic ("a motion blur's signature: wider across one direction per view"); on
-motion_blur, failed when they are widened but isotropic ("the same width in every direction:
-a defocus's signature"). Each names the other in details["rules_out"] when it passes, so the
-geometric specificity check no longer lets that one take the candidate's place
-(recon.diagnose.geometric_judgement). It needs a matte with soft edges: data whose alpha is
-binary (a hand-made mask) or missing carry no width, and the evidence is void there.
+Evidence (kind "edges", decision row "edges", role inform) on defocus_blur and motion_blur,
+passed for the one the edges' shape favours (details["favours"]). It settles a tie of the two
+blur probes only (recon.diagnose.geometric_judgement: both clear alone and neither separates
+from the other on top of it): there the one the edges favour is named and the other vetoed; a
+pair the probes separate is left to them. It needs a matte with soft edges: data whose alpha
+is binary (a hand-made mask, or a renderer without antialiasing) or missing carry no width,
+and no evidence is produced.
 """
 
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import torch
 
-from recon.config.run_config import GeometricSpecificityConfig
+from recon.config.run_config import DiagnoseConfig, GeometricSpecificityConfig
 from recon.diagnose.data import DiagnosisData
-from recon.diagnose.records import Evidence
+from recon.diagnose.records import Candidate, Evidence
 from recon.effects.optics import gaussian_blur
+
+if TYPE_CHECKING:  # producers imports this module to register the producer
+    from recon.diagnose.producers import EvidenceInputs
 
 KIND = "edges"
 DEFOCUS = "defocus_blur"
@@ -74,7 +78,9 @@ def edge_profile(alpha: torch.Tensor, gradient_minimum: float) -> torch.Tensor:
             rows.append(torch.full((3,), math.nan, dtype=torch.float64))
             continue
         theta = angle[view][edge]
-        design = torch.stack([torch.ones_like(theta), torch.cos(2 * theta), torch.sin(2 * theta)], -1)
+        design = torch.stack(
+            [torch.ones_like(theta), torch.cos(2 * theta), torch.sin(2 * theta)], -1
+        )
         root = magnitude[view][edge].sqrt()
         solution = torch.linalg.lstsq(design * root[:, None], (width[view][edge] * root)[:, None])
         rows.append(solution.solution[:, 0])
@@ -196,7 +202,9 @@ def edge_evidence(data: DiagnosisData, options: GeometricSpecificityConfig) -> l
     ]
 
 
-def edge_producer(inputs, candidates, settings) -> list[Evidence]:
+def edge_producer(
+    inputs: EvidenceInputs, candidates: list[Candidate], settings: DiagnoseConfig
+) -> list[Evidence]:
     """The edges evidence as a producer (recon.diagnose.producers): measured where both blur
     candidates were probed."""
     names = {candidate.name for candidate in candidates if candidate.evidence_of("probe")}

@@ -47,6 +47,7 @@ def swapped(record: dict) -> dict:
     """The pair record seen from the confuser's side."""
     return {
         **record,
+        "candidate": record["confuser"],
         "confuser": record.get("candidate"),
         "alone": record["confuser_alone"],
         "confuser_alone": record["alone"],
@@ -89,10 +90,10 @@ def tied(record: dict, margin: float) -> bool:
     return both_clear and not separated
 
 
-def _edge_tie(record: dict, margin: float, favoured: str | None) -> bool:
-    """Whether the edges settle this record: it pairs the two blurs, the probes tie, and the
-    edges favour one of the two."""
-    pair = {record.get("candidate"), record["confuser"]}
+def _edge_tie(name: str, record: dict, margin: float, favoured: str | None) -> bool:
+    """Whether the edges settle candidate name's record: it pairs the two blurs, the probes
+    tie, and the edges favour one of the two."""
+    pair = {name, record["confuser"]}
     return favoured in pair and pair == EDGE_PAIR and tied(record, margin)
 
 
@@ -173,7 +174,7 @@ def judge(
             "not speak to it"
         )
         return Evidence(KIND, name, probe_lower_bound, own_allowance, True, reason, details)
-    settled = [record for record in records if _edge_tie(record, margin, edges_favour)]
+    settled = [record for record in records if _edge_tie(name, record, margin, edges_favour)]
     lost_at_edges = [record for record in settled if record["confuser"] == edges_favour]
     if lost_at_edges:
         record = lost_at_edges[0]
@@ -354,7 +355,9 @@ def measured_condition(evidence: list[Evidence]) -> list[Evidence]:
         for record in (check.details["pairs"] if check is not None else [])
         if record["confuser"] in MEASURED_CONFUSERS
         # The edges told this blur from the other: that one explains it no longer.
-        and not (favour == record.get("candidate") and _edge_tie(record, margin, favour))
+        and not (
+            favour == condition.candidate and _edge_tie(condition.candidate, record, margin, favour)
+        )
     ]
     if not records or null is None or not null.counts or not null.passed:
         judged = prediction
