@@ -12,14 +12,16 @@ from types import SimpleNamespace
 
 import torch
 
-from recon.config.run_config import GeometricSpecificityConfig
+from recon.config.run_config import DiagnoseConfig, GeometricSpecificityConfig
 from recon.diagnose.edge_width import (
     DEFOCUS,
     MOTION,
     edge_evidence,
     edge_measurement,
+    edge_producer,
     edge_profile,
 )
+from recon.diagnose.records import Candidate, Evidence
 from recon.effects.optics import gaussian_blur
 
 SIZE = 48
@@ -128,3 +130,28 @@ def test_switched_off_it_measures_nothing():
     observed = blurred(rendered, torch.eye(2)[None] * 0.6)
     options = GeometricSpecificityConfig(edge_widths=False)
     assert edge_evidence(data(observed, rendered), options) == []
+
+
+def probed(name: str, lower_bound: float, conditional_on: str | None = None) -> Candidate:
+    """A candidate whose probe alone has the lower bound given (measured on top of another
+    effect when conditional_on names one, the probe alone kept beside it)."""
+    candidate = Candidate(name)
+    alone = Evidence("probe", name, lower_bound, math.nan, False, "probe", {"reduction": 0.3})
+    if conditional_on is None:
+        candidate.add(alone)
+    else:
+        details = {"conditional_on": conditional_on, "alone": alone.to_json()}
+        candidate.add(Evidence("probe", name, -0.01, math.nan, False, "probe on top", details))
+    return candidate
+
+
+def test_the_producer_measures_only_where_both_blur_probes_could_clear():
+    rendered = ellipse(4, 12, 9)
+    inputs = SimpleNamespace(data=data(blurred(rendered, torch.eye(2)[None] * 0.6), rendered))
+    settings = DiagnoseConfig()
+    # The motion probe measured on top of the defocus: its probe alone counts.
+    both = [probed(DEFOCUS, 0.25), probed(MOTION, 0.23, conditional_on=DEFOCUS)]
+    assert {item.candidate for item in edge_producer(inputs, both, settings)} == {DEFOCUS, MOTION}
+    # A clean fit's blur probes below the floor of every allowance: nothing to tie, no cost.
+    assert edge_producer(inputs, [probed(DEFOCUS, 0.25), probed(MOTION, 0.01)], settings) == []
+    assert edge_producer(inputs, [probed(DEFOCUS, 0.25)], settings) == []
