@@ -1009,9 +1009,28 @@ class GeometricSpecificityConfig:
         0.0,
         "How far the confuser's reduction on top of the candidate (its lower bound) must exceed the candidate's on top of the confuser (its upper bound) to take its place.",
     )
+    edge_widths: bool = setting(
+        True,
+        "Measure the width of the data's silhouette edges by direction (recon.diagnose.edge_width): an isotropic widening is a defocus's, one wider across a direction per view a motion blur's.",
+    )
+    edge_gradient_minimum: float = setting(
+        0.05,
+        "Alpha gradient (per pixel) above which a pixel counts as an edge pixel of the matte.",
+    )
+    edge_soft_minimum: float = setting(
+        0.5,
+        "Share of the fitted render's edge pixels the observed matte must hold soft values at (strictly between 0 and 1) for its edges to have a width: a binary mask has none.",
+    )
+    edge_anisotropy_margin: float = setting(
+        2.0,
+        "How many times the anisotropy an isotropic blur of the run's own silhouettes shows (its null) the data's edges must show to be wider across one direction (the calibration's 'twice').",
+    )
 
     def __post_init__(self) -> None:
         check_range(self.margin, "margin", low=0.0, high=1.0)
+        check_range(self.edge_gradient_minimum, "edge_gradient_minimum", low=0.0, high=1.0)
+        check_range(self.edge_soft_minimum, "edge_soft_minimum", low=0.0, high=1.0)
+        check_range(self.edge_anisotropy_margin, "edge_anisotropy_margin", low=1.0, high=100.0)
 
 
 @dataclass
