@@ -30,6 +30,8 @@ regions' gains are read against the render plus the shared highlight lobe fitted
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import torch
 
 from recon.config.run_config import DiagnoseConfig
@@ -73,11 +75,11 @@ def highlight_free_log_gains(
     return gains.log(), coefficients
 
 
-def with_highlight(data: DiagnosisData, powers: list[int], coefficients: torch.Tensor):
+def with_highlight(
+    data: DiagnosisData, powers: list[int], coefficients: torch.Tensor
+) -> DiagnosisData:
     """data whose renders [B, H, W, 3] carry the shared highlight lobe highlight_free_log_gains
     fitted (coefficients [K, 3]): the model the regions' gains are read against."""
-    from dataclasses import replace
-
     n_dot_h, _ = surface_angles(data)
     coverage = data.rendered_alpha[..., 0].double()
     lobes = torch.stack([n_dot_h.clamp_min(0.0).pow(power) * coverage for power in powers], -1)
@@ -88,7 +90,8 @@ def with_highlight(data: DiagnosisData, powers: list[int], coefficients: torch.T
 def region_log_gains(
     data: DiagnosisData, factors: list[str], tukey: float, iterations: int
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """(log gains [B], weights [cells]) of the 'robust_regions' model in the module docstring:
+    """(log gains [B], weights [cells]) of the 'robust_regions' model in the module docstring
+    (weights NaN on cells without rendered light, which take no part):
     each (view, region) cell's least-squares luminance gain over all its pixels, weighted by its
     rendered energy (the information about it) times Tukey's biweight of its residual in robust
     standard deviations (1.4826 times the cells' median absolute residual)."""
@@ -123,7 +126,7 @@ def region_log_gains(
         residual = target - design @ solution
         scale = 1.4826 * float(residual.abs().median()) + 1e-12
         robust = (1 - (residual / (tukey * scale)) ** 2).clamp_min(0.0) ** 2
-    weights = torch.zeros_like(energy)
+    weights = torch.full_like(energy, float("nan"))
     weights[lit] = robust
     return solution[:views], weights
 
@@ -145,7 +148,7 @@ def gain_evidence(data: DiagnosisData, settings: DiagnoseConfig) -> Evidence:
             lobed, factors, settings.exposure_region_tukey, settings.exposure_gain_iterations
         )
         estimator = "robust_regions"
-        rejected = float((weights == 0).double().mean())
+        rejected = float((weights[~weights.isnan()] == 0).double().mean())
         how = (
             f"from regions ({' x '.join(factors)}) with a mismatch shared by the views, "
             f"{100 * rejected:.0f} % of the (view, region) cells rejected as misfit"
