@@ -1489,6 +1489,18 @@ class DiagnoseConfig:
         True,
         "The relight probe's exponent is fitted beside one blur strength per view (the relight render's Laplacian, a blur's first-order change): a defocus smooths the observed shading ratio, which otherwise reads as a compressive exponent (docs/decisions/0212-response-curve-relight.md).",
     )
+    exposure_gain_estimator: str = setting(
+        "highlight_free",
+        "How the exposure's per-view gains are read (recon.diagnose.camera_gain): 'highlight_free' (least squares over the view's pixels beside a highlight lobe in n.h shared by the views) or 'robust_regions' (one gain per view plus one per region shared by the views, fitted robustly to the regions' gains, so that one view's misfit region does not move its gain; docs/decisions/0219-real-exposure.md).",
+    )
+    exposure_region_factors: list[str] = setting(
+        factory=lambda: ["surface"],
+        doc="The pixel-table factors whose joint cells are the regions of the 'robust_regions' exposure gains (recon.diagnose.pixel_table: surface, n_dot_h, n_dot_v, intensity, image_position, radius, camera_normal).",
+    )
+    exposure_region_tukey: float = setting(
+        4.685,
+        "Tukey biweight tuning constant, in robust standard deviations of the region gains' residuals, of the 'robust_regions' exposure gains: a (view, region) gain this far from the model has no weight.",
+    )
 
     def __post_init__(self) -> None:
         for name in (
@@ -1510,6 +1522,20 @@ class DiagnoseConfig:
         for power in self.exposure_highlight_powers:
             check_range(power, "exposure_highlight_powers", low=1)
         check_range(self.exposure_gain_iterations, "exposure_gain_iterations", low=1)
+        if self.exposure_gain_estimator not in ("highlight_free", "robust_regions"):
+            raise ConfigFieldError(
+                "exposure_gain_estimator",
+                f"expected highlight_free or robust_regions, got {self.exposure_gain_estimator!r}",
+            )
+        region_factors = {"surface", "n_dot_h", "n_dot_v", "intensity", "image_position"}
+        region_factors |= {"radius", "camera_normal"}
+        unknown_factors = sorted(set(self.exposure_region_factors) - region_factors)
+        if unknown_factors:
+            raise ConfigFieldError(
+                "exposure_region_factors",
+                f"unknown factors {unknown_factors}; known: {', '.join(sorted(region_factors))}",
+            )
+        check_range(self.exposure_region_tukey, "exposure_region_tukey", low=1e-3)
         if len(self.relight_grazing_cosines) != 2:
             raise ConfigFieldError(
                 "relight_grazing_cosines",
