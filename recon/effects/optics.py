@@ -308,6 +308,13 @@ class LensDistortion(ModelEffect):
         rows = torch.arange(height, device=like.device, dtype=like.dtype) + 0.5
         x_distorted = (columns[None, None, :] - cx) / fx
         y_distorted = (rows[None, :, None] - cy) / fy
+        scale = self._radial_scale(x_distorted, y_distorted, like)
+        return fx * x_distorted * (scale - 1), fy * y_distorted * (scale - 1)
+
+    def _radial_scale(
+        self, x_distorted: torch.Tensor, y_distorted: torch.Tensor, like: torch.Tensor
+    ) -> torch.Tensor:
+        """The radial scale t of each distorted position (normalised coordinates, broadcast)."""
         k1, k2 = (value.to(like) for value in self.radial_coefficients())
         squared = x_distorted * x_distorted + y_distorted * y_distorted
         quadratic, quartic = k1 * squared, k2 * squared * squared
@@ -318,7 +325,38 @@ class LensDistortion(ModelEffect):
             slope = 1 + scale_squared * (3 * quadratic + 5 * quartic * scale_squared)
             # Past the fold of strong barrel distortion the slope would reach 0.
             scale = (scale - residual / slope.clamp(min=0.1)).clamp(0.1, 10.0)
-        return fx * x_distorted * (scale - 1), fy * y_distorted * (scale - 1)
+        return scale
+
+    def sample_grids(
+        self,
+        cameras: Cameras,
+        height: int,
+        width: int,
+        view: torch.Tensor,
+        row: torch.Tensor,
+        column: torch.Tensor,
+        like: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """forward's sampling positions at chosen pixels only: (grid, base grid) [..., 2] in
+        grid_sample's coordinates, for pixels of batch entry view, at integer row and column
+        (tensors of one shape). Each element is the same arithmetic as in forward's whole
+        grids, so grid_sample at these positions gives forward's values there (the
+        diagnosis' Gauss-Newton probes count a sixth of the pixels)."""
+        intrinsics = cameras.intrinsics.to(device=like.device, dtype=like.dtype)
+        fx, fy, cx, cy = (
+            intrinsics[:, index_row, index_column][view]
+            for index_row, index_column in ((0, 0), (1, 1), (0, 2), (1, 2))
+        )
+        columns = column.to(like.dtype) + 0.5
+        rows = row.to(like.dtype) + 0.5
+        x_distorted = (columns - cx) / fx
+        y_distorted = (rows - cy) / fy
+        scale = self._radial_scale(x_distorted, y_distorted, like)
+        du, dv = fx * x_distorted * (scale - 1), fy * y_distorted * (scale - 1)
+        base_x = 2 * columns / width - 1
+        base_y = 2 * rows / height - 1
+        grid = torch.stack([base_x + 2 * du / width, base_y + 2 * dv / height], dim=-1)
+        return grid, torch.stack([base_x, base_y], dim=-1)
 
     def forward(
         self,
