@@ -32,6 +32,7 @@ it: at zero it is exactly zero, so the effect is bit-exact at zero parameters.
 from __future__ import annotations
 
 import math
+import weakref
 
 import torch
 
@@ -87,33 +88,72 @@ def fft_size(minimum: int) -> int:
         size += 1
 
 
-def gaussian_blur(image: torch.Tensor, covariance: torch.Tensor, max_padding: int) -> torch.Tensor:
+def gaussian_blur(
+    image: torch.Tensor,
+    covariance: torch.Tensor,
+    max_padding: int,
+    spectra: dict | None = None,
+) -> torch.Tensor:
     """image [B, H, W, C] convolved with discrete Gaussians of covariance [1 or B, 2, 2] (px^2).
 
     Computed as image + irfft2(rfft2(padded image) x expm1(-Q)) on the image zero-padded by at
     least blur_padding on every side (the FFT is circular; the padding keeps the wrap-around
     off the image): bit-exact at C = 0, differentiable in C and in the image, O(HW log HW)
     whatever the blur's size.
+
+    spectra: the padded image's rfft2 by padding, kept for a caller that blurs this same image
+    again with other covariances (without gradients: a Gauss-Newton probe's Jacobian).
     """
     batch, height, width, channels = image.shape
     padding = blur_padding(covariance, max_padding)
     padded_height = fft_size(height + 2 * padding)
     padded_width = fft_size(width + 2 * padding)
-    planes = torch.nn.functional.pad(
-        image.permute(0, 3, 1, 2),
-        (padding, padded_width - width - padding, padding, padded_height - height - padding),
-    )
+    key = (padding, padded_height, padded_width)
+    if spectra is not None and key in spectra:
+        image_spectrum = spectra[key]
+    else:
+        planes = torch.nn.functional.pad(
+            image.permute(0, 3, 1, 2),
+            (padding, padded_width - width - padding, padding, padded_height - height - padding),
+        )
+        image_spectrum = torch.fft.rfft2(planes)
+        if spectra is not None:
+            spectra[key] = image_spectrum
     transfer = gaussian_transfer_excess(covariance.to(image), padded_height, padded_width)
-    spectrum = torch.fft.rfft2(planes) * transfer[:, None]
+    spectrum = image_spectrum * transfer[:, None]
     excess = torch.fft.irfft2(spectrum, s=(padded_height, padded_width))
     excess = excess[..., padding : padding + height, padding : padding + width]
     return image + excess.permute(0, 2, 3, 1)
 
 
+# Paddings whose image spectra a blur module keeps for its last input (a few FFT sizes).
+_KEPT_SPECTRA = 4
+
+
 def _blur(
-    color: torch.Tensor, alpha: torch.Tensor, covariance: torch.Tensor, max_padding: int
+    color: torch.Tensor,
+    alpha: torch.Tensor,
+    covariance: torch.Tensor,
+    max_padding: int,
+    keeper: ModelEffect | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    stacked = gaussian_blur(torch.cat([color, alpha], dim=-1), covariance, max_padding)
+    """color [B, H, W, C] and alpha [B, H, W, 1] blurred alike. keeper: the blur module; without
+    gradients it keeps the spectra of the last colour and alpha it blurred (the same tensors,
+    unchanged: identity and version), which a probe's Jacobian blurs again and again with
+    other covariances (the same values as computing them anew)."""
+    spectra = None
+    if keeper is not None and not torch.is_grad_enabled():
+        versions = (color._version, alpha._version)
+        kept = getattr(keeper, "_kept_spectra", None)
+        if kept is None or kept[0]() is not color or kept[1]() is not alpha or kept[2] != versions:
+            kept = (weakref.ref(color), weakref.ref(alpha), versions, {})
+            keeper._kept_spectra = kept
+        spectra = kept[3]
+        if len(spectra) >= _KEPT_SPECTRA:
+            spectra.clear()
+    elif keeper is not None:
+        keeper._kept_spectra = None
+    stacked = gaussian_blur(torch.cat([color, alpha], dim=-1), covariance, max_padding, spectra)
     channels = color.shape[-1]
     return stacked[..., :channels], stacked[..., channels:]
 
@@ -154,7 +194,8 @@ class DefocusBlur(ModelEffect):
         check_image(color, alpha, self.name)
         variance = self.effective_variance().to(color)
         covariance = (variance * torch.eye(2, dtype=color.dtype, device=color.device))[None]
-        return _blur(color, alpha, covariance, math.ceil(_KERNEL_SIGMAS * self.max_sigma_px) + 1)
+        max_padding = math.ceil(_KERNEL_SIGMAS * self.max_sigma_px) + 1
+        return _blur(color, alpha, covariance, max_padding, self)
 
     def parameters_summary(self) -> dict:
         variance = float(self.effective_variance().detach())
@@ -214,7 +255,7 @@ class MotionBlur(ModelEffect):
         batch = check_image(color, alpha, self.name)[0]
         covariance = self.select_views(self.covariances(), view_indices, batch).to(color)
         max_sigma = self.max_length_px / math.sqrt(12.0)
-        return _blur(color, alpha, covariance, math.ceil(_KERNEL_SIGMAS * max_sigma) + 1)
+        return _blur(color, alpha, covariance, math.ceil(_KERNEL_SIGMAS * max_sigma) + 1, self)
 
     def parameters_summary(self) -> dict:
         with torch.no_grad():
