@@ -927,7 +927,7 @@ class DecisionConfig:
     )
     relight_lobe_minimum: float = setting(
         0.05,
-        "Floor of the relight split's lobe evidence (kind relight_lobe; the lobe's own allowance applies when higher): the relight split's floor, as the cast shadow's. Its 8 views hold half the lobe's pixels; without a highlight its excess reached +0.031 (Mitsuba bunny, exposure) and +0.074 (Mitsuba spot, shadows), with one +0.099 to +0.396 (docs/decisions/0211-shadows-specular-mitsuba.md).",
+        "Floor of the relight split's lobe evidence (kind relight_lobe; the lobe's own allowance applies when higher): the relight split's floor, as the cast shadow's, set before its pixels were weighted (docs/decisions/0211-shadows-specular-mitsuba.md) and kept. Weighted (lobe.relight_spread_bins), its excess without a highlight reached +0.022 on the blind check's own and Mitsuba cases, with one +0.047 to +0.407 (docs/decisions/0216-relight-specular.md).",
     )
 
     def __post_init__(self) -> None:
@@ -1009,9 +1009,28 @@ class GeometricSpecificityConfig:
         0.0,
         "How far the confuser's reduction on top of the candidate (its lower bound) must exceed the candidate's on top of the confuser (its upper bound) to take its place.",
     )
+    edge_widths: bool = setting(
+        True,
+        "Measure the width of the data's silhouette edges by direction (recon.diagnose.edge_width): an isotropic widening is a defocus's, one wider across a direction per view a motion blur's.",
+    )
+    edge_gradient_minimum: float = setting(
+        0.05,
+        "Alpha gradient (per pixel) above which a pixel counts as an edge pixel of the matte.",
+    )
+    edge_soft_minimum: float = setting(
+        0.5,
+        "Share of the fitted render's edge pixels the observed matte must hold soft values at (strictly between 0 and 1) for its edges to have a width: a binary mask has none.",
+    )
+    edge_anisotropy_margin: float = setting(
+        2.0,
+        "How many times the anisotropy an isotropic blur of the run's own silhouettes shows (its null) the data's edges must show to be wider across one direction (the calibration's 'twice').",
+    )
 
     def __post_init__(self) -> None:
         check_range(self.margin, "margin", low=0.0, high=1.0)
+        check_range(self.edge_gradient_minimum, "edge_gradient_minimum", low=0.0, high=1.0)
+        check_range(self.edge_soft_minimum, "edge_soft_minimum", low=0.0, high=1.0)
+        check_range(self.edge_anisotropy_margin, "edge_anisotropy_margin", low=1.0, high=100.0)
 
 
 @dataclass
@@ -1159,8 +1178,12 @@ class LobeConfig:
         "Project out, per view, the render's image Laplacian (a blur's first-order change, which follows the fitted light but not the half-vector) before the lobe is correlated (docs/decisions/0208-response-specular.md).",
     )
     relight: bool = setting(
-        False,
-        "Also test the lobe on the relight split under its known light (evidence 'relight_lobe'): no fitted light's error there (the Mitsuba bunny's highlight reads r = 0.14 against placebo lights at 0.03 there, 0.035 against 0.039 on the training and held-out views). Off: the Mitsuba spot's relight split reads a lobe without any highlight in 2 of 14 cases (+0.074, +0.083), a spurious specular (docs/decisions/0211-shadows-specular-mitsuba.md).",
+        True,
+        "Also test the lobe on the relight split under its known light (evidence 'relight_lobe'): no fitted light's error there (the Mitsuba bunny's highlight reads r = 0.14 against placebo lights at 0.03 there, 0.035 against 0.039 on the training and held-out views). Its pixels are weighted by the residual's spread along the sun's cosine (relight_spread_bins): unweighted, the Mitsuba spot's relight split read a lobe without any highlight (+0.074, +0.083; docs/decisions/0211-shadows-specular-mitsuba.md, 0216-relight-specular.md).",
+    )
+    relight_spread_bins: int = setting(
+        8,
+        "Bins of the relight sun's cosine (equal pixel counts) in each of which the relight residual's robust spread (1.4826 x median absolute value, the nuisances projected out) weights the relight lobe's pixels (1 / spread, for the sun and every placebo light): a fit's residual is larger where the sun lights the surface, so unweighted a lobe under the sun reads more than placebo lights' lobes in the dim part. 1: unweighted (docs/decisions/0216-relight-specular.md).",
     )
 
     def __post_init__(self) -> None:
@@ -1168,7 +1191,13 @@ class LobeConfig:
             raise ConfigFieldError(
                 "exponents", f"expected positive exponents, got {self.exponents}"
             )
-        for name in ("cells_per_axis", "placebo_lights", "minimum_pixels", "maximum_pixels"):
+        for name in (
+            "cells_per_axis",
+            "placebo_lights",
+            "minimum_pixels",
+            "maximum_pixels",
+            "relight_spread_bins",
+        ):
             check_range(getattr(self, name), name, low=1)
         check_range(
             self.placebo_separation_degrees, "placebo_separation_degrees", low=0.0, high=180.0
@@ -1460,6 +1489,18 @@ class DiagnoseConfig:
         True,
         "The relight probe's exponent is fitted beside one blur strength per view (the relight render's Laplacian, a blur's first-order change): a defocus smooths the observed shading ratio, which otherwise reads as a compressive exponent (docs/decisions/0212-response-curve-relight.md).",
     )
+    exposure_gain_estimator: str = setting(
+        "highlight_free",
+        "How the exposure's per-view gains are read (recon.diagnose.camera_gain): 'highlight_free' (least squares over the view's pixels beside a highlight lobe in n.h shared by the views) or 'robust_regions' (one gain per view plus one per region shared by the views, fitted robustly to the regions' gains, so that one view's misfit region does not move its gain; docs/decisions/0219-real-exposure.md).",
+    )
+    exposure_region_factors: list[str] = setting(
+        factory=lambda: ["surface"],
+        doc="The pixel-table factors whose joint cells are the regions of the 'robust_regions' exposure gains (recon.diagnose.pixel_table: surface, n_dot_h, n_dot_v, intensity, image_position, radius, camera_normal).",
+    )
+    exposure_region_tukey: float = setting(
+        4.685,
+        "Tukey biweight tuning constant, in robust standard deviations of the region gains' residuals, of the 'robust_regions' exposure gains: a (view, region) gain this far from the model has no weight.",
+    )
 
     def __post_init__(self) -> None:
         for name in (
@@ -1481,6 +1522,20 @@ class DiagnoseConfig:
         for power in self.exposure_highlight_powers:
             check_range(power, "exposure_highlight_powers", low=1)
         check_range(self.exposure_gain_iterations, "exposure_gain_iterations", low=1)
+        if self.exposure_gain_estimator not in ("highlight_free", "robust_regions"):
+            raise ConfigFieldError(
+                "exposure_gain_estimator",
+                f"expected highlight_free or robust_regions, got {self.exposure_gain_estimator!r}",
+            )
+        region_factors = {"surface", "n_dot_h", "n_dot_v", "intensity", "image_position"}
+        region_factors |= {"radius", "camera_normal"}
+        unknown_factors = sorted(set(self.exposure_region_factors) - region_factors)
+        if unknown_factors:
+            raise ConfigFieldError(
+                "exposure_region_factors",
+                f"unknown factors {unknown_factors}; known: {', '.join(sorted(region_factors))}",
+            )
+        check_range(self.exposure_region_tukey, "exposure_region_tukey", low=1e-3)
         if len(self.relight_grazing_cosines) != 2:
             raise ConfigFieldError(
                 "relight_grazing_cosines",

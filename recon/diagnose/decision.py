@@ -66,6 +66,10 @@ metadata      veto          the capture's own record (EXIF exposure) disagrees w
 gain          inform        the exposure's per-view gains read apart from a highlight lobe
                             (recon.diagnose.camera_gain): the parameters it reports, before
                             the probe's
+edges         inform        the data's silhouette edges widened as wide in every direction
+                            (defocus) or wider across one direction per view (motion blur)
+                            (recon.diagnose.edge_width): settles a tie of the two blurs'
+                            probes in the geometric specificity check
 ============  ============  =================================================================
 
 Evidence of a kind without a row is recorded and informs nothing.
@@ -99,6 +103,7 @@ from recon.diagnose.geometric_judgement import (
     beyond_confusers,
     measured_condition,
     rejudge,
+    with_edges_favour,
 )
 from recon.diagnose.identifiability import judge_expected_share
 from recon.diagnose.records import Candidate, Diagnosis, Evidence
@@ -365,6 +370,7 @@ DECISION_TABLE: tuple[Rule, ...] = (
     Rule("identifiability", "qualify", revise=_rejudge_expected_share),
     Rule("metadata", "veto"),
     Rule("gain", "inform"),
+    Rule("edges", "inform"),
 )
 RULES: dict[str, Rule] = {rule.kind: rule for rule in DECISION_TABLE}
 # Whose parameters a candidate that nothing decided reports: the relight split's estimate when
@@ -422,6 +428,7 @@ def _first_cleared(candidate: Candidate, skip: tuple[str, ...] = ()) -> Evidence
 
 def decide(candidate: Candidate, config: DecisionConfig) -> Candidate:
     """Decide one candidate in place from its evidence and the config; returns it."""
+    candidate.evidence = with_edges_favour(candidate.evidence)
     candidate.evidence = [rethreshold(item, config) for item in candidate.evidence]
     allowance = beyond_threshold(candidate.name, config)
     candidate.evidence = beyond_confusers(

@@ -33,6 +33,10 @@ from recon.diagnose.records import Evidence
 
 KIND = "specificity"
 BEYOND = "beyond_confusers"
+# The data's edge widths by direction (recon.diagnose.edge_width) break a tie between the two
+# blurs: details["edges_favour"] of a specificity check names the one they favour.
+EDGES = "edges"
+EDGE_PAIR = frozenset({"defocus_blur", "motion_blur"})
 
 
 def _excess(entry: dict, allowance: float) -> float:
@@ -43,6 +47,7 @@ def swapped(record: dict) -> dict:
     """The pair record seen from the confuser's side."""
     return {
         **record,
+        "candidate": record["confuser"],
         "confuser": record.get("candidate"),
         "alone": record["confuser_alone"],
         "confuser_alone": record["alone"],
@@ -67,6 +72,29 @@ def redundant(record: dict, margin: float) -> bool:
         and _excess(record["confuser_on_top"], record["confuser_allowance"]) <= 0
     )
     return confuser_excess > 0 and own_excess > 0 and neither_adds and confuser_excess > own_excess
+
+
+def tied(record: dict, margin: float) -> bool:
+    """Whether the probes see both and cannot separate them: each clears its allowance alone,
+    and neither's reduction on top of the other exceeds the other's on top of it (lower bound
+    above upper bound + margin)."""
+    both_clear = (
+        record["alone"]["interval"][0] > record["allowance"]
+        and record["confuser_alone"]["interval"][0] > record["confuser_allowance"]
+    )
+    on_top, confuser_on_top = record["on_top_of_confuser"], record["confuser_on_top"]
+    separated = (
+        on_top["interval"][0] > confuser_on_top["interval"][1] + margin
+        or confuser_on_top["interval"][0] > on_top["interval"][1] + margin
+    )
+    return both_clear and not separated
+
+
+def _edge_tie(name: str, record: dict, margin: float, favoured: str | None) -> bool:
+    """Whether the edges settle candidate name's record: it pairs the two blurs, the probes
+    tie, and the edges favour one of the two."""
+    pair = {name, record["confuser"]}
+    return favoured in pair and pair == EDGE_PAIR and tied(record, margin)
 
 
 def dominated(record: dict, margin: float) -> bool:
@@ -115,11 +143,14 @@ def judge(
     margin: float,
     probe_lower_bound: float | None = None,
     allowance: Callable[[str], float] | None = None,
+    edges_favour: str | None = None,
 ) -> Evidence:
     """The specificity Evidence of one geometric candidate from its pair records (pair_record
     in recon.diagnose.geometric_specificity). allowance: each effect's probe allowance, to
     judge with instead of the records' own; probe_lower_bound: the candidate's probe lower
-    bound (the check passes, not judged, when it does not clear the allowance)."""
+    bound (the check passes, not judged, when it does not clear the allowance); edges_favour:
+    the blur the data's edge widths favour (recon.diagnose.edge_width), which settles a tie
+    between the two blurs: the other one loses it."""
     if allowance is not None:
         records = [
             {
@@ -132,6 +163,8 @@ def judge(
     details: dict = {"pairs": records, "margin": margin}
     if probe_lower_bound is not None:
         details["probe_lower_bound"] = probe_lower_bound
+    if edges_favour is not None:
+        details["edges_favour"] = edges_favour
     own_allowance = records[0]["allowance"] if records else float("nan")
     if probe_lower_bound is not None and not probe_lower_bound > own_allowance:
         details["not_judged"] = True
@@ -141,11 +174,35 @@ def judge(
             "not speak to it"
         )
         return Evidence(KIND, name, probe_lower_bound, own_allowance, True, reason, details)
+    settled = [record for record in records if _edge_tie(name, record, margin, edges_favour)]
+    lost_at_edges = [record for record in settled if record["confuser"] == edges_favour]
+    if lost_at_edges:
+        record = lost_at_edges[0]
+        confuser = record["confuser"]
+        details["alternative"] = confuser
+        reason = (
+            f"the probes cannot separate {name} and {confuser} (on top of each other they "
+            f"remove {_percent(record['on_top_of_confuser'])} and "
+            f"{_percent(record['confuser_on_top'])}), and the data's edges are {confuser}'s: "
+            f"{'wider across one direction per view' if confuser == 'motion_blur' else 'as wide in every direction'}"
+        )
+        statistic = record["on_top_of_confuser"]["interval"][0]
+        return Evidence(KIND, name, statistic, record["allowance"], False, reason, details)
+    # A tie the edges settle in the candidate's favour takes nothing from it.
+    records = [record for record in records if record not in settled]
+    if not records:
+        record = settled[0]
+        reason = (
+            f"{name} is specific: the probes cannot separate it from {record['confuser']}, and "
+            f"the data's edges are {name}'s"
+        )
+        statistic = record["on_top_of_confuser"]["interval"][0]
+        return Evidence(KIND, name, statistic, record["allowance"], True, reason, details)
     losing = [record for record in records if dominated(record, margin)]
-    tied = [record for record in records if record not in losing and redundant(record, margin)]
-    if not losing and tied:
+    ties = [record for record in records if record not in losing and redundant(record, margin)]
+    if not losing and ties:
         stronger = max(
-            tied, key=lambda record: _excess(record["confuser_alone"], record["confuser_allowance"])
+            ties, key=lambda record: _excess(record["confuser_alone"], record["confuser_allowance"])
         )
         confuser = stronger["confuser"]
         details["alternative"] = confuser
@@ -192,6 +249,7 @@ def rejudge(evidence: Evidence, allowance: Callable[[str], float]) -> Evidence:
         float(evidence.details.get("margin", 0.0)),
         evidence.details.get("probe_lower_bound"),
         allowance,
+        evidence.details.get("edges_favour"),
     )
     return Evidence(
         judged.kind,
@@ -242,7 +300,14 @@ def beyond_confusers(
         check.void,
     )
     if passed and check.details.get("not_judged"):
-        judged = judge(name, records, float(check.details.get("margin", 0.0)), None, allowance)
+        judged = judge(
+            name,
+            records,
+            float(check.details.get("margin", 0.0)),
+            None,
+            allowance,
+            check.details.get("edges_favour"),
+        )
         judged = replace(judged, void=check.void)
         judged.details["probe_lower_bound"] = check.details.get("probe_lower_bound")
         kept = [judged if item is check else item for item in kept]
@@ -283,10 +348,16 @@ def measured_condition(evidence: list[Evidence]) -> list[Evidence]:
         (item for item in evidence if item.kind == KIND and item.details.get("pairs")), None
     )
     null = next((item for item in evidence if item.kind == "null"), None)
+    favour = check.details.get("edges_favour") if check is not None else None
+    margin = float(check.details.get("margin", 0.0)) if check is not None else 0.0
     records = [
         record
         for record in (check.details["pairs"] if check is not None else [])
         if record["confuser"] in MEASURED_CONFUSERS
+        # The edges told this blur from the other: that one explains it no longer.
+        and not (
+            favour == condition.candidate and _edge_tie(condition.candidate, record, margin, favour)
+        )
     ]
     if not records or null is None or not null.counts or not null.passed:
         judged = prediction
@@ -334,3 +405,20 @@ def _judge_measured(prediction: Evidence, records: list[dict], placebo: float) -
     return Evidence(
         prediction.kind, name, kept[worst]["interval"][0], placebo, False, reason, details
     )
+
+
+def with_edges_favour(evidence: list[Evidence]) -> list[Evidence]:
+    """One candidate's evidence with its geometric specificity check told which blur the data's
+    edge widths favour (details["edges_favour"], from its "edges" Evidence; removed where it
+    has none), so the check is judged with it at every decision."""
+    edges = next((item for item in evidence if item.kind == EDGES and item.counts), None)
+    favour = edges.details.get("favours") if edges is not None else None
+    updated = []
+    for item in evidence:
+        if item.kind == KIND and item.details.get("pairs"):
+            details = {key: value for key, value in item.details.items() if key != "edges_favour"}
+            if favour is not None:
+                details["edges_favour"] = favour
+            item = replace(item, details=details)
+        updated.append(item)
+    return updated

@@ -37,11 +37,16 @@ only: silhouette pixels carry the misalignment):
 The decision (recon.diagnose.decision, row 'lobe') names the candidate when the statistic clears
 diagnose.decision.lobe_allowance and the p-value is below diagnose.decision.lobe_alpha.
 
-The same test can run on the relight split under its known light (evidence 'relight_lobe',
-diagnose.lobe.relight, off by default): there the fitted light's own error is absent, which on
-a poor fit (the Mitsuba bunny at 48 px) hides the highlight under the fitted light; but the
-Mitsuba spot's relight split reads a lobe without a highlight in 2 of 14 cases
-(docs/decisions/0211-shadows-specular-mitsuba.md).
+The same test runs on the relight split under its known light (evidence 'relight_lobe',
+diagnose.lobe.relight): there the fitted light's own error is absent, which on a poor fit (the
+Mitsuba bunny at 48 px) hides the highlight under the fitted light. There its pixels are
+weighted (diagnose.lobe.relight_spread_bins): a fit's residual is several times larger where
+the relight sun lights the surface than in the dim part (normal, texture and pose errors
+scale with the light they shade), so unweighted the sun's lobe, lying where the residual is
+large, out-correlates placebo lights' lobes lying where it is small, highlight or not (the
+Mitsuba spot's relight split, docs/decisions/0211-shadows-specular-mitsuba.md). Each pixel is
+weighted by 1 / the residual's robust spread among the pixels of its bin of the sun's cosine,
+for the sun and every placebo light alike (docs/decisions/0216-relight-specular.md).
 """
 
 from __future__ import annotations
@@ -96,20 +101,27 @@ def project_out(
     view: torch.Tensor,
     rendered: torch.Tensor,
     extra: torch.Tensor | None = None,
+    weights: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """values [N, K] with the nuisance space (an offset per cell, a gain on rendered [N] per
     view, and the columns of extra [N, E] if given) projected out exactly (Frisch-Waugh: cell
     means out, then the other columns with their cell means out by least squares); returns
-    [N, K]."""
+    [N, K]. weights [N] (optional): weighted least squares, every row (values and nuisances)
+    scaled by its weight first; the result is the weighted residual (rows scaled)."""
     cells = int(cell.max()) + 1 if cell.numel() else 0
     views = int(view.max()) + 1 if view.numel() else 0
-    count = torch.zeros(cells, dtype=values.dtype).index_add_(0, cell, torch.ones_like(rendered))
+    if weights is None:
+        weights = torch.ones_like(rendered, dtype=values.dtype)
+    weights = weights.to(values.dtype)
+    # The weighted cell indicators' squared norms: a cell's offset column is its rows' weights.
+    count = torch.zeros(cells, dtype=values.dtype).index_add_(0, cell, weights * weights)
 
     def without_cell_means(columns: torch.Tensor) -> torch.Tensor:
+        columns = columns * weights[:, None]
         sums = torch.zeros(cells, columns.shape[1], dtype=columns.dtype).index_add_(
-            0, cell, columns
+            0, cell, columns * weights[:, None]
         )
-        return columns - (sums / count.clamp_min(1)[:, None])[cell]
+        return columns - weights[:, None] * (sums / count.clamp_min(1e-30)[:, None])[cell]
 
     gains = torch.zeros(values.shape[0], views, dtype=values.dtype)
     gains[torch.arange(values.shape[0]), view] = rendered.to(values.dtype)
@@ -121,6 +133,28 @@ def project_out(
     size = gram.shape[0]
     ridge = 1e-9 * gram.diagonal().mean().clamp_min(1e-30) * torch.eye(size, dtype=gram.dtype)
     return out - gains @ torch.linalg.solve(gram + ridge, gains.T @ out)
+
+
+def spread_weights(residual: torch.Tensor, sun_cosine: torch.Tensor, bins: int) -> torch.Tensor:
+    """[N] weights 1 / s of the pixels: s is the robust spread (1.4826 x the median absolute
+    value) of residual [N] (the nuisances projected out) among the pixels of the same bin of
+    sun_cosine [N], bins of equal pixel count. A residual of a fit under a sun is larger where
+    the sun lights the surface (normal, texture and pose errors scale with the light they
+    shade): unweighted, a lobe under that sun lies where the residual is large and reads a
+    larger correlation than placebo lights' lobes in the dim part, highlight or not. The
+    median, not the RMS: a highlight is sparse and must not set its own weight. bins 1: one
+    spread, every weight equal (the unweighted statistic)."""
+    if bins <= 1 or residual.numel() < bins:
+        return torch.ones_like(residual)
+    edges = torch.quantile(sun_cosine, torch.linspace(0, 1, bins + 1, dtype=sun_cosine.dtype))
+    index = torch.bucketize(sun_cosine, edges[1:-1].contiguous())
+    spread = torch.ones(bins, dtype=residual.dtype)
+    for item in range(bins):
+        members = residual[index == item]
+        if members.numel():
+            spread[item] = 1.4826 * members.abs().median()
+    floor = 1e-3 * float(1.4826 * residual.abs().median()) + 1e-30
+    return 1.0 / spread.clamp_min(floor)[index]
 
 
 def lobe_features(
@@ -203,13 +237,17 @@ def _best_correlation(residual: torch.Tensor, features: torch.Tensor) -> tuple[f
 
 
 def lobe_statistic(
-    parts: list[DiagnosisData], settings: DiagnoseConfig
+    parts: list[DiagnosisData], settings: DiagnoseConfig, spread_bins: int = 1
 ) -> dict[str, float | int | list[float]] | None:
     """The lobe statistic of views (parts: e.g. the training and the held-out views, each with
     the fitted light), its placebo-light null and the recovered lobe, or None when there is no
     light direction or too few pixels. Keys: correlation, p_value, exponent, strength
     (coefficient of the unit lobe in luminance over the light's irradiance), placebo_quantile
-    (the placebo lights' 95th percentile), pixels, views, cells."""
+    (the placebo lights' 95th percentile), pixels, views, cells, spread_bins.
+
+    spread_bins > 1: weighted least squares, each pixel weighted by 1 / the residual's robust
+    spread among the pixels of its bin of the light's cosine (spread_weights), for the light and
+    every placebo light alike; 1: unweighted."""
     lobe = settings.lobe
     direction, irradiance = dominant_light(parts[0].lighting)
     direction = direction.detach().double().cpu()
@@ -252,7 +290,12 @@ def lobe_statistic(
     separation = math.cos(math.radians(lobe.placebo_separation_degrees))
     placebos = placebos[(placebos @ direction) < separation]
     directions = torch.cat([direction[None], placebos])
-    residual_p = project_out(residual[:, None], cell, view, rendered, extra)[:, 0]
+    weights = None
+    if spread_bins > 1:
+        unweighted = project_out(residual[:, None], cell, view, rendered, extra)[:, 0]
+        sun_cosine = (normals * light_rows(direction)).sum(-1)
+        weights = spread_weights(unweighted, sun_cosine, spread_bins)
+    residual_p = project_out(residual[:, None], cell, view, rendered, extra, weights)[:, 0]
     scores = []
     # Projection is linear: the lights' lobes are projected in chunks (memory).
     for chunk in directions.split(LIGHTS_PER_CHUNK):
@@ -260,7 +303,7 @@ def lobe_statistic(
             [lobe_features(normals, to_camera, light_rows(item), exponents) for item in chunk],
             dim=1,
         )
-        projected = project_out(features, cell, view, rendered, extra)
+        projected = project_out(features, cell, view, rendered, extra, weights)
         for index in range(chunk.shape[0]):
             block = projected[:, index * len(exponents) : (index + 1) * len(exponents)]
             scores.append(_best_correlation(residual_p, block))
@@ -278,6 +321,7 @@ def lobe_statistic(
         "pixels": int(view.numel()),
         "views": int(sum(part.view_count for part in parts)),
         "cells": int(cell.max()) + 1,
+        "spread_bins": spread_bins,
     }
 
 
@@ -289,7 +333,8 @@ def lobe_evidence(
     them); None when it cannot be measured (no light direction, too few pixels). kind: 'lobe'
     (the training and held-out views under the fitted light) or 'relight_lobe' (the relight
     split under its own, known light)."""
-    measured = lobe_statistic(parts, settings)
+    bins = settings.lobe.relight_spread_bins if kind == RELIGHT_KIND else 1
+    measured = lobe_statistic(parts, settings, bins)
     if measured is None:
         return None
     decision = settings.decision
@@ -301,8 +346,13 @@ def lobe_evidence(
         f"{name}: the residual follows a highlight's lobe under {light} from view to "
         f"view (exponent {measured['exponent']:g}, r = {measured['correlation']:.3f} over "
         f"{measured['views']} views, p = {measured['p_value']:.2g} against "
-        f"{measured['placebo_lights']} placebo lights); its excess over the placebo lights' "
-        "95th percentile"
+        f"{measured['placebo_lights']} placebo lights"
+        + (
+            f", pixels weighted by the residual's spread in {bins} bins of the sun's cosine"
+            if bins > 1
+            else ""
+        )
+        + "); its excess over the placebo lights' 95th percentile"
     )
     parameters = {"strength": measured["strength"], "exponent": measured["exponent"]}
     return placebo_excess_evidence(

@@ -67,6 +67,7 @@ def _register_checks() -> None:
     from recon.diagnose.bounce import bounce_producer
     from recon.diagnose.cast_shadow import cast_shadow_producer
     from recon.diagnose.checks import CHECK_PRODUCERS
+    from recon.diagnose.edge_width import edge_producer
     from recon.diagnose.geometric_checks import GEOMETRIC_PRODUCERS
     from recon.diagnose.lobe import lobe_producer
 
@@ -75,6 +76,9 @@ def _register_checks() -> None:
     PRODUCERS.append(cast_shadow_producer)
     PRODUCERS.append(bounce_producer)
     PRODUCERS.extend(CHECK_PRODUCERS)
+    # The edges before the geometric checks: a blur they rule out is vetoed, and the probes
+    # measured on top of it are restored alone (geometric_checks.restore_unconditioned).
+    PRODUCERS.append(edge_producer)
     PRODUCERS.extend(GEOMETRIC_PRODUCERS)
 
 

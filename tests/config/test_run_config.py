@@ -43,3 +43,21 @@ def test_the_checks_sections_round_trip_through_the_resolved_config():
 def test_out_of_range_check_settings_name_their_key(section, message):
     with pytest.raises(ConfigError, match=message):
         from_dict({"diagnose": section}, RunConfig)
+
+
+@pytest.mark.parametrize(
+    ("section", "message"),
+    [
+        (
+            {"exposure_gain_estimator": "median"},
+            "diagnose.exposure_gain_estimator.*highlight_free or robust_regions.*'median'",
+        ),
+        ({"exposure_region_factors": ["texel"]}, "diagnose.exposure_region_factors.*texel"),
+        ({"exposure_region_tukey": 0.0}, "diagnose.exposure_region_tukey"),
+    ],
+)
+def test_bad_exposure_gain_settings_name_their_key(section, message):
+    with pytest.raises(ConfigError, match=message):
+        from_dict({"diagnose": section}, RunConfig)
+    # The default estimator is the one the blind check was scored with (decision 0219).
+    assert DiagnoseConfig().exposure_gain_estimator == "highlight_free"

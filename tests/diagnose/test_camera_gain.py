@@ -103,3 +103,58 @@ def test_the_packed_fit_equals_the_whole_image_fit():
     assert float(coefficients.abs().max()) > 1e-3  # a highlight to fit
     assert torch.allclose(log_gains, plain_gains, rtol=0, atol=1e-12)
     assert torch.allclose(coefficients, plain_coefficients, rtol=0, atol=1e-12)
+
+
+def _with_misfit_region(data, view: int, factor: float):
+    """data with one view's observed pixels brighter by factor in the upper-left quadrant of its
+    object (a region the fit got wrong in that view alone: a highlight no other view shows)."""
+    from dataclasses import replace
+
+    inside = data.rendered_alpha[view, ..., 0] > 0.5
+    rows, columns = inside.nonzero(as_tuple=True)
+    quadrant = torch.zeros_like(inside)
+    upper = rows < rows.float().median()
+    left = columns < columns.float().median()
+    quadrant[rows[upper & left], columns[upper & left]] = True
+    observed = data.observed.clone()
+    observed[view][quadrant] *= factor
+    return replace(data, observed=observed)
+
+
+def test_one_views_misfit_region_does_not_move_its_robust_gain():
+    """Built to fool the estimator: one view's quadrant of the object 60 % brighter than the
+    model (and than any other view shows there). Least squares moves that view's gain by
+    about the quadrant's share; the regions' robust fit rejects the quadrant's cells."""
+    from dataclasses import replace as replace_settings
+
+    data, gains = glossy_torus_views(views=8, size=32, specular=0.0, exposure_sigma=0.3)
+    fooled = _with_misfit_region(data, view=3, factor=1.6)
+    plain, _ = highlight_free_log_gains(
+        fooled, SETTINGS.exposure_highlight_powers, SETTINGS.exposure_gain_iterations
+    )
+    plain_error = plain - plain.mean() - (gains.double().log() - gains.double().log().mean())
+    assert abs(float(plain_error[3].exp()) - 1) > 0.08, plain_error
+    robust = replace_settings(SETTINGS, exposure_gain_estimator="robust_regions")
+    evidence = gain_evidence(fooled, robust)
+    ratios = torch.tensor(evidence.details["parameters"]["ratios"], dtype=torch.float64)
+    median, largest = ratio_errors(ratios.log(), gains)
+    assert largest < 0.02, (median, largest)
+    assert evidence.details["parameters"]["estimator"] == "robust_regions"
+    assert 0 < evidence.details["rejected_cells"] < 0.2
+    assert "regions" in evidence.reason
+
+
+def test_robust_regions_recover_an_exposure_under_a_shared_highlight():
+    """A highlight every view shows is read against the shared lobe, and what the lobe leaves
+    of it is a region's mismatch that every view shares, not a view's gain."""
+    from dataclasses import replace as replace_settings
+
+    data, gains = glossy_torus_views(
+        views=8, size=32, specular=1.0, shininess=20.0, exposure_sigma=0.3
+    )
+    robust = replace_settings(SETTINGS, exposure_gain_estimator="robust_regions")
+    ratios = torch.tensor(
+        gain_evidence(data, robust).details["parameters"]["ratios"], dtype=torch.float64
+    )
+    median, largest = ratio_errors(ratios.log(), gains)
+    assert median < 0.01 and largest < 0.02, (median, largest)

@@ -17,7 +17,13 @@ from diagnose_scenes import glossy_torus_views
 
 from recon.config.run_config import DiagnoseConfig, LobeConfig
 from recon.diagnose.decision import decide
-from recon.diagnose.lobe import lobe_evidence, lobe_statistic, project_out
+from recon.diagnose.lobe import (
+    RELIGHT_KIND,
+    lobe_evidence,
+    lobe_statistic,
+    project_out,
+    spread_weights,
+)
 from recon.diagnose.records import Candidate
 
 SETTINGS = DiagnoseConfig(lobe=LobeConfig(placebo_lights=120))
@@ -203,10 +209,13 @@ def test_a_highlight_under_the_relight_splits_known_light_is_named_from_it():
         candidate.add(item)
     decide(candidate, SETTINGS.decision)
     assert candidate.significant and candidate.decided_by == "relight_lobe", candidate.why
-    # Off by default (docs/decisions/0211-shadows-specular-mitsuba.md): the lobe alone.
+    # On by default (docs/decisions/0216-relight-specular.md); off, the lobe alone.
     assert [item.kind for item in lobe_producer(inputs, [Candidate("specular")], SETTINGS)] == [
-        "lobe"
+        "lobe",
+        "relight_lobe",
     ]
+    unlit = replace(SETTINGS, lobe=replace(SETTINGS.lobe, relight=False))
+    assert [item.kind for item in lobe_producer(inputs, [Candidate("specular")], unlit)] == ["lobe"]
 
 
 def test_a_relight_split_with_a_per_view_exposure_and_no_highlight_gives_no_lobe():
@@ -219,3 +228,115 @@ def test_a_relight_split_with_a_per_view_exposure_and_no_highlight_gives_no_lobe
     decide(candidate, SETTINGS.decision)
     assert candidate.evidence_of("relight_lobe") is not None
     assert not candidate.significant, candidate.why
+
+
+def test_weighted_projection_removes_the_nuisances_of_the_scaled_rows():
+    generator = torch.Generator().manual_seed(1)
+    count, cells, views = 600, 20, 6
+    cell = torch.randint(0, cells, (count,), generator=generator)
+    view = torch.randint(0, views, (count,), generator=generator)
+    rendered = 0.2 + torch.rand(count, generator=generator, dtype=torch.float64)
+    weights = 0.2 + 3 * torch.rand(count, generator=generator, dtype=torch.float64)
+    nuisance = (
+        torch.randn(cells, dtype=torch.float64)[cell]
+        + torch.randn(views, dtype=torch.float64)[view] * rendered
+    )
+    projected = project_out(nuisance[:, None], cell, view, rendered, weights=weights)
+    assert float(projected.norm() / nuisance.norm()) < 1e-6
+    # Equal weights are the unweighted projection, scaled.
+    signal = torch.randn(count, 1, generator=generator, dtype=torch.float64)
+    plain = project_out(signal, cell, view, rendered)
+    scaled = project_out(signal, cell, view, rendered, weights=torch.full((count,), 2.0))
+    assert torch.allclose(scaled, 2 * plain, atol=1e-9)
+
+
+def test_spread_weights_follow_the_residuals_spread_along_the_sun_and_ignore_a_sparse_highlight():
+    generator = torch.Generator().manual_seed(2)
+    cosine = torch.linspace(-1, 1, 4000, dtype=torch.float64)
+    spread = torch.where(cosine > 0, 4.0, 1.0).double()
+    residual = spread * torch.randn(4000, generator=generator, dtype=torch.float64)
+    highlight = residual.clone()
+    highlight[cosine > 0.9] += 50.0  # a highlight on a fifth of the brightest bin's pixels
+    for values in (residual, highlight):
+        weights = spread_weights(values, cosine, 4)
+        assert abs(float(weights[cosine < -0.1].mean()) - 1.0) < 0.1
+        assert abs(float(weights[(cosine > 0.1) & (cosine < 0.5)].mean()) - 0.25) < 0.025
+    # The highlight's bin keeps most of its weight (the median ignores a sparse highlight).
+    top = cosine > 0.5
+    assert float(spread_weights(highlight, cosine, 4)[top].mean()) > 0.18
+    assert torch.equal(spread_weights(residual, cosine, 1), torch.ones(4000, dtype=torch.float64))
+
+
+L_RELIGHT = (0.8, 0.5, -0.3)
+
+
+def _relight_views(transform, seed: int = 0, specular: float = 0.0):
+    """A Lambertian torus's 8 relight views under the sun toward L_RELIGHT (+ a highlight of
+    specular), the observed views changed by transform(observed, output)."""
+    data, _ = glossy_torus_views(
+        views=8,
+        size=40,
+        specular=specular,
+        shininess=30.0,
+        light_direction=L_RELIGHT,
+        seed=seed,
+        transform=transform,
+    )
+    return data
+
+
+def _sunlit_noise(seed: int, sigma: float = 0.1):
+    """A residual that grows with the sun's light and follows no highlight: blotchy noise
+    (3 x 3 box-smoothed) times max(0, n.l) of the relight sun, as a fit's texture, normal and
+    pose errors leave where the sun shades them (the Mitsuba spot's relight split)."""
+    direction = torch.tensor(L_RELIGHT) / torch.tensor(L_RELIGHT).norm()
+
+    def transform(observed, output):
+        generator = torch.Generator().manual_seed(100 + seed)
+        noise = torch.randn(observed.shape[:3] + (1,), generator=generator).permute(0, 3, 1, 2)
+        noise = torch.nn.functional.conv2d(noise, torch.ones(1, 1, 3, 3) / 3, padding=1)
+        lit = (output.normals * direction).sum(-1, keepdim=True).clamp_min(0)
+        return observed + sigma * noise.permute(0, 2, 3, 1) * lit * output.alpha
+
+    return transform
+
+
+def test_a_relight_residual_that_grows_with_the_sun_is_not_named_a_highlight():
+    # Built to fool the relight lobe: unweighted, the sun's lobe lies where the residual is
+    # large and clears the floor against placebo lights whose lobes lie in the dim part; the
+    # weighted statistic does not (docs/decisions/0216-relight-specular.md).
+    unweighted = replace(SETTINGS, lobe=replace(SETTINGS.lobe, relight_spread_bins=1))
+    for seed in (5, 6):
+        data = _relight_views(_sunlit_noise(seed), seed=seed)
+        fooled = lobe_evidence([data], "specular", unweighted, RELIGHT_KIND)
+        assert fooled.passed, fooled.reason
+        evidence = lobe_evidence([data], "specular", SETTINGS, RELIGHT_KIND)
+        assert not evidence.passed, evidence.reason
+        assert evidence.details["spread_bins"] == SETTINGS.lobe.relight_spread_bins
+        assert "weighted by the residual's spread" in evidence.reason
+
+
+def test_a_relight_split_under_a_misplaced_sun_gives_no_lobe():
+    # A fit with a wrong terminator: the views are lit by a sun 25 degrees from the known one,
+    # the residual follows the two suns' cosines, not a half-vector.
+    import math
+
+    known = torch.tensor(L_RELIGHT) / torch.tensor(L_RELIGHT).norm()
+    axis = torch.tensor([0.0, 1.0, 0.0]) - known[1] * known
+    axis = axis / axis.norm()
+    actual = math.cos(math.radians(25)) * known + math.sin(math.radians(25)) * axis
+
+    def transform(observed, output):
+        ambient, sun = 0.3 * math.pi, 2.0  # the scene's irradiances (glossy_torus_views)
+        known_cosine = (output.normals * known).sum(-1, keepdim=True).clamp_min(0)
+        actual_cosine = (output.normals * actual).sum(-1, keepdim=True).clamp_min(0)
+        return observed * (ambient + sun * actual_cosine) / (ambient + sun * known_cosine)
+
+    evidence = lobe_evidence([_relight_views(transform)], "specular", SETTINGS, RELIGHT_KIND)
+    assert not evidence.passed, evidence.reason
+
+
+def test_a_highlight_on_top_of_a_sunlit_residual_is_still_named():
+    data = _relight_views(_sunlit_noise(5), seed=5, specular=0.3)
+    evidence = lobe_evidence([data], "specular", SETTINGS, RELIGHT_KIND)
+    assert evidence.passed, evidence.reason
