@@ -36,7 +36,7 @@ import torch
 from recon.config.run_config import DiagnoseConfig
 from recon.diagnose.data import DiagnosisData, box_erode
 from recon.diagnose.nulls import permuted_correlations
-from recon.diagnose.pixel_table import dominant_light_direction, view_directions
+from recon.diagnose.pixel_table import LastResult, dominant_light_direction, view_directions
 from recon.diagnose.records import Evidence
 
 KIND = "agreement"
@@ -56,9 +56,20 @@ def interior(data: DiagnosisData, erode_pixels: int) -> torch.Tensor:
     return mask.permute(0, 2, 3, 1).contiguous()
 
 
+_LAST_ANGLES = LastResult()
+
+
 def surface_angles(data: DiagnosisData) -> tuple[torch.Tensor, torch.Tensor]:
     """n.h (against the fitted light's main direction, n.v without one) and n.v per pixel
-    [B, H, W], as recon.diagnose.pixel_table measures them."""
+    [B, H, W], as recon.diagnose.pixel_table measures them (the last views' kept: the white
+    balance agreement and the exposure's gains ask for the same views' angles)."""
+    cameras = data.cameras
+    inputs = (data.normals, data.depth, cameras.world_to_cam, cameras.intrinsics, data.lighting)
+    return _LAST_ANGLES.get(inputs, lambda: _surface_angles(data))
+
+
+def _surface_angles(data: DiagnosisData) -> tuple[torch.Tensor, torch.Tensor]:
+    """surface_angles, computed."""
     _, to_camera = view_directions(data)
     normals = data.normals.double()
     normals = normals / normals.norm(dim=-1, keepdim=True).clamp_min(1e-9)

@@ -34,6 +34,7 @@ L = max(0, n.l) toward the dominant fitted light (a light that is slightly off i
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 
 import torch
@@ -57,6 +58,9 @@ KIND = "fingerprint"
 LUMINANCE = (0.2126, 0.7152, 0.0722)
 # A pixel counts as shadowed by the fitted mesh below this predicted visible share (coverage).
 SHADOWED_SHARE = 0.9
+# Rows of the [N, 1 + K] pixel x light arrays gathered per pass of the partial correlations
+# (a cache-sized block; memory, not a tuned number: every block size gives the same sums).
+ROWS_PER_PASS = 512
 
 
 @dataclass
@@ -246,7 +250,7 @@ def _placebo_rotations(direction: torch.Tensor, count: int, separation_degrees: 
 
 
 def _partial_correlations(
-    target: torch.Tensor, features: torch.Tensor, lamberts: torch.Tensor, rows: int = 512
+    target: torch.Tensor, features: torch.Tensor, lamberts: torch.Tensor, rows: int = ROWS_PER_PASS
 ) -> torch.Tensor:
     """Partial correlation [K] of target [N] with each feature column [N, K] given
     [1, L_k, L_k^2] of its own lambert column [N, K].
@@ -255,11 +259,46 @@ def _partial_correlations(
     are the raw ones less m^T G^-1 m (G the nuisance's 3 x 3 Gram matrix, m its moments with
     target and feature). The sums they need are gathered a block of rows at a time, so the
     [rows, K] temporaries stay in cache (one pass over the [N, K] inputs)."""
-    columns = features.shape[1]
+    blocks = (
+        (features[start : start + rows], lamberts[start : start + rows])
+        for start in range(0, features.shape[0], rows)
+    )
+    return _correlations_of_blocks(target, blocks, features.shape[1], rows, features.dtype)
+
+
+def _lit_blocks(
+    log_share: torch.Tensor,
+    normals: torch.Tensor,
+    lights: torch.Tensor,
+    rows: int = ROWS_PER_PASS,
+    first_column: torch.Tensor | None = None,
+) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
+    """The features and lambert columns of _partial_correlations a block of rows at a time:
+    (log_share[rows].double() [rows, K], (normals[rows] @ lights.T).clamp(min=0) [rows, K])
+    from log_share [N, K] (float32), normals [N, 3] and lights [K, 3] (float64), so the two
+    [N, K] float64 arrays (hundreds of MB at 384 px with 175 lights) are never formed: each
+    element is the same conversion and the same three-term product as in the whole arrays.
+    first_column: [N] float64, filled with the lambert column of the first light as the blocks
+    go by (a product with that light alone would take another kernel, rounded otherwise)."""
+    for start in range(0, log_share.shape[0], rows):
+        lambert = (normals[start : start + rows] @ lights.T).clamp(min=0.0)
+        if first_column is not None:
+            first_column[start : start + rows] = lambert[:, 0]
+        yield log_share[start : start + rows].double(), lambert
+
+
+def _correlations_of_blocks(
+    target: torch.Tensor,
+    blocks: Iterable[tuple[torch.Tensor, torch.Tensor]],
+    columns: int,
+    rows: int,
+    dtype: torch.dtype = torch.float64,
+) -> torch.Tensor:
+    """_partial_correlations from its (features, lamberts) blocks of `rows` rows, in order."""
     # Per column: sums of L^1..L^4, target L, target L^2, F, F L, F L^2, target F, F^2.
-    sums = torch.zeros(11, columns, dtype=features.dtype, device=features.device)
-    for start in range(0, features.shape[0], rows):
-        lambert, feature = lamberts[start : start + rows], features[start : start + rows]
+    sums = torch.zeros(11, columns, dtype=dtype, device=target.device)
+    for index, (feature, lambert) in enumerate(blocks):
+        start = index * rows
         part = target[start : start + rows]
         square = lambert * lambert
         sums += torch.stack(
@@ -369,20 +408,20 @@ def visibility_fingerprint(
         # covered pixels picked by interior's mask come in that mask's order.
         picked = interior.reshape(-1)[fragments.covered_index]
         if int(picked.sum()) == int(interior.sum()):
-            packed = interpolate_packed(log_shares, fragments, data.mesh.faces, pixels=picked)
-            log_share = packed.double()  # [N, 1 + K]
+            log_share = interpolate_packed(log_shares, fragments, data.mesh.faces, pixels=picked)
         else:
             packed = interpolate_packed(log_shares, fragments, data.mesh.faces)
             per_pixel = scatter_to_image(packed, fragments.covered_index, batch, height, width)
-            log_share = per_pixel[interior].double()
+            log_share = per_pixel[interior]
+        # log_share: [N, 1 + K] in the render's precision; converted a block at a time below.
+        dominant_share = log_share[:, 0].double()  # [N]
         normals = output.normals[interior].double()
         lights = torch.einsum("rde,e->rd", rotations, direction if not even else rotations[0, 1])
-        lamberts = (normals @ lights.T).clamp(min=0.0)  # [N, 1 + K]
     albedo = (output.albedo[interior].double() * torch.tensor(LUMINANCE, dtype=torch.float64)).sum(
         -1
     )
     target = torch.log(albedo.clamp_min(1e-3))
-    coverage = float((log_share[:, 0] < math.log(SHADOWED_SHARE)).double().mean())
+    coverage = float((dominant_share < math.log(SHADOWED_SHARE)).double().mean())
 
     block_pixels = settings.fingerprint_block_pixels
     rows = torch.arange(height) // block_pixels
@@ -391,11 +430,13 @@ def visibility_fingerprint(
     blocks_per_view = ((height + block_pixels - 1) // block_pixels) * blocks_per_row
     block = rows[:, None] * blocks_per_row + columns[None, :]
     block = (block[None] + torch.arange(batch)[:, None, None] * blocks_per_view)[interior]
-    lambert = lamberts[:, 0]
-    design = torch.stack([torch.ones_like(lambert), lambert, lambert * lambert, log_share[:, 0]], 1)
+    # Every light's lambert column is formed a block of rows at a time (_lit_blocks), the
+    # dominant light's kept for the slope's design.
+    lambert = torch.empty(len(target), dtype=torch.float64)  # [N]
+    blocks = _lit_blocks(log_share, normals, lights, ROWS_PER_PASS, first_column=lambert)
+    correlations = _correlations_of_blocks(target, blocks, log_share.shape[1], ROWS_PER_PASS)
+    design = torch.stack([torch.ones_like(lambert), lambert, lambert * lambert, dominant_share], 1)
     slope, interval = _bootstrap_slope(design, target, block, settings.bootstrap_samples, seed)
-
-    correlations = _partial_correlations(target, log_share, lamberts)
     null = correlations[1:]
     correlation = float(correlations[0])
     if null.numel() == 0:

@@ -27,7 +27,12 @@ import torch
 from recon.config.run_config import IdentifiabilityConfig
 from recon.diagnose.agreement import MINIMUM_VIEWS
 from recon.diagnose.data import DiagnosisData
-from recon.diagnose.pixel_table import pixel_table
+from recon.diagnose.pixel_table import (
+    pixel_radius,
+    surface_labels,
+    table_pixels,
+    view_directions,
+)
 from recon.diagnose.records import Evidence
 
 KIND = "identifiability"
@@ -130,17 +135,21 @@ def covered_radius(data: DiagnosisData) -> float:
 
 def radius_spread(data: DiagnosisData, options: IdentifiabilityConfig) -> float:
     """Median over surface regions of how far apart (normalised radius) the views see it."""
-    table = pixel_table(data, surface_cells=options.surface_cells)
-    cells = table.labels["surface"]
-    radius = table.values["radius"].double()
+    # pixel_table's surface labels and radius values, without its other columns.
+    keep = table_pixels(data)
+    world, _ = view_directions(data)
+    cells = surface_labels(world[keep], options.surface_cells)
+    radius = pixel_radius(data)[keep].double()
+    batch, height, width = keep.shape
+    views = torch.arange(batch)[:, None, None].expand(batch, height, width)[keep]
     spreads = []
     for cell in torch.unique(cells):
         chosen = cells == cell
         if int(chosen.sum()) < 4:
             continue
         per_view = []
-        for view in torch.unique(table.view[chosen]):
-            per_view.append(float(radius[chosen & (table.view == view)].mean()))
+        for view in torch.unique(views[chosen]):
+            per_view.append(float(radius[chosen & (views == view)].mean()))
         if len(per_view) > 1:
             spreads.append(max(per_view) - min(per_view))
     return float(torch.tensor(spreads).median()) if spreads else 0.0

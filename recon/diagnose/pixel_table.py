@@ -15,7 +15,9 @@ gain really follows, without a tuned cut-off.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 
@@ -26,9 +28,41 @@ from recon.diagnose.data import DiagnosisData
 MINIMUM_RENDERED = 1e-4
 
 
+class LastResult:
+    """The last result of a function of some objects (tensors, a light), kept while the same
+    objects (by identity, and tensors at the same version) are asked about again: the
+    diagnosis asks for the same views' directions and angles from several checks. Callers
+    must not change the returned tensors in place."""
+
+    def __init__(self) -> None:
+        self._key: list[tuple[object, int | None]] | None = None
+        self._value: Any = None
+
+    def get(self, objects: Sequence[object], compute: Callable[[], Any]) -> Any:
+        key = [(item, getattr(item, "_version", None)) for item in objects]
+        if self._key is not None and len(self._key) == len(key):
+            if all(a is b and u == v for (a, u), (b, v) in zip(self._key, key, strict=True)):
+                return self._value
+        self._key, self._value = None, None  # (the old inputs are let go first)
+        self._value = compute()
+        self._key = key
+        return self._value
+
+
+_LAST_DIRECTIONS = LastResult()
+
+
 def view_directions(data: DiagnosisData) -> tuple[torch.Tensor, torch.Tensor]:
     """World surface points [B, H, W, 3] (unprojected depth) and unit directions from them to
-    the camera [B, H, W, 3]."""
+    the camera [B, H, W, 3] (the last views' kept, LastResult)."""
+    cameras = data.cameras
+    return _LAST_DIRECTIONS.get(
+        (data.depth, cameras.world_to_cam, cameras.intrinsics), lambda: _view_directions(data)
+    )
+
+
+def _view_directions(data: DiagnosisData) -> tuple[torch.Tensor, torch.Tensor]:
+    """view_directions, computed."""
     batch, height, width, _ = data.depth.shape
     depth = data.depth[..., 0]
     rows, columns = torch.meshgrid(
@@ -125,7 +159,7 @@ def pixel_table(
     normals = normals / normals.norm(dim=-1, keepdim=True).clamp_min(1e-9)
     rendered = data.rendered
     luminance = rendered.mean(dim=-1)
-    keep = data.rendered_mask & (luminance > MINIMUM_RENDERED) & (data.region[..., 0] > 0.5)
+    keep = table_pixels(data)
 
     light, source = dominant_light_direction(data)
     if light is not None and data.lighting.frame == "camera":
@@ -152,18 +186,8 @@ def pixel_table(
         rows * position_cells // height
     ) * position_cells + columns * position_cells // width
     position = position.expand(batch, -1, -1)
-    intrinsics = data.cameras.intrinsics.float()
-    dx = columns[None].float() + 0.5 - intrinsics[:, 0, 2, None, None]
-    dy = rows[None].float() + 0.5 - intrinsics[:, 1, 2, None, None]
-    radius = torch.sqrt(dx * dx + dy * dy) / (0.5 * math.hypot(height, width))
-
-    points = world[keep]
-    low = points.min(dim=0).values if points.numel() else torch.zeros(3)
-    high = points.max(dim=0).values if points.numel() else torch.ones(3)
-    cell = ((points - low) / (high - low).clamp_min(1e-9) * surface_cells).long()
-    cell = cell.clamp(0, surface_cells - 1)
-    surface = (cell[:, 0] * surface_cells + cell[:, 1]) * surface_cells + cell[:, 2]
-
+    radius = pixel_radius(data)
+    surface = surface_labels(world[keep], surface_cells)
     view = torch.arange(batch)[:, None, None].expand(batch, height, width)[keep]
     facing = camera_normals[keep]
     normal_column = ((facing[:, 0] + 1) / 2 * normal_cells).long().clamp(0, normal_cells - 1)
@@ -194,6 +218,33 @@ def pixel_table(
         view_count=batch,
         light_source=source if light is not None else "view direction (no light direction)",
     )
+
+
+def table_pixels(data: DiagnosisData) -> torch.Tensor:
+    """[B, H, W] bool: the pixels of pixel_table (rendered object, in the region, not black)."""
+    luminance = data.rendered.mean(dim=-1)
+    return data.rendered_mask & (luminance > MINIMUM_RENDERED) & (data.region[..., 0] > 0.5)
+
+
+def pixel_radius(data: DiagnosisData) -> torch.Tensor:
+    """[B, H, W] distance of each pixel centre from the principal point over the half image
+    diagonal (float32, pixel_table's 'radius' values)."""
+    _, height, width, _ = data.observed.shape
+    rows = torch.arange(height)[:, None].expand(height, width)
+    columns = torch.arange(width)[None, :].expand(height, width)
+    intrinsics = data.cameras.intrinsics.float()
+    dx = columns[None].float() + 0.5 - intrinsics[:, 0, 2, None, None]
+    dy = rows[None].float() + 0.5 - intrinsics[:, 1, 2, None, None]
+    return torch.sqrt(dx * dx + dy * dy) / (0.5 * math.hypot(height, width))
+
+
+def surface_labels(points: torch.Tensor, surface_cells: int) -> torch.Tensor:
+    """[N] cell of each world point [N, 3] in a surface_cells^3 grid over their bounding box."""
+    low = points.min(dim=0).values if points.numel() else torch.zeros(3)
+    high = points.max(dim=0).values if points.numel() else torch.ones(3)
+    cell = ((points - low) / (high - low).clamp_min(1e-9) * surface_cells).long()
+    cell = cell.clamp(0, surface_cells - 1)
+    return (cell[:, 0] * surface_cells + cell[:, 1]) * surface_cells + cell[:, 2]
 
 
 # A model term: a tuple of factor names ("channel" is the colour channel); () is one global gain.

@@ -81,13 +81,18 @@ class InteriorPixels:
         cell = uv[..., 1] * cells_per_side + uv[..., 0]
         view = torch.arange(batch, device=keep.device)[:, None, None].expand(batch, height, width)
         first, _ = block_halves(batch, height, width, keep.device, settings.block_pixels)
-        channel = torch.arange(channels, device=keep.device).expand(batch, height, width, -1)[keep]
+        # The kept (pixel, channel) rows as flat indices, found once: every column below is a
+        # gather of them (the same values, in the same order, as indexing with the mask,
+        # which would search the [B, H, W, 3] mask again for each of the seven columns).
+        kept = torch.nonzero(keep.reshape(-1)).squeeze(1)  # [N] over B * H * W * 3
+        pixel = torch.div(kept, channels, rounding_mode="floor")  # [N] over B * H * W
+        channel = kept - pixel * channels
 
         def per_channel(values: torch.Tensor) -> torch.Tensor:
-            return values[..., None].expand(batch, height, width, channels)[keep]
+            return values.reshape(-1).index_select(0, pixel)
 
-        rendered = data.rendered[keep].double()
-        observed = data.observed[keep].double()
+        rendered = data.rendered.reshape(-1).index_select(0, kept).double()
+        observed = data.observed.reshape(-1).index_select(0, kept).double()
         return cls(
             log_ratio=(observed / rendered).log(),
             weight=rendered * rendered,

@@ -32,6 +32,7 @@ it: at zero it is exactly zero, so the effect is bit-exact at zero parameters.
 from __future__ import annotations
 
 import math
+import weakref
 
 import torch
 
@@ -87,33 +88,72 @@ def fft_size(minimum: int) -> int:
         size += 1
 
 
-def gaussian_blur(image: torch.Tensor, covariance: torch.Tensor, max_padding: int) -> torch.Tensor:
+def gaussian_blur(
+    image: torch.Tensor,
+    covariance: torch.Tensor,
+    max_padding: int,
+    spectra: dict | None = None,
+) -> torch.Tensor:
     """image [B, H, W, C] convolved with discrete Gaussians of covariance [1 or B, 2, 2] (px^2).
 
     Computed as image + irfft2(rfft2(padded image) x expm1(-Q)) on the image zero-padded by at
     least blur_padding on every side (the FFT is circular; the padding keeps the wrap-around
     off the image): bit-exact at C = 0, differentiable in C and in the image, O(HW log HW)
     whatever the blur's size.
+
+    spectra: the padded image's rfft2 by padding, kept for a caller that blurs this same image
+    again with other covariances (without gradients: a Gauss-Newton probe's Jacobian).
     """
     batch, height, width, channels = image.shape
     padding = blur_padding(covariance, max_padding)
     padded_height = fft_size(height + 2 * padding)
     padded_width = fft_size(width + 2 * padding)
-    planes = torch.nn.functional.pad(
-        image.permute(0, 3, 1, 2),
-        (padding, padded_width - width - padding, padding, padded_height - height - padding),
-    )
+    key = (padding, padded_height, padded_width)
+    if spectra is not None and key in spectra:
+        image_spectrum = spectra[key]
+    else:
+        planes = torch.nn.functional.pad(
+            image.permute(0, 3, 1, 2),
+            (padding, padded_width - width - padding, padding, padded_height - height - padding),
+        )
+        image_spectrum = torch.fft.rfft2(planes)
+        if spectra is not None:
+            spectra[key] = image_spectrum
     transfer = gaussian_transfer_excess(covariance.to(image), padded_height, padded_width)
-    spectrum = torch.fft.rfft2(planes) * transfer[:, None]
+    spectrum = image_spectrum * transfer[:, None]
     excess = torch.fft.irfft2(spectrum, s=(padded_height, padded_width))
     excess = excess[..., padding : padding + height, padding : padding + width]
     return image + excess.permute(0, 2, 3, 1)
 
 
+# Paddings whose image spectra a blur module keeps for its last input (a few FFT sizes).
+_KEPT_SPECTRA = 4
+
+
 def _blur(
-    color: torch.Tensor, alpha: torch.Tensor, covariance: torch.Tensor, max_padding: int
+    color: torch.Tensor,
+    alpha: torch.Tensor,
+    covariance: torch.Tensor,
+    max_padding: int,
+    keeper: ModelEffect | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    stacked = gaussian_blur(torch.cat([color, alpha], dim=-1), covariance, max_padding)
+    """color [B, H, W, C] and alpha [B, H, W, 1] blurred alike. keeper: the blur module; without
+    gradients it keeps the spectra of the last colour and alpha it blurred (the same tensors,
+    unchanged: identity and version), which a probe's Jacobian blurs again and again with
+    other covariances (the same values as computing them anew)."""
+    spectra = None
+    if keeper is not None and not torch.is_grad_enabled():
+        versions = (color._version, alpha._version)
+        kept = getattr(keeper, "_kept_spectra", None)
+        if kept is None or kept[0]() is not color or kept[1]() is not alpha or kept[2] != versions:
+            kept = (weakref.ref(color), weakref.ref(alpha), versions, {})
+            keeper._kept_spectra = kept
+        spectra = kept[3]
+        if len(spectra) >= _KEPT_SPECTRA:
+            spectra.clear()
+    elif keeper is not None:
+        keeper._kept_spectra = None
+    stacked = gaussian_blur(torch.cat([color, alpha], dim=-1), covariance, max_padding, spectra)
     channels = color.shape[-1]
     return stacked[..., :channels], stacked[..., channels:]
 
@@ -154,7 +194,8 @@ class DefocusBlur(ModelEffect):
         check_image(color, alpha, self.name)
         variance = self.effective_variance().to(color)
         covariance = (variance * torch.eye(2, dtype=color.dtype, device=color.device))[None]
-        return _blur(color, alpha, covariance, math.ceil(_KERNEL_SIGMAS * self.max_sigma_px) + 1)
+        max_padding = math.ceil(_KERNEL_SIGMAS * self.max_sigma_px) + 1
+        return _blur(color, alpha, covariance, max_padding, self)
 
     def parameters_summary(self) -> dict:
         variance = float(self.effective_variance().detach())
@@ -214,7 +255,7 @@ class MotionBlur(ModelEffect):
         batch = check_image(color, alpha, self.name)[0]
         covariance = self.select_views(self.covariances(), view_indices, batch).to(color)
         max_sigma = self.max_length_px / math.sqrt(12.0)
-        return _blur(color, alpha, covariance, math.ceil(_KERNEL_SIGMAS * max_sigma) + 1)
+        return _blur(color, alpha, covariance, math.ceil(_KERNEL_SIGMAS * max_sigma) + 1, self)
 
     def parameters_summary(self) -> dict:
         with torch.no_grad():
@@ -308,6 +349,13 @@ class LensDistortion(ModelEffect):
         rows = torch.arange(height, device=like.device, dtype=like.dtype) + 0.5
         x_distorted = (columns[None, None, :] - cx) / fx
         y_distorted = (rows[None, :, None] - cy) / fy
+        scale = self._radial_scale(x_distorted, y_distorted, like)
+        return fx * x_distorted * (scale - 1), fy * y_distorted * (scale - 1)
+
+    def _radial_scale(
+        self, x_distorted: torch.Tensor, y_distorted: torch.Tensor, like: torch.Tensor
+    ) -> torch.Tensor:
+        """The radial scale t of each distorted position (normalised coordinates, broadcast)."""
         k1, k2 = (value.to(like) for value in self.radial_coefficients())
         squared = x_distorted * x_distorted + y_distorted * y_distorted
         quadratic, quartic = k1 * squared, k2 * squared * squared
@@ -318,7 +366,38 @@ class LensDistortion(ModelEffect):
             slope = 1 + scale_squared * (3 * quadratic + 5 * quartic * scale_squared)
             # Past the fold of strong barrel distortion the slope would reach 0.
             scale = (scale - residual / slope.clamp(min=0.1)).clamp(0.1, 10.0)
-        return fx * x_distorted * (scale - 1), fy * y_distorted * (scale - 1)
+        return scale
+
+    def sample_grids(
+        self,
+        cameras: Cameras,
+        height: int,
+        width: int,
+        view: torch.Tensor,
+        row: torch.Tensor,
+        column: torch.Tensor,
+        like: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """forward's sampling positions at chosen pixels only: (grid, base grid) [..., 2] in
+        grid_sample's coordinates, for pixels of batch entry view, at integer row and column
+        (tensors of one shape). Each element is the same arithmetic as in forward's whole
+        grids, so grid_sample at these positions gives forward's values there (the
+        diagnosis' Gauss-Newton probes count a sixth of the pixels)."""
+        intrinsics = cameras.intrinsics.to(device=like.device, dtype=like.dtype)
+        fx, fy, cx, cy = (
+            intrinsics[:, index_row, index_column][view]
+            for index_row, index_column in ((0, 0), (1, 1), (0, 2), (1, 2))
+        )
+        columns = column.to(like.dtype) + 0.5
+        rows = row.to(like.dtype) + 0.5
+        x_distorted = (columns - cx) / fx
+        y_distorted = (rows - cy) / fy
+        scale = self._radial_scale(x_distorted, y_distorted, like)
+        du, dv = fx * x_distorted * (scale - 1), fy * y_distorted * (scale - 1)
+        base_x = 2 * columns / width - 1
+        base_y = 2 * rows / height - 1
+        grid = torch.stack([base_x + 2 * du / width, base_y + 2 * dv / height], dim=-1)
+        return grid, torch.stack([base_x, base_y], dim=-1)
 
     def forward(
         self,

@@ -177,3 +177,30 @@ def test_partial_correlations_equal_a_column_by_column_least_squares() -> None:
     # Gathered a block of rows at a time: the same correlations to rounding.
     blocked = _partial_correlations(target, features, lamberts, rows=700)
     assert torch.allclose(blocked, values, rtol=0, atol=1e-12)
+
+
+def test_lit_blocks_give_the_correlations_of_the_whole_arrays_bit_for_bit() -> None:
+    from recon.diagnose.fingerprint import (
+        _correlations_of_blocks,
+        _lit_blocks,
+        _partial_correlations,
+    )
+
+    generator = torch.Generator().manual_seed(5)
+    count, lights_count, rows = 3001, 9, 512  # a last block shorter than the others
+    normals = torch.nn.functional.normalize(
+        torch.randn(count, 3, generator=generator, dtype=torch.float64), dim=1
+    )
+    lights = torch.nn.functional.normalize(
+        torch.randn(lights_count, 3, generator=generator, dtype=torch.float64), dim=1
+    )
+    log_share = -torch.rand(count, lights_count, generator=generator)  # float32, as rendered
+    target = torch.randn(count, generator=generator, dtype=torch.float64)
+    lamberts = (normals @ lights.T).clamp(min=0.0)
+    plain = _partial_correlations(target, log_share.double(), lamberts, rows=rows)
+    first = torch.empty(count, dtype=torch.float64)
+    blocks = _lit_blocks(log_share, normals, lights, rows, first_column=first)
+    fused = _correlations_of_blocks(target, blocks, lights_count, rows)
+    assert torch.equal(fused, plain)
+    assert torch.equal(first, lamberts[:, 0])
+    assert float(fused.abs().max()) > 0

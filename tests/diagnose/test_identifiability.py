@@ -189,3 +189,29 @@ def test_a_small_defocus_hidden_by_the_fits_misfit_is_not_identifiable():
     assert rethreshold(blurred, lenient).passed == (expected > 0.02)
     strict = DecisionConfig(probe_allowance={"defocus_blur": 1.0})
     assert not rethreshold(sharp, strict).passed
+
+
+def test_radius_spread_is_the_spread_of_the_pixel_tables_radii():
+    """radius_spread reads pixel_table's surface labels and radii without building the table:
+    the same median spread as from the table."""
+    from recon.diagnose.identifiability import radius_spread
+    from recon.diagnose.pixel_table import pixel_table
+
+    data, _ = glossy_torus_views(views=4, size=32, specular=0.0, exposure_sigma=0.0)
+    options = IdentifiabilityConfig()
+    table = pixel_table(data, surface_cells=options.surface_cells)
+    cells, radius = table.labels["surface"], table.values["radius"].double()
+    spreads = []
+    for cell in torch.unique(cells):
+        chosen = cells == cell
+        if int(chosen.sum()) < 4:
+            continue
+        means = [
+            float(radius[chosen & (table.view == view)].mean())
+            for view in torch.unique(table.view[chosen])
+        ]
+        if len(means) > 1:
+            spreads.append(max(means) - min(means))
+    expected = float(torch.tensor(spreads).median())
+    assert expected > 0
+    assert radius_spread(data, options) == expected

@@ -83,3 +83,40 @@ def test_view_gains_hold_a_per_view_exposure() -> None:
     training.observed = training.observed * gains
     fit = fit_gains(InteriorPixels.from_data(training, SETTINGS), with_falloff=True)
     assert fit.coefficients.abs().max() < 0.01
+
+
+def test_interior_pixels_equal_the_mask_indexed_columns() -> None:
+    """from_data gathers the kept rows through one list of flat indices: every column equals
+    the plain boolean-mask indexing of the [B, H, W, 3] images, bit for bit."""
+    from recon.diagnose.data import box_dilate
+    from recon.diagnose.radial_absorption import FULL_COVERAGE
+    from recon.diagnose.which import block_halves
+    from recon.effects.photometric import normalised_radius
+
+    training, _ = training_and_heldout(-0.5, noise=0.002)
+    pixels = InteriorPixels.from_data(training, SETTINGS)
+    # The plain computation: the mask applied to each column.
+    data, cells = training, SETTINGS.regression_cells_per_side
+    batch, height, width, channels = data.observed.shape
+    covered = (data.rendered_alpha >= FULL_COVERAGE) & (data.observed_alpha >= FULL_COVERAGE)
+    covered = covered & (data.texel_uv[..., :1] >= 0)
+    outside = (~covered).float().permute(0, 3, 1, 2)
+    interior = box_dilate(outside, SETTINGS.regression_interior_margin) == 0
+    interior = interior.permute(0, 2, 3, 1).expand(batch, height, width, channels)
+    keep = interior & (data.rendered > SETTINGS.regression_minimum_rendered) & (data.observed > 0)
+
+    def per_channel(values: torch.Tensor) -> torch.Tensor:
+        return values[..., None].expand(batch, height, width, channels)[keep]
+
+    uv = (data.texel_uv * cells).long().clamp(0, cells - 1)
+    channel = torch.arange(channels).expand(batch, height, width, -1)[keep]
+    view = torch.arange(batch)[:, None, None].expand(batch, height, width)
+    first, _ = block_halves(batch, height, width, "cpu", SETTINGS.block_pixels)
+    radius = normalised_radius(data.cameras, height, width, data.rendered)
+    assert int(keep.sum()) > 1000
+    assert torch.equal(pixels.rendered, data.rendered[keep].double())
+    assert torch.equal(pixels.observed, data.observed[keep].double())
+    assert torch.equal(pixels.radius, per_channel(radius).double())
+    assert torch.equal(pixels.cell, per_channel(uv[..., 1] * cells + uv[..., 0]) * 3 + channel)
+    assert torch.equal(pixels.view, per_channel(view) * channels + channel)
+    assert torch.equal(pixels.first_half, per_channel(first[..., 0] > 0))

@@ -147,3 +147,40 @@ def test_counted_render_of_pixelwise_effects_is_the_full_render_at_the_counted_p
     assert torch.allclose(render(), full, rtol=1e-6, atol=1e-7)
     # Vignetting depends on where a pixel is: no shortcut.
     assert probe.counted_render([probe_effect("vignetting", VIEWS, "cpu")], weight) is None
+
+
+def test_counted_render_of_a_warp_or_a_distortion_is_the_full_render_at_the_counted_pixels():
+    """A pose correction (the cached render warped) and a lens distortion (the image
+    resampled), alone or followed by pixelwise effects, are sampled at the counted pixels
+    only: the full render's values there, bit for bit."""
+    from recon.diagnose.gauss_newton import counted_pixels
+    from recon.diagnose.which import block_halves
+
+    data = observed_scene(blur=False)
+    probe = EffectProbe(data)
+    first, _ = block_halves(VIEWS, SIZE, SIZE, "cpu", 4)
+    weight = first * data.region
+    index = counted_pixels(weight, data.observed.shape)
+    generator = torch.Generator().manual_seed(4)
+    for names in (
+        ("pose_error",),
+        ("lens_distortion",),
+        ("pose_error", "exposure"),
+        ("response_curve", "lens_distortion", "white_balance"),  # applied in IMAGE_ORDER
+    ):
+        effects = [probe_effect(name, VIEWS, "cpu") for name in names]
+        with torch.no_grad():
+            for parameter in (p for effect in effects for p in effect.parameters()):
+                parameter.copy_(0.05 * torch.randn(parameter.shape, generator=generator))
+        render = probe.counted_render(effects, weight)
+        assert render is not None, names
+        with torch.no_grad():
+            full = probe.render(effects).reshape(-1, 3).index_select(0, index)
+            counted = render()
+        assert float((full - data.observed.reshape(-1, 3)[index]).abs().max()) > 0
+        assert torch.equal(counted, full), names
+    # A blur, or a pixelwise effect before a distortion, needs the whole image.
+    blurred = [probe_effect(name, VIEWS, "cpu") for name in ("defocus_blur", "lens_distortion")]
+    assert probe.counted_render(blurred, weight) is None
+    both = [probe_effect(name, VIEWS, "cpu") for name in ("pose_error", "lens_distortion")]
+    assert probe.counted_render(both, weight) is None

@@ -198,3 +198,27 @@ def test_lens_distortion_rejects_bad_options(plane_scene):
     color, alpha = _image(plane_scene)
     with pytest.raises(ReconError, match="cameras"):
         LensDistortion()(color, alpha, None, None)
+
+
+def test_a_blur_module_reuses_its_inputs_spectrum_for_the_same_values():
+    """Without gradients a blur module keeps the spectrum of the image it last blurred: blurring
+    the same tensors again with another covariance gives the values computed anew, and a
+    changed image (in place) is transformed again."""
+    from recon.effects.optics import _blur
+
+    generator = torch.Generator().manual_seed(3)
+    color = torch.rand(2, 24, 20, 3, generator=generator)
+    alpha = torch.rand(2, 24, 20, 1, generator=generator)
+    module = MotionBlur(view_count=2)
+    padding = math.ceil(3.5 * module.max_length_px / math.sqrt(12.0)) + 1
+    with torch.no_grad():
+        for line in ([[0.5, 0.2], [0.1, -0.3]], [[0.6, 0.2], [0.1, -0.3]], [[4.0, 1.0], [0, 0]]):
+            module.line.copy_(torch.tensor(line))
+            kept = module(color, alpha, None, torch.arange(2))
+            covariance = module.covariances()
+            plain = _blur(color, alpha, covariance, padding)  # no keeper: computed anew
+            assert torch.equal(kept[0], plain[0]) and torch.equal(kept[1], plain[1])
+        assert module._kept_spectra[3]  # spectra were kept
+        color.mul_(0.5)  # the same tensor changed: not the kept spectrum
+        again = module(color, alpha, None, torch.arange(2))
+        assert torch.equal(again[0], _blur(color, alpha, module.covariances(), padding)[0])
