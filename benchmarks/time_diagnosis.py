@@ -7,13 +7,15 @@ their ratios. Measuring both in the same process, one after the other, keeps the
 the machine's drift between a benchmark's fit and its diagnosis.
 
     recon-bench time-diagnosis RUN [RUN ...] [--out /tmp/time_diagnosis] [--threads 2]
-        [--refit none|top|greedy]
+        [--refit none|top|greedy] [--repeats 3]
 
 A RUN fitted from an existing dataset (`recon fit CONFIG --data DATASET`) has no dataset of its
 own: the copy fits that dataset where the config names it. Each result carries the ratio
 diagnosis / fit (`diagnosis_share_of_fit`, the issue's target is 0.20 with `--refit none`), the
 diagnosis' stage timings and the load average before the fit, after it and after the diagnosis
 (the seconds on a shared machine are upper bounds; compare ratios measured at similar loads).
+With `--repeats N` the diagnosis runs N times on the one fit and the times are medians (each
+run's seconds are listed too): a single diagnosis of half a minute moves by a tenth between runs.
 
 The README's table: one case of every kind from a benchmark folder B (nothing else running):
 
@@ -30,6 +32,7 @@ import argparse
 import json
 import os
 import shutil
+import statistics
 import sys
 import time
 from pathlib import Path
@@ -53,6 +56,12 @@ def main(argv: list[str] | None = None) -> int:
         default="top",
         choices=["none", "top", "greedy"],
         help="the diagnosis' refit (default top; the issue's 20 %% target is for none)",
+    )
+    parser.add_argument(
+        "--repeats",
+        type=int,
+        default=1,
+        help="diagnose each fit this many times and report the medians (default 1)",
     )
     arguments = parser.parse_args(argv)
     torch.set_num_threads(arguments.threads)
@@ -80,11 +89,14 @@ def main(argv: list[str] | None = None) -> int:
         run_stages(config, paths, torch.device("cpu"), ["fit"], None)
         fit_seconds = time.perf_counter() - started
         load["after_fit"] = _load_average()
-        started = time.perf_counter()
-        diagnosis = run_diagnosis(paths, config, torch.device("cpu"), refit=arguments.refit)
-        wall_seconds = time.perf_counter() - started
+        runs = []
+        for _ in range(max(arguments.repeats, 1)):
+            started = time.perf_counter()
+            diagnosis = run_diagnosis(paths, config, torch.device("cpu"), refit=arguments.refit)
+            runs.append((time.perf_counter() - started, diagnosis.timings))
         load["after_diagnosis"] = _load_average()
-        timings = diagnosis.timings
+        timings = _median_timings([run_timings for _, run_timings in runs])
+        wall_seconds = statistics.median(wall for wall, _ in runs)
         results.append(
             {
                 "run": str(source),
@@ -102,12 +114,29 @@ def main(argv: list[str] | None = None) -> int:
                 "verdict": diagnosis.verdict,
                 "refit": arguments.refit,
                 "stage_seconds": timings["stages"],
+                "diagnose_seconds_runs": [
+                    run_timings["diagnose_seconds"] for _, run_timings in runs
+                ],
                 "load_average": load,
                 "threads": arguments.threads,
             }
         )
     print(json.dumps(results, indent=2))
     return 0
+
+
+def _median_timings(runs: list[dict]) -> dict:
+    """Each timing of several diagnoses of one fit (diagnose and refit seconds, stage seconds)
+    as its median over the runs."""
+    median = {"diagnose_seconds": round(statistics.median(r["diagnose_seconds"] for r in runs), 2)}
+    refits = [r["refit_seconds"] for r in runs if r.get("refit_seconds") is not None]
+    if refits:
+        median["refit_seconds"] = round(statistics.median(refits), 2)
+    median["stages"] = {
+        stage: round(statistics.median(r["stages"].get(stage, 0.0) for r in runs), 2)
+        for stage in runs[0]["stages"]
+    }
+    return median
 
 
 def _load_average() -> float | None:

@@ -23,3 +23,13 @@ def test_time_diagnosis_prints_the_ratio_stages_and_load(tiny_run, tmp_path, cap
     # the copy was fitted and diagnosed, the source left alone
     copy = tmp_path / tiny_run.parent.name / tiny_run.name
     assert (copy / "diagnosis.json").exists() and (copy / "mesh").is_dir()
+
+
+def test_time_diagnosis_repeats_report_the_median_of_the_runs(tiny_run, tmp_path, capsys):
+    arguments = [str(tiny_run), "--out", str(tmp_path), "--threads", "1", "--refit", "none"]
+    assert main([*arguments, "--repeats", "3"]) == 0
+    (result,) = json.loads(capsys.readouterr().out)
+    runs = result["diagnose_seconds_runs"]
+    assert len(runs) == 3 and all(seconds > 0 for seconds in runs)
+    assert result["diagnose_seconds"] == sorted(runs)[1]
+    assert result["stage_seconds"]["probes"] >= 0
