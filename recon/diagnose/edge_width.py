@@ -174,7 +174,7 @@ def edge_evidence(data: DiagnosisData, options: GeometricSpecificityConfig) -> l
     if measurement is None:
         return []
     anisotropy = float(measurement["anisotropy"])
-    if anisotropy != anisotropy:
+    if math.isnan(anisotropy):
         return []
     threshold = options.edge_anisotropy_margin * float(measurement["null"])
     favours = MOTION if anisotropy > threshold else DEFOCUS

@@ -149,11 +149,13 @@ def _blur(
             kept = (weakref.ref(color), weakref.ref(alpha), versions, {})
             keeper._kept_spectra = kept
         spectra = kept[3]
-        if len(spectra) >= _KEPT_SPECTRA:
-            spectra.clear()
     elif keeper is not None:
         keeper._kept_spectra = None
     stacked = gaussian_blur(torch.cat([color, alpha], dim=-1), covariance, max_padding, spectra)
+    if spectra is not None and len(spectra) > _KEPT_SPECTRA:
+        # The oldest padding goes (dicts keep insertion order); a kept one is never dropped
+        # before it is asked for again.
+        spectra.pop(next(iter(spectra)))
     channels = color.shape[-1]
     return stacked[..., :channels], stacked[..., channels:]
 

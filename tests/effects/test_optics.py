@@ -222,3 +222,24 @@ def test_a_blur_module_reuses_its_inputs_spectrum_for_the_same_values():
         color.mul_(0.5)  # the same tensor changed: not the kept spectrum
         again = module(color, alpha, None, torch.arange(2))
         assert torch.equal(again[0], _blur(color, alpha, module.covariances(), padding)[0])
+
+
+def test_a_blur_module_keeps_a_bounded_number_of_spectra_and_the_latest():
+    """Blurs of growing size need growing paddings (other FFT sizes): the module keeps at most
+    _KEPT_SPECTRA of them, the oldest dropped first, the one just used always kept."""
+    from recon.effects.optics import _KEPT_SPECTRA
+
+    generator = torch.Generator().manual_seed(4)
+    color = torch.rand(2, 24, 20, 3, generator=generator)
+    alpha = torch.rand(2, 24, 20, 1, generator=generator)
+    module = MotionBlur(view_count=2, max_length_px=24.0)
+    sizes = []
+    with torch.no_grad():
+        for length in (0.5, 2.0, 4.0, 6.0, 9.0, 12.0, 16.0, 20.0):
+            module.line.copy_(torch.tensor([[length, 0.0], [0.0, length]]))
+            module(color, alpha, None, torch.arange(2))
+            spectra = module._kept_spectra[3]
+            sizes.append(len(spectra))
+    # more paddings than kept were used; the kept ones are bounded and never all dropped at once
+    assert len(set(sizes)) > 1 and sizes == sorted(sizes)
+    assert max(sizes) <= _KEPT_SPECTRA and sizes[-1] == _KEPT_SPECTRA
