@@ -487,6 +487,11 @@ def build_parser() -> argparse.ArgumentParser:
     broad.add_argument("--real-resolution", type=int, default=96, help="photos' longer side")
     broad.add_argument("--real-view-every", type=int, default=2, help="keep every N-th photo")
     broad.add_argument(
+        "--real-config",
+        type=Path,
+        help="the real world's fit config (default configs/bench/blind_real.yaml)",
+    )
+    broad.add_argument(
         "--doc",
         help="also write the Markdown page here (its figure and calibration.json beside it)",
     )
@@ -509,14 +514,22 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def real_options(arguments: argparse.Namespace):
+    """The real-photo world's RealOptions from the command line (--real-*)."""
+    from benchmarks.blind.collect import RealOptions
+
+    chosen = {"config": arguments.real_config} if arguments.real_config else {}
+    return RealOptions(
+        max_resolution=arguments.real_resolution, view_every=arguments.real_view_every, **chosen
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the benchmark and print its summary as JSON."""
     from recon import pipeline
 
     arguments = build_parser().parse_args(argv)
     if arguments.worlds:
-        from benchmarks.blind.collect import RealOptions
-
         pairs = [
             tuple(pair.split("+")) for pair in arguments.pairs.split(",") if pair and "+" in pair
         ]
@@ -530,9 +543,7 @@ def main(argv: list[str] | None = None) -> int:
             seeds=[int(seed) for seed in arguments.seeds.split(",")],
             pairs=pairs,
             refit=arguments.refit or "none",
-            real_options=RealOptions(
-                max_resolution=arguments.real_resolution, view_every=arguments.real_view_every
-            ),
+            real_options=real_options(arguments),
             doc=arguments.doc,
             command=_reproducing_command(argv if argv is not None else sys.argv[1:]),
             collect_only=arguments.collect_only,

@@ -174,3 +174,22 @@ def test_tiny_broadened_benchmark_writes_every_metric(tmp_path):
     )
     assert again["loso"] == summary["loso"]
     assert json.loads((out / "collected.json").read_text())["cases"][0] == started
+
+
+def test_the_real_world_takes_its_size_views_and_fit_config_from_the_command_line(tmp_path):
+    from benchmarks.blind.collect import RealOptions
+    from benchmarks.diagnose_blind import build_parser, real_options
+
+    base = ["configs/bench/diagnose_blind_48.yaml", "--out", str(tmp_path), "--worlds", "real"]
+    default = real_options(build_parser().parse_args(base))
+    assert default == RealOptions()
+    assert default.config.name == "blind_real.yaml" and default.config.exists()
+    chosen = real_options(
+        build_parser().parse_args(
+            base
+            + ["--real-resolution", "192", "--real-view-every", "3"]
+            + ["--real-config", str(tmp_path / "blind_real_192.yaml")]
+        )
+    )
+    assert (chosen.max_resolution, chosen.view_every) == (192, 3)
+    assert chosen.config == tmp_path / "blind_real_192.yaml"
