@@ -506,7 +506,10 @@ def decide(candidate: Candidate, config: DecisionConfig) -> Candidate:
         elif status != "significant":
             # A miss the data could not have avoided: say so instead of a silent miss.
             status = "not_identifiable"
-            why = f"not identifiable from this data, because {condition.reason}{settle}"
+            why = (
+                f"not identifiable from this data, because {condition.reason}{settle}"
+                f"{_probe_reading(candidate)}"
+            )
         elif confusable is not None:
             # Cleared, but the data cannot tell it from a named effect: both are reported.
             status = "ambiguous"
@@ -525,6 +528,33 @@ def decide(candidate: Candidate, config: DecisionConfig) -> Candidate:
     kinds = RULES[deciding.kind].parameters_from if candidate.significant else ()
     candidate.parameters = _parameters(candidate, kinds or UNDECIDED_PARAMETERS)
     return candidate
+
+
+def _probe_reading(candidate: Candidate) -> str:
+    """What the candidate's probe recovered, for a verdict that cannot name it: "; its probe
+    reads ..." with its scalar parameters and held-out reduction (a lower bound above zero is
+    a measurement the data supports but cannot attribute; at or below zero, nothing), or ""
+    without a measured probe."""
+    probe = candidate.evidence_of("probe")
+    if probe is None or not probe.counts:
+        return ""
+    interval = probe.details.get("interval")
+    reduction = probe.details.get("reduction")
+    if not interval or reduction is None or reduction != reduction:
+        return ""
+    low, high = float(interval[0]), float(interval[1])
+    if low <= 0.0:
+        return f"; its probe removes nothing beyond noise (lower bound {100 * low:.2f} %)"
+    scalars = [
+        f"{name} {float(value):.3g}"
+        for name, value in (probe.details.get("parameters") or {}).items()
+        if isinstance(value, int | float)
+    ][:3]
+    fitted = f" with {', '.join(scalars)}" if scalars else ""
+    return (
+        f"; its probe fits the held-out views{fitted}, removing {100 * float(reduction):.2f} % "
+        f"of their error ({100 * low:.2f} to {100 * high:.2f} %)"
+    )
 
 
 def _settles(candidate: Candidate, kinds: list[str] | tuple[str, ...]) -> bool:

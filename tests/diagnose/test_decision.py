@@ -283,7 +283,8 @@ def test_a_miss_the_data_cannot_avoid_says_not_identifiable_and_the_capture():
     assert curve.status == "not_identifiable" and not curve.significant
     assert curve.why == (
         "not identifiable from this data, because one light and no exposure change; "
-        "a second light would make it identifiable"
+        "a second light would make it identifiable; its probe fits the held-out views, "
+        "removing 0.75 % of their error (0.50 to 1.00 %)"
     )
     assert verdict_of(ranking) == (
         "no significant unmodelled effect; not identifiable from this data: response_curve"
@@ -310,6 +311,45 @@ def test_a_miss_the_data_cannot_avoid_says_not_identifiable_and_the_capture():
     recorded.add(Evidence("metadata", "exposure", 0.5, 0.0, False, "EXIF disagrees"))
     recorded.add(condition("exposure", "one gain per view"))
     assert decide(recorded, CONFIG).status == "vetoed" and recorded.why == "EXIF disagrees"
+
+
+def test_a_not_identifiable_verdict_says_what_its_probe_measured():
+    # The real capture's defocus: the probe recovers the blur (its interval clear of zero) yet
+    # stays far under its allowance; the user reads the radius it fits beside the reason.
+    blur = Candidate("defocus_blur")
+    blur.add(
+        evidence(
+            "probe",
+            "defocus_blur",
+            0.004,
+            interval=[0.004, 0.012],
+            reduction=0.0077,
+            parameters={"sigma_px": 0.9085, "equivalent_disk_radius_px": 1.817},
+        )
+    )
+    blur.add(condition("defocus_blur", "the fit's own misfit hides a blur this size"))
+    decide(blur, CONFIG)
+    assert blur.status == "not_identifiable"
+    assert blur.why.endswith(
+        "; its probe fits the held-out views with sigma_px 0.908, equivalent_disk_radius_px "
+        "1.82, removing 0.77 % of their error (0.40 to 1.20 %)"
+    )
+    # A probe whose interval reaches zero measured nothing: it is not passed off as a reading.
+    clean = Candidate("defocus_blur")
+    clean.add(
+        evidence(
+            "probe",
+            "defocus_blur",
+            -0.0003,
+            interval=[-0.0003, 0.0003],
+            reduction=0.0,
+            parameters={"sigma_px": 0.196},
+        )
+    )
+    clean.add(condition("defocus_blur", "the fit's own misfit hides a blur this size"))
+    decide(clean, CONFIG)
+    assert clean.why.endswith("; its probe removes nothing beyond noise (lower bound -0.03 %)")
+    assert "sigma_px" not in clean.why
 
 
 def test_a_cleared_candidate_confusable_with_a_named_effect_is_significant_but_ambiguous():
