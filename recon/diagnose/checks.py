@@ -49,7 +49,11 @@ from recon.diagnose.identifiability import (
     vignetting_evidence,
     white_balance_evidence,
 )
-from recon.diagnose.metadata_check import exif_exposure_gains, metadata_evidence
+from recon.diagnose.metadata_check import (
+    exif_exposure_gains,
+    metadata_evidence,
+    white_balance_record_evidence,
+)
 from recon.diagnose.nulls import null_evidence, split_half_evidence
 from recon.diagnose.records import Candidate, Evidence
 from recon.diagnose.specificity import SIGNATURES, specificity_evidence
@@ -257,10 +261,23 @@ def gain_producer(
 def metadata_producer(
     inputs: EvidenceInputs, candidates: list[Candidate], settings: DiagnoseConfig
 ) -> list[Evidence]:
-    """The recovered exposure against the held-out views' EXIF exposure, when they have it.
+    """The recovered exposure against the held-out views' EXIF exposure, and a white balance
+    against their EXIF white-balance mode, where they have them.
 
     The gains compared are the ones the exposure reports: read apart from the highlight (the
     gain evidence) where that ran, else the probe's."""
+    evidence = []
+    if any(candidate.name == "white_balance" for candidate in candidates):
+        metadata = inputs.heldout.metadata if inputs.heldout is not None else None
+        recorded = white_balance_record_evidence(metadata)
+        evidence += [recorded] if recorded is not None else []
+    return evidence + _exposure_metadata(inputs, candidates, settings)
+
+
+def _exposure_metadata(
+    inputs: EvidenceInputs, candidates: list[Candidate], settings: DiagnoseConfig
+) -> list[Evidence]:
+    """The metadata producer's exposure part: [] without EXIF exposure or an exposure reading."""
     known = _exposure_gains(inputs)
     exposure = next((item for item in candidates if item.name == "exposure"), None)
     source, ratios = _reported_exposure_ratios(exposure) if exposure is not None else ("", None)

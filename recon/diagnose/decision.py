@@ -60,7 +60,8 @@ identifiability  qualify    a failed check on a candidate that did not clear, or
                             not separable from this data, because ..."; otherwise the
                             condition qualifies its why
 metadata      veto          the capture's own record (EXIF exposure) disagrees with what the
-                            candidate recovered: the camera did not do it, so it is not named
+                            candidate recovered, or (EXIF white-balance mode) says the camera
+                            held its colour gains: the camera did not do it, so it is not named
                             (the gains are some other per-view change, e.g. the model's
                             mismatch); an agreeing record changes nothing
 gain          inform        the exposure's per-view gains read apart from a highlight lobe

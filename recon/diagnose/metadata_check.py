@@ -1,4 +1,5 @@
-"""Capture metadata as a check on the diagnosis: recovered exposure against EXIF exposure.
+"""Capture metadata as a check on the diagnosis: recovered exposure against EXIF exposure, and
+a white balance against the camera's recorded white-balance mode.
 
 Real photos often carry their exposure (exposure time x ISO / f-number^2, recon.io.exif). When
 they do, a recovered per-view exposure is a claim that can be checked: up to one common scale
@@ -7,6 +8,12 @@ the median ratio error (|recovered / EXIF - 1| after the common scale), the corr
 log gains over views, and the same error of the baseline that predicts the same exposure for
 every view: a recovered exposure that does no better than "all equal" has not found the
 camera's exposure, whatever it absorbed.
+
+The EXIF WhiteBalance tag says whether the camera set its colour gains itself (auto) or held
+them (manual). Under a manual white balance in every held-out view, a colour change from view to
+view is not the camera's, whatever the probe removes: on a glossy real object it is the
+reflected surroundings, which a diffuse model cannot render (the check vetoes the candidate).
+Under auto, the record leaves it possible and the other evidence decides.
 
 The producer returns recon.diagnose.records.Evidence of kind "metadata".
 """
@@ -135,3 +142,33 @@ def metadata_evidence(
             else "EXIF exposure",
         },
     )
+
+
+def white_balance_record_evidence(
+    metadata: Sequence[dict[str, Any]] | None, candidate: str = "white_balance"
+) -> Evidence | None:
+    """The held-out views' EXIF white-balance modes (recon.io.exif: "auto" or "manual") as
+    evidence on a per-view white balance: failed (a veto) when every view records a manual
+    white balance, passed when any records auto; None when a view has no record (a photo
+    without the tag, or rendered data), which is no evidence either way."""
+    if not metadata:
+        return None
+    modes = [(record or {}).get("white_balance") for record in metadata]
+    if any(mode is None for mode in modes):
+        return None
+    manual = sum(mode == "manual" for mode in modes)
+    share = manual / len(modes)
+    passed = manual < len(modes)
+    if passed:
+        reason = (
+            f"the capture's EXIF records an automatic white balance in {len(modes) - manual} of "
+            f"{len(modes)} held-out views: the camera may have changed its colour gains"
+        )
+    else:
+        reason = (
+            f"the capture's EXIF records a manual white balance in all {len(modes)} held-out "
+            "views: the camera held its colour gains, so a colour change from view to view is "
+            "not the camera's"
+        )
+    details = {"views": len(modes), "manual_views": manual, "compared_with": "EXIF WhiteBalance"}
+    return Evidence(KIND, candidate, share, 1.0, passed, reason, details)

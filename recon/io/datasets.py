@@ -72,7 +72,8 @@ class CaptureSet:
     # Where the masks came from: 'alpha' (the images' alpha channel), 'masks' (mask images),
     # 'key' (a background colour key) or 'none' (no coverage information: masks are all 1).
     mask_source: str = "alpha"
-    # Per image: EXIF exposure_time, f_number, iso, camera_model (None where absent); or None.
+    # Per image: EXIF exposure_time, f_number, iso, white_balance, camera_model (None where
+    # absent; recon.io.exif); or None.
     metadata: list[dict] | None = None
     # Per-view gains [B] the images were divided by on load (dataset.exposure 'exif': the EXIF
     # exposure over the median), or None when the pixels are as stored.

@@ -1,4 +1,5 @@
-"""Capture metadata from a photo's EXIF: exposure time, f-number, ISO and camera model.
+"""Capture metadata from a photo's EXIF: exposure time, f-number, ISO, white-balance mode and
+camera model.
 
 Read with Pillow (only the header is parsed; the pixels are not decoded). A photo without EXIF,
 or a tag that is missing or unreadable, gives None for that value.
@@ -18,8 +19,10 @@ _MAKE, _MODEL = 0x010F, 0x0110
 _EXIF_IFD = 0x8769
 _EXPOSURE_TIME, _F_NUMBER = 0x829A, 0x829D
 _ISO, _ISO_OLD = 0x8827, 0x8833  # PhotographicSensitivity (ISOSpeedRatings) / StandardOutputSens.
+_WHITE_BALANCE = 0xA403  # 0: auto, 1: manual (EXIF 2.3)
+WHITE_BALANCE_MODES = {0: "auto", 1: "manual"}
 
-EXIF_KEYS = ("exposure_time", "f_number", "iso", "camera_model")
+EXIF_KEYS = ("exposure_time", "f_number", "iso", "white_balance", "camera_model")
 
 
 def _positive_number(value: Any) -> float | None:
@@ -34,7 +37,8 @@ def _positive_number(value: Any) -> float | None:
 
 
 def read_exif(path: str | os.PathLike) -> dict[str, float | str | None]:
-    """{exposure_time (s), f_number, iso, camera_model} of one image file (None where absent).
+    """{exposure_time (s), f_number, iso, white_balance ("auto" or "manual"), camera_model} of
+    one image file (None where absent).
 
     Files Pillow cannot open (EXR) or without EXIF give all None.
     """
@@ -52,6 +56,8 @@ def read_exif(path: str | os.PathLike) -> dict[str, float | str | None]:
     result["iso"] = _positive_number(
         sub.get(_ISO, sub.get(_ISO_OLD, exif.get(_ISO, exif.get(_ISO_OLD))))
     )
+    mode = sub.get(_WHITE_BALANCE, exif.get(_WHITE_BALANCE))
+    result["white_balance"] = WHITE_BALANCE_MODES.get(mode) if isinstance(mode, int) else None
     model = exif.get(_MODEL)
     if isinstance(model, bytes):
         model = model.decode("ascii", "replace")

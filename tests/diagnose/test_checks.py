@@ -23,6 +23,7 @@ from recon.cli import main
 from recon.config.run_config import DatasetConfig, DiagnoseConfig, IdentifiabilityConfig
 from recon.diagnose.checks import CHECK_PRODUCERS, identifiability_producer, metadata_producer
 from recon.diagnose.data import build_diagnosis_data
+from recon.diagnose.decision import decide
 from recon.diagnose.metadata_check import exif_exposure_gains, metadata_evidence
 from recon.diagnose.pixel_table import dominant_light_direction, view_directions
 from recon.diagnose.producers import PRODUCERS
@@ -97,9 +98,12 @@ def test_the_producers_read_their_sections_from_the_diagnose_config():
     assert refused.threshold == 0.0 and accepted.threshold == 1.0
 
 
-def exif_photo_folder(folder: Path, exposure_times: list[float]) -> None:
+def exif_photo_folder(
+    folder: Path, exposure_times: list[float], white_balance: list[int] | None = None
+) -> None:
     """An LLFF folder of tiny JPEG photos (a grey square on white) whose EXIF (written by
-    Pillow) holds the given exposure times at f/8, ISO 400."""
+    Pillow) holds the given exposure times at f/8, ISO 400, and where given the white-balance
+    modes (EXIF codes: 0 auto, 1 manual)."""
     count = len(exposure_times)
     eyes = torch.tensor([[0.5 * index - 1.0, 0.2, 4.0] for index in range(count)])
     cam_to_world = rigid_inverse(look_at(eyes, torch.zeros(count, 3)).double()).numpy()
@@ -114,6 +118,8 @@ def exif_photo_folder(folder: Path, exposure_times: list[float]) -> None:
         tags = Image.Exif()
         sub = tags.get_ifd(0x8769)  # the EXIF sub-IFD
         sub[0x829A], sub[0x829D], sub[0x8827] = exposure_time, 8.0, 400
+        if white_balance is not None:
+            sub[0xA403] = white_balance[index]
         Image.fromarray(photo).save(folder / "images" / f"IMG_{index}.jpg", exif=tags)
 
 
@@ -247,3 +253,37 @@ def test_a_distortion_whose_null_passed_is_judged_not_the_reference():
 
     assert _recovered_distortion(lens(True)) == (7.4, (-0.22, 3.9))
     assert _recovered_distortion(lens(False)) == (None, None)
+
+
+@pytest.mark.parametrize("modes", [[1] * 10, [1, 1, 1, 0, 1, 1, 1, 1, 1, 1], None])
+def test_a_white_balance_under_a_recorded_manual_white_balance_is_vetoed(tmp_path, modes):
+    # A per-view colour change that clears its probe: under a manual white balance recorded in
+    # every held-out view it is not the camera's (on a glossy real object, the reflected
+    # surroundings); one automatic view, or no record at all, leaves the probe's verdict.
+    exif_photo_folder(tmp_path, [0.01] * 10, modes)
+    heldout = read_captures(tmp_path, "train", DatasetConfig(background_key=[1.0, 1.0, 1.0]))
+    views = len(heldout)  # the train split stands in for held-out views here
+    colour = Candidate("white_balance")
+    gains = {"parameters": {"gains": [[1.1, 1.0, 0.9]] * len(heldout)}}
+    colour.add(Evidence("probe", "white_balance", 0.1, 0.02, True, "probe", gains))
+    inputs = SimpleNamespace(data=None, heldout=heldout)
+    found = metadata_producer(inputs, [colour], DiagnoseConfig())
+    if modes is None:
+        assert found == []
+        assert decide(colour, DiagnoseConfig().decision).significant
+        return
+    (record,) = found
+    assert record.kind == "metadata" and record.candidate == "white_balance"
+    all_manual = all(modes)
+    assert record.passed == (not all_manual)
+    assert record.details["manual_views"] == (views if all_manual else views - 1)
+    for item in found:
+        colour.add(item)
+    decide(colour, DiagnoseConfig().decision)
+    if all_manual:
+        assert colour.status == "vetoed" and not colour.significant
+        assert colour.why.startswith(
+            f"the capture's EXIF records a manual white balance in all {views} held-out views"
+        )
+    else:
+        assert colour.significant and f"automatic white balance in 1 of {views}" in record.reason

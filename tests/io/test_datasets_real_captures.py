@@ -35,7 +35,8 @@ def llff_rows(
 
 
 def write_jpeg(path: Path, rgb: np.ndarray, exif: dict | None = None) -> None:
-    """An 8-bit RGB JPEG (quality 100), with EXIF {exposure_time, f_number, iso, model}."""
+    """An 8-bit RGB JPEG (quality 100), with EXIF {exposure_time, f_number, iso, model} and,
+    where given, white_balance (the EXIF code: 0 auto, 1 manual)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     image = Image.fromarray(rgb.astype(np.uint8), mode="RGB")
     tags = Image.Exif()
@@ -45,6 +46,8 @@ def write_jpeg(path: Path, rgb: np.ndarray, exif: dict | None = None) -> None:
         sub[0x829A] = exif["exposure_time"]
         sub[0x829D] = exif["f_number"]
         sub[0x8827] = exif["iso"]
+        if "white_balance" in exif:
+            sub[0xA403] = exif["white_balance"]
     image.save(path, quality=100, exif=tags)
 
 
@@ -70,6 +73,7 @@ def photo_folder(
         exif = None
         if exposures is not None:
             exif = {"exposure_time": exposures[index], "f_number": 8.0, "iso": 400, "model": "X1"}
+            exif["white_balance"] = index % 2  # auto and manual in turn
         write_jpeg(folder / "images" / f"IMG_{index}.jpg", photos[index], exif)
         # Mask stems in reverse: sorted order would pair IMG_0 with the last mask.
         name = f"IMG_{index}"
@@ -193,8 +197,10 @@ def test_exif_is_read_per_image_and_gives_known_gains(tmp_path: Path) -> None:
         "exposure_time": pytest.approx(0.2),
         "f_number": pytest.approx(8.0),
         "iso": pytest.approx(400.0),
+        "white_balance": "manual",
         "camera_model": "X1",
     }
+    assert read_exif(tmp_path / "images" / "IMG_2.jpg")["white_balance"] == "auto"
     assert exposure_value(metadata) == pytest.approx(0.2 * 400 / 64)
     plain = read_captures(tmp_path, "train", DatasetConfig())
     assert [m["exposure_time"] for m in plain.metadata] == pytest.approx(exposures[1:])
