@@ -493,6 +493,11 @@ def markdown(result: dict, provenance: dict) -> str:
         "error (absorbed by the fit: nothing of its own to close) are counted, not scored.",
         "Values above 1: the refit's extra steps also improve what the clean fit left.",
         "",
+        "The timing rows are this check's own: its fits are short (a third of the real",
+        "capture config's steps, 40 + 30 steps at 48 px), so a diagnosis of fixed size costs a",
+        "large share of them. The diagnosis's cost against a full fit is recorded by",
+        "`recon-bench time-diagnosis` (docs/bench/time-diagnosis.json).",
+        "",
     ]
     for label, key in (("leave-one-scene-out", "loso"), ("code thresholds", "code")):
         worlds = result[key]["summary"]
