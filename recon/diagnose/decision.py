@@ -550,7 +550,7 @@ def _probe_reading(candidate: Candidate) -> str:
         f"{name} {float(value):.3g}"
         for name, value in (probe.details.get("parameters") or {}).items()
         if isinstance(value, int | float)
-    ][:3]
+    ][:4]
     fitted = f" with {', '.join(scalars)}" if scalars else ""
     return (
         f"; its probe fits the held-out views{fitted}, removing {100 * float(reduction):.2f} % "
