@@ -46,7 +46,7 @@ from recon.effects.registry import MODEL_EFFECTS
 from recon.io.atomic import atomic_path, atomic_write_json, atomic_write_text
 from recon.io.run_folder import open_run_folder, prepare_run_folder
 from recon.stages.diagnose import run_diagnosis
-from recon.sweep.scoring import NONE, BenchCase, score_case
+from recon.sweep.scoring import NONE, PARAMETER_OWNER, BenchCase, score_case
 
 matplotlib.use("Agg")
 
@@ -175,17 +175,10 @@ def summarise(records: list[dict]) -> dict:
 
 def _parameter_errors(records: list[dict]) -> dict[str, list[float]]:
     """Each parameter error over the cases where the withheld effect is that parameter's."""
-    owner = {
-        "exposure_ratio_median": "exposure",
-        "exposure_ratio_max": "exposure",
-        "vignetting_corner_falloff": "vignetting",
-        "vignetting_half_radius_falloff": "vignetting",
-        "response_gamma_absolute": "response_curve",
-    }
     collected: dict[str, list[float]] = {}
     for record in records:
         for key, value in record["parameter_error"].items():
-            if owner.get(key) in record["truth"]:
+            if PARAMETER_OWNER.get(key) in record["truth"]:
                 collected.setdefault(key, []).append(value)
     return collected
 

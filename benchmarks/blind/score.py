@@ -29,17 +29,14 @@ from recon.io.atomic import atomic_path, atomic_write_json, atomic_write_text
 from recon.io.run_folder import RunPaths
 from recon.report.report import recovered_parameters
 from recon.sweep.scoring import NONE, parameter_errors
+from recon.sweep.scoring import PARAMETER_OWNER as SCORED_PARAMETERS
 
 matplotlib.use("Agg")
 
 PARAMETER_OWNER = {
-    "exposure_ratio_median": "exposure",
-    "exposure_ratio_max": "exposure",
+    **SCORED_PARAMETERS,
     "exposure_ratio_median_vs_untouched": "exposure",
     "exposure_ratio_max_vs_untouched": "exposure",
-    "vignetting_corner_falloff": "vignetting",
-    "vignetting_half_radius_falloff": "vignetting",
-    "response_gamma_absolute": "response_curve",
 }
 
 

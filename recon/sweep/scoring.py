@@ -22,6 +22,20 @@ from recon.report.report import recovered_parameters
 # nothing significant.
 NONE = "none"
 
+# Each parameter error of parameter_errors and the effect whose cases it is scored on.
+PARAMETER_OWNER = {
+    "exposure_ratio_median": "exposure",
+    "exposure_ratio_max": "exposure",
+    "vignetting_corner_falloff": "vignetting",
+    "vignetting_half_radius_falloff": "vignetting",
+    "response_gamma_absolute": "response_curve",
+    "white_balance_gain_median": "white_balance",
+    "white_balance_gain_max": "white_balance",
+    "defocus_radius_relative": "defocus_blur",
+    "motion_length_relative_median": "motion_blur",
+    "motion_angle_deg_median": "motion_blur",
+}
+
 
 @dataclass
 class BenchCase:
@@ -138,6 +152,52 @@ def parameter_errors(diagnosis: dict, truth: dict) -> dict:
     model_gamma = model_response.get("effective_gamma")
     if true_gamma and model_gamma:
         errors["response_gamma_absolute"] = abs(model_gamma - true_gamma)
+    errors.update(_white_balance_errors(*pair("white_balance")))
+    model_defocus, true_defocus = pair("defocus_blur")
+    true_radius = true_defocus.get("radius_px")
+    model_radius = model_defocus.get("equivalent_disk_radius_px")
+    if true_radius and model_radius is not None:
+        errors["defocus_radius_relative"] = abs(model_radius - true_radius) / true_radius
+    errors.update(_motion_errors(*pair("motion_blur")))
+    return errors
+
+
+def _white_balance_errors(model: dict, true: dict) -> dict:
+    """Per-view red and blue gains [V, 3] (green 1) against the truth's, each channel normalised
+    by its geometric mean over the views (a colour cast common to every view is the albedo's to
+    the fit): the median and largest relative error over views and the two channels."""
+    model_gains, true_gains = model.get("gains"), true.get("gains")
+    if not model_gains or not true_gains or len(model_gains) != len(true_gains):
+        return {}
+    model_log = torch.tensor(model_gains, dtype=torch.float64)[:, [0, 2]].log()
+    true_log = torch.tensor(true_gains, dtype=torch.float64)[:, [0, 2]].log()
+    relative = (model_log - model_log.mean(0) - (true_log - true_log.mean(0))).exp() - 1
+    return {
+        "white_balance_gain_median": float(relative.abs().median()),
+        "white_balance_gain_max": float(relative.abs().max()),
+    }
+
+
+def _motion_errors(model: dict, true: dict) -> dict:
+    """Per-view blur path lengths (relative) and directions (degrees, modulo 180: a blur has no
+    sense of travel) against the truth's, medians over the views. The truth's paths may curve;
+    the probe fits a straight line, so the length is compared with the path's."""
+    model_lengths, true_lengths = model.get("lengths_px"), true.get("lengths_px")
+    model_angles, true_angles = model.get("angles_deg"), true.get("angles_deg")
+    if not model_lengths or not true_lengths or len(model_lengths) != len(true_lengths):
+        return {}
+    lengths = [
+        abs(found - length) / length
+        for found, length in zip(model_lengths, true_lengths, strict=True)
+        if length > 0
+    ]
+    errors = {"motion_length_relative_median": statistics.median(lengths)} if lengths else {}
+    if model_angles and true_angles and len(model_angles) == len(true_angles):
+        turns = [
+            abs((found - angle + 90.0) % 180.0 - 90.0)
+            for found, angle in zip(model_angles, true_angles, strict=True)
+        ]
+        errors["motion_angle_deg_median"] = statistics.median(turns)
     return errors
 
 

@@ -118,3 +118,51 @@ def test_score_case_reads_top1_pairs_and_false_positives():
         BenchCase((), 101), _diagnosis(["exposure"]), {"withheld": []}, 10.0, 5.0, paths
     )
     assert noisy["false_positive"] is True and noisy["top1_correct"] is False
+
+
+def test_white_balance_blur_and_motion_parameters_are_scored_like_for_like():
+    true_gains = [[1.1, 1.0, 0.9], [0.95, 1.0, 1.05], [1.0, 1.0, 1.0], [0.9, 1.0, 1.1]]
+    truth = {
+        "realised": {
+            "test": [
+                {"name": "white_balance", "parameters": {"gains": true_gains}},
+                {"name": "defocus_blur", "parameters": {"radius_px": 2.0}},
+                {
+                    "name": "motion_blur",
+                    "parameters": {
+                        "lengths_px": [2.0, 4.0, 3.0],
+                        "angles_deg": [10.0, 175.0, 90.0],
+                    },
+                },
+            ]
+        }
+    }
+    # The probe's gains carry a common cast (the albedo's to the fit: not an error) and one
+    # view's red 10 % off; the blur's disk radius is 1.8; the motion lines point the same way
+    # modulo 180 degrees but for 5 degrees in one view and one length 25 % long.
+    found_gains = [[1.2 * red, 1.0, 0.8 * blue] for red, _, blue in true_gains]
+    found_gains[0][0] *= 1.1
+    diagnosis = {
+        "candidates": [
+            {"name": "white_balance", "significant": False, "parameters": {"gains": found_gains}},
+            {
+                "name": "defocus_blur",
+                "significant": False,
+                "parameters": {"equivalent_disk_radius_px": 1.8, "sigma_px": 0.9},
+            },
+            {
+                "name": "motion_blur",
+                "significant": False,
+                "parameters": {"lengths_px": [2.0, 5.0, 3.0], "angles_deg": [190.0, 0.0, 95.0]},
+            },
+        ]
+    }
+    errors = parameter_errors(diagnosis, truth)
+    # Normalised by the geometric mean, the one 10 % red error spreads over the four views.
+    assert errors["white_balance_gain_max"] == pytest.approx(1.1**0.75 - 1, rel=1e-6)
+    assert errors["white_balance_gain_median"] == pytest.approx(0.0, abs=1e-9)
+    assert errors["defocus_radius_relative"] == pytest.approx(0.1)
+    assert errors["motion_length_relative_median"] == pytest.approx(0.0)
+    assert errors["motion_angle_deg_median"] == pytest.approx(5.0)
+    # Nothing recovered, nothing scored.
+    assert parameter_errors({"candidates": []}, truth) == {}
