@@ -533,9 +533,10 @@ def decide(candidate: Candidate, config: DecisionConfig) -> Candidate:
 
 def _probe_reading(candidate: Candidate) -> str:
     """What the candidate's probe recovered, for a verdict that cannot name it: "; its probe
-    reads ..." with its scalar parameters and held-out reduction (a lower bound above zero is
-    a measurement the data supports but cannot attribute; at or below zero, nothing), or ""
-    without a measured probe."""
+    fits the held-out views with ..." (its first four scalar parameters and held-out reduction
+    with its interval) where the interval's lower bound is above zero (a measurement the data
+    supports but cannot attribute), "; its probe removes nothing beyond noise ..." where it is
+    not, or "" without a measured probe."""
     probe = candidate.evidence_of("probe")
     if probe is None or not probe.counts:
         return ""

@@ -92,10 +92,12 @@ def score_case(
 
 
 def parameter_errors(diagnosis: dict, truth: dict) -> dict:
-    """Recovered vs true parameters where the two are comparable: exposure ratios (relative,
-    both normalised by their geometric mean: the fit absorbed the overall scale), the vignetting
-    corner falloff and the falloff half-way to the corner (relative) and the response curve's
-    effective exponent (absolute).
+    """Recovered vs true parameters where the two are comparable (keys: PARAMETER_OWNER):
+    exposure ratios and white-balance red/blue gains per view (relative, normalised by their
+    geometric mean over the views: the fit absorbed the overall scale and cast), the vignetting
+    corner falloff and the falloff half-way to the corner (relative), the response curve's
+    effective exponent (absolute), the defocus disk radius (relative) and the motion blur's
+    per-view path length (relative) and direction (degrees modulo 180).
 
     Parameters come from the first refit that switched the effect on (fitted with the scene on
     the training views, compared with the truth of those views) and otherwise from the probe
