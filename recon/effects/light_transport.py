@@ -410,7 +410,9 @@ class Shadows(ModelEffect):
         which = fragments.covered_batch if per_view else torch.zeros_like(fragments.covered_batch)
         direction = directions.to(dtype)[which]  # [N, 3]
         cosine = (normals * direction).sum(-1).clamp(0.05, 1.0)
-        slope = torch.sqrt(1 - cosine * cosine) / cosine
+        # (The floor keeps sqrt's derivative finite where a normal faces the light square on:
+        # at zero it is infinite, and times the clamp's zero it is NaN for the whole backward.)
+        slope = torch.sqrt((1 - cosine * cosine).clamp_min(1e-12)) / cosine
         texel = 2.0 / self.map_resolution  # NDC units
         bias = texel * (self.bias_texels + self.slope_bias_texels * slope.clamp(max=10.0))
         ndc = frames.to_ndc(points)  # [K, N, 3]

@@ -420,3 +420,23 @@ def test_a_turned_light_is_the_light_turned():
     # (within the shadow maps' texel sampling of a coarse mesh)
     assert float(turned.mean()) == pytest.approx(float(same.mean()), abs=0.03)
     assert float((turned - same).abs().max()) > 0.2  # but not at the same vertices
+
+
+@pytest.mark.parametrize("overshoot", [0.0, 1e-6])
+def test_a_surface_facing_the_light_square_on_has_finite_shadow_gradients(shadow_scene, overshoot):
+    # Where a normal points straight at the light (n.l = 1, or a hair over after rounding) the
+    # slope bias's sqrt(1 - n.l^2) sits at zero: its derivative must not turn the whole
+    # backward pass into NaN (a refit diverged on a path-traced torus this way).
+    direction = torch.tensor([0.0, 1.0, 0.0])
+    covered = shadow_scene.output.mask > 0
+    normals = shadow_scene.output.normals.detach().clone()
+    normals[covered[..., 0]] = direction * (1.0 + overshoot)
+    normals.requires_grad_(True)
+    verts = shadow_scene.mesh.verts.detach().clone().requires_grad_(True)
+    mesh = replace(shadow_scene.mesh, verts=verts)
+    output = replace(shadow_scene.output, normals=normals)
+    sun = direction.clone().requires_grad_(True)
+    visibility = Shadows(map_resolution=64).visibility(output, mesh, sun / sun.norm())
+    visibility.sum().backward()
+    for name, tensor in (("normals", normals), ("verts", verts), ("light", sun)):
+        assert tensor.grad is not None and bool(torch.isfinite(tensor.grad).all()), name
