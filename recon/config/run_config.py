@@ -1145,6 +1145,57 @@ class MetadataConfig:
 
 
 @dataclass
+class BackdropConfig:
+    """The backdrop check (recon.diagnose.backdrop): a per-view camera gain (exposure, white
+    balance) scales the whole frame, so where the photos share a static backdrop, its change
+    from view to view is the camera's, read apart from the object's reflectance."""
+
+    object_margin_pixels: int = setting(
+        2,
+        "Pixels around the object's mask (dilated) left out of the backdrop: the mask's edge and the object's blur.",
+    )
+    darkest: float = setting(
+        0.01,
+        "Backdrop pixels with a linear channel below this are left out (their log is noise and 8-bit steps).",
+    )
+    brightest: float = setting(
+        0.97,
+        "Backdrop pixels with a linear channel above this are left out (clipped: a gain does not scale them).",
+    )
+    static_tolerance: float = setting(
+        0.08,
+        "A backdrop pixel is static when its log colour, per-view gain removed, stays within this of its median over the views (median absolute deviation): the same surface under the same light in every frame.",
+    )
+    minimum_pixels: int = setting(
+        100,
+        "Static backdrop pixels needed for a reading; with fewer (a moving camera, a transparent or clipped background) the check does not apply.",
+    )
+    minimum_views: int = setting(3, "Held-out views needed for a reading.")
+    detectable_factor: float = setting(
+        3.0,
+        "The check applies only where the change the object's gains show (RMS over the views) is this many times the backdrop's reading noise (its top and bottom halves' difference): a change the backdrop could not see is no evidence either way.",
+    )
+    minimum_explained: float = setting(
+        0.5,
+        "The share of the object's gain change (1 - RMS(object - backdrop) / RMS(object), log gains over the views) the backdrop must show for the gain to be the camera's: at least half.",
+    )
+
+    def __post_init__(self) -> None:
+        check_range(self.object_margin_pixels, "object_margin_pixels", low=0)
+        check_range(self.darkest, "darkest", low=0.0, high=1.0)
+        check_range(self.brightest, "brightest", low=0.0, high=1.0)
+        check_range(self.static_tolerance, "static_tolerance", low=0.0)
+        check_range(self.minimum_pixels, "minimum_pixels", low=1)
+        check_range(self.minimum_views, "minimum_views", low=3)
+        check_range(self.detectable_factor, "detectable_factor", low=0.0)
+        check_range(self.minimum_explained, "minimum_explained", low=0.0, high=1.0)
+        if self.darkest >= self.brightest:
+            raise ConfigFieldError(
+                "darkest", f"expected below brightest ({self.brightest}), got {self.darkest}"
+            )
+
+
+@dataclass
 class LobeConfig:
     """The lobe evidence (recon.diagnose.lobe): the view-to-view residual against a highlight's
     lobe under the fitted light, on the training and held-out views, against placebo lights."""
@@ -1446,6 +1497,10 @@ class DiagnoseConfig:
     )
     metadata: MetadataConfig = setting(
         factory=MetadataConfig, doc="Recovered exposure against the capture's EXIF exposure."
+    )
+    backdrop: BackdropConfig = setting(
+        factory=BackdropConfig,
+        doc="The camera's per-view gains read off a static backdrop, against the object's.",
     )
     lobe: LobeConfig = setting(
         factory=LobeConfig,

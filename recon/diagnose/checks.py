@@ -23,6 +23,9 @@ built-in evidence; the decision table (recon.diagnose.decision) says what each k
   to view hides in the fit's per-view colour noise: details["capture"] says what would
   settle it; the decision makes a miss "not identifiable from this data, because ..." and a
   cleared candidate confusable with a named effect ambiguous.
+- backdrop (recon.diagnose.backdrop): a per-view gain (exposure, white balance) recovered on the
+  object against the same views' static backdrop, where the photos have one: a gain the
+  backdrop does not show is not the camera's (a veto).
 - metadata (recon.diagnose.metadata_check): the recovered exposure against EXIF exposure when
   every held-out view has it, or against equal gains when the images were already divided by
   it (dataset.exposure 'exif'); a disagreement vetoes exposure (the camera's own record says it was not the exposure).
@@ -37,6 +40,12 @@ import torch
 
 from recon.config.run_config import DiagnoseConfig
 from recon.diagnose.agreement import agreement_evidence
+from recon.diagnose.backdrop import (
+    GAIN_CANDIDATES,
+    backdrop_evidence,
+    object_log_gains,
+    read_backdrop,
+)
 from recon.diagnose.camera_gain import gain_evidence
 from recon.diagnose.decision import DECISION_TABLE, probe_threshold
 from recon.diagnose.geometric_specificity import could_clear
@@ -309,6 +318,35 @@ def _reported_exposure_ratios(exposure: Candidate) -> tuple[str, list[float] | N
     return "", None
 
 
+def backdrop_producer(
+    inputs: EvidenceInputs, candidates: list[Candidate], settings: DiagnoseConfig
+) -> list[Evidence]:
+    """The per-view gains recovered on the object (exposure: the ratios it reports; white
+    balance: its probe's gains) against the held-out views' static backdrop, where the photos
+    have one (CaptureSet.frames)."""
+    gained = [candidate for candidate in candidates if candidate.name in GAIN_CANDIDATES]
+    heldout = inputs.heldout
+    if not gained or heldout is None or heldout.frames is None:
+        return []
+    reading = read_backdrop(heldout.frames, heldout.masks, settings.backdrop)
+    if reading is None:
+        return []
+    evidence = []
+    for candidate in gained:
+        if candidate.name == "exposure":
+            ratios = _reported_exposure_ratios(candidate)[1]
+            parameters = {"ratios": ratios} if ratios is not None else {}
+        else:
+            probe = candidate.evidence_of("probe")
+            parameters = (probe.details.get("parameters") or {}) if probe is not None else {}
+        recovered = object_log_gains(candidate.name, parameters)
+        if recovered is None:
+            continue
+        found = backdrop_evidence(candidate.name, recovered, reading, settings.backdrop)
+        evidence += [found] if found is not None else []
+    return evidence
+
+
 CHECK_PRODUCERS = [
     agreement_producer,
     null_producer,
@@ -316,4 +354,5 @@ CHECK_PRODUCERS = [
     identifiability_producer,
     gain_producer,
     metadata_producer,
+    backdrop_producer,
 ]

@@ -64,6 +64,11 @@ metadata      veto          the capture's own record (EXIF exposure) disagrees w
                             held its colour gains: the camera did not do it, so it is not named
                             (the gains are some other per-view change, e.g. the model's
                             mismatch); an agreeing record changes nothing
+backdrop      veto          the static backdrop in the same frames does not show the per-view
+                            gain the candidate (exposure, white balance) recovered on the
+                            object (recon.diagnose.backdrop): a camera's gain scales the whole
+                            frame, so the gain is the object's own change (its view-dependent
+                            reflectance); a backdrop that shows it changes nothing
 gain          inform        the exposure's per-view gains read apart from a highlight lobe
                             (recon.diagnose.camera_gain): the parameters it reports, before
                             the probe's
@@ -370,6 +375,7 @@ DECISION_TABLE: tuple[Rule, ...] = (
     ),
     Rule("identifiability", "qualify", revise=_rejudge_expected_share),
     Rule("metadata", "veto"),
+    Rule("backdrop", "veto"),
     Rule("gain", "inform"),
     Rule("edges", "inform"),
 )

@@ -78,6 +78,10 @@ class CaptureSet:
     # Per-view gains [B] the images were divided by on load (dataset.exposure 'exif': the EXIF
     # exposure over the median), or None when the pixels are as stored.
     known_gains: torch.Tensor | None = None
+    # [B, H, W, 3] linear straight colour of the whole frames, backdrop included (read with
+    # keep_frames where the layout has one: photos with masks or a background key); None where
+    # the reader was not asked or the frames have no backdrop (rendered RGBA: alpha 0 there).
+    frames: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
         count = len(self.cameras)
@@ -973,7 +977,9 @@ def held_out_split(folder: str | os.PathLike) -> str:
     return "test" if has_split(folder, "test") else "val"
 
 
-def read_captures(folder: str | os.PathLike, split: str, options: Any = None) -> CaptureSet:
+def read_captures(
+    folder: str | os.PathLike, split: str, options: Any = None, keep_frames: bool = False
+) -> CaptureSet:
     """One split of a dataset in either layout, as a fit needs it: linear colour premultiplied
     by coverage (background removed), masks from alpha, mask images or a background key.
 
@@ -984,6 +990,9 @@ def read_captures(folder: str | os.PathLike, split: str, options: Any = None) ->
         holdout_every, exposure); None reads at the stored size with LLFF_HOLDOUT_EVERY.
     Photos with neither masks nor alpha are a DatasetError unless options.background_key is
     set (then pixels near that colour are background).
+    keep_frames: also keep the photos' straight colour, backdrop included, as
+        CaptureSet.frames (LLFF and COLMAP layouts; the diagnosis reads the camera's per-view
+        gains off the backdrop, recon.diagnose.backdrop). The frames are read a second time.
     """
     folder = Path(folder)
     max_resolution = getattr(options, "max_resolution", None)
@@ -1000,22 +1009,16 @@ def read_captures(folder: str | os.PathLike, split: str, options: Any = None) ->
                 f"{folder}: {layout.upper()} datasets have only 'train' and 'test' splits, "
                 f"got {split!r}"
             )
-        if layout == "llff":
-            captures = read_llff(
-                folder,
-                factor=llff_downscale_for(folder, max_resolution),
-                max_resolution=max_resolution,
-                premultiply=True,
-            )
-        else:
-            from recon.io.colmap import read_colmap
-
-            captures = read_colmap(folder, max_resolution=max_resolution, premultiply=True)
+        captures = _read_photos(folder, layout, max_resolution, premultiply=True)
         index = torch.arange(len(captures.cameras))
         held_out = index % holdout_every == 0
         chosen = held_out if split == "test" else ~held_out
         selected = torch.nonzero(chosen).squeeze(1)
         metadata = captures.metadata
+        frames = None
+        if keep_frames:
+            straight = _read_photos(folder, layout, max_resolution, premultiply=False)
+            frames = straight.images[selected]
         captures = CaptureSet(
             captures.cameras[selected],
             captures.images[selected],
@@ -1024,6 +1027,7 @@ def read_captures(folder: str | os.PathLike, split: str, options: Any = None) ->
             split,
             mask_source=captures.mask_source,
             metadata=None if metadata is None else [metadata[i] for i in selected.tolist()],
+            frames=frames,
         )
     else:
         captures = read_nerf_synthetic(
@@ -1033,7 +1037,26 @@ def read_captures(folder: str | os.PathLike, split: str, options: Any = None) ->
     if getattr(options, "exposure", "none") == "exif":
         captures.known_gains = exif_gains(captures, folder)
         captures.images = captures.images / captures.known_gains[:, None, None, None]
+        if captures.frames is not None:
+            captures.frames = captures.frames / captures.known_gains[:, None, None, None]
     return captures
+
+
+def _read_photos(
+    folder: Path, layout: str, max_resolution: int | None, premultiply: bool
+) -> CaptureSet:
+    """Every photo of an LLFF or COLMAP folder (layout 'llff' or 'colmap'), read_captures'
+    reader for that layout."""
+    if layout == "llff":
+        return read_llff(
+            folder,
+            factor=llff_downscale_for(folder, max_resolution),
+            max_resolution=max_resolution,
+            premultiply=premultiply,
+        )
+    from recon.io.colmap import read_colmap
+
+    return read_colmap(folder, max_resolution=max_resolution, premultiply=premultiply)
 
 
 def _apply_background_key(captures: CaptureSet, folder: Path, options: Any) -> CaptureSet:

@@ -70,7 +70,7 @@ def diagnosis_inputs(paths: RunPaths, config: RunConfig, device: torch.device) -
     splits exist)."""
     layout = paths.dataset_layout
     model = load_fitted_model(paths, config, device)
-    heldout = read_captures(paths.dataset, layout.held_out_split, config.dataset)
+    heldout = read_captures(paths.dataset, layout.held_out_split, config.dataset, keep_frames=True)
     training = read_captures(paths.dataset, "train", config.dataset)
     inputs = DiagnosisInputs(heldout, training, model, config, device, paths.diagnosis_refit)
     if layout.has_relight:
