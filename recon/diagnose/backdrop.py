@@ -20,6 +20,9 @@ log-gain change over the views that the backdrop shows, 1 - RMS(object - backdro
 RMS(object), both centred over the views (a common scale or cast is the albedo's). Exposure is
 compared on the mean of the three channels' log gains, white balance on log(red / green) and
 log(blue / green). Below diagnose.backdrop.minimum_explained, the gain is not the camera's.
+Where the backdrop itself changes beyond its noise, the camera (or the room's light) did change
+the frames, but by less than the object's own change, which hides it: the candidate is then not
+identifiable from this data (an identifiability condition beside the veto).
 """
 
 from __future__ import annotations
@@ -160,6 +163,52 @@ def backdrop_evidence(
             "the camera's, which would scale the backdrop as well"
         )
     return Evidence(KIND, candidate, explained, settings.minimum_explained, passed, reason, details)
+
+
+CAPTURE = {
+    "exposure": "a grey card that turns with the object in every view, or the photos' EXIF "
+    "exposure,",
+    "white_balance": "a grey card or colour chart that turns with the object in every view, or "
+    "a manual white balance,",
+}
+
+
+def backdrop_condition(
+    veto: Evidence, reading: BackdropReading, settings: BackdropConfig
+) -> Evidence | None:
+    """Where the backdrop vetoed a gain (veto, failed) yet changes itself beyond its reading
+    noise, the camera's gain is there but cannot be read on the object: an identifiability
+    Evidence (failed) saying so and what capture would settle it; None where the backdrop
+    shows no change of its own (the veto is the whole answer)."""
+    if veto.passed:
+        return None
+    candidate = veto.candidate
+    shown = float(veto.details["backdrop_spread"])
+    noise = float(veto.details["backdrop_noise"])
+    if shown <= settings.detectable_factor * noise:
+        return None
+    spread = float(veto.details["object_spread"])
+    reason = (
+        f"the static backdrop shows the frames changing by {100 * shown:.1f} % from view to "
+        f"view (its reading noise {100 * noise:.1f} %), but the object's own change "
+        f"({100 * spread:.1f} %, which does not follow the backdrop) hides that gain on the object"
+    )
+    details = {
+        "backdrop_spread": shown,
+        "backdrop_noise": noise,
+        "object_spread": spread,
+        "capture": CAPTURE[candidate].rstrip(","),
+        "source": KIND,
+    }
+    return Evidence(
+        "identifiability",
+        candidate,
+        shown,
+        settings.detectable_factor * noise,
+        False,
+        reason,
+        details,
+    )
 
 
 def _correlation(one: torch.Tensor, other: torch.Tensor) -> float:

@@ -25,7 +25,8 @@ built-in evidence; the decision table (recon.diagnose.decision) says what each k
   cleared candidate confusable with a named effect ambiguous.
 - backdrop (recon.diagnose.backdrop): a per-view gain (exposure, white balance) recovered on the
   object against the same views' static backdrop, where the photos have one: a gain the
-  backdrop does not show is not the camera's (a veto).
+  backdrop does not show is not the camera's (a veto); where the backdrop changes itself, the
+  camera's gain is hidden by the object's own change (an identifiability condition).
 - metadata (recon.diagnose.metadata_check): the recovered exposure against EXIF exposure when
   every held-out view has it, or against equal gains when the images were already divided by
   it (dataset.exposure 'exif'); a disagreement vetoes exposure (the camera's own record says it was not the exposure).
@@ -42,6 +43,7 @@ from recon.config.run_config import DiagnoseConfig
 from recon.diagnose.agreement import agreement_evidence
 from recon.diagnose.backdrop import (
     GAIN_CANDIDATES,
+    backdrop_condition,
     backdrop_evidence,
     object_log_gains,
     read_backdrop,
@@ -343,7 +345,10 @@ def backdrop_producer(
         if recovered is None:
             continue
         found = backdrop_evidence(candidate.name, recovered, reading, settings.backdrop)
-        evidence += [found] if found is not None else []
+        if found is None:
+            continue
+        condition = backdrop_condition(found, reading, settings.backdrop)
+        evidence += [found] if condition is None else [found, condition]
     return evidence
 
 

@@ -52,9 +52,9 @@ specificity   veto          a failed check says the signature is not the candida
                             config's probe allowances, and applies only where the probe
                             clears (recon.diagnose.geometric_judgement)
 identifiability  qualify    a failed check on a candidate that did not clear, or that cleared
-                            and was vetoed by specificity alone: "not identifiable from this
-                            data, because ..." (not a silent miss, nor a claim that it is not
-                            there; the veto's mismatch is still named); on
+                            and was vetoed by specificity or the backdrop alone: "not
+                            identifiable from this data, because ..." (not a silent miss, nor
+                            a claim that it is not there; the veto's mismatch is still named); on
                             one that cleared and whose condition names a confusable effect
                             (details["confused_with"]): significant but ambiguous, "A or B:
                             not separable from this data, because ..."; otherwise the
@@ -68,7 +68,9 @@ backdrop      veto          the static backdrop in the same frames does not show
                             gain the candidate (exposure, white balance) recovered on the
                             object (recon.diagnose.backdrop): a camera's gain scales the whole
                             frame, so the gain is the object's own change (its view-dependent
-                            reflectance); a backdrop that shows it changes nothing
+                            reflectance); a backdrop that shows it changes nothing. Where
+                            the backdrop changes itself, an identifiability condition beside
+                            the veto makes it "not identifiable" (as for specificity)
 gain          inform        the exposure's per-view gains read apart from a highlight lobe
                             (recon.diagnose.camera_gain): the parameters it reports, before
                             the probe's
@@ -380,6 +382,10 @@ DECISION_TABLE: tuple[Rule, ...] = (
     Rule("edges", "inform"),
 )
 RULES: dict[str, Rule] = {rule.kind: rule for rule in DECISION_TABLE}
+# Vetoes that say the recovered pattern is the base model's (the residual's profile, a gain the
+# backdrop does not share) rather than what the camera recorded (metadata): with a failed
+# identifiability condition beside them the answer is "not identifiable", not "not there".
+PATTERN_VETOES = ("specificity", "backdrop")
 # Whose parameters a candidate that nothing decided reports: the relight split's estimate when
 # it has one (the one estimate of a response curve the albedo cannot absorb), else the exposure's
 # highlight-free gains, else the probe's.
@@ -499,7 +505,7 @@ def decide(candidate: Candidate, config: DecisionConfig) -> Candidate:
         capture = condition.details.get("capture")
         settle = f"; {capture} would make it identifiable" if capture else ""
         confusable = _confusable(condition)
-        if status == "vetoed" and all(item.kind == "specificity" for item in vetoes):
+        if status == "vetoed" and all(item.kind in PATTERN_VETOES for item in vetoes):
             # Cleared, but its residual's pattern is also a mismatch's, and the data cannot
             # identify the effect anyway: neither "it is X" nor "it is not X" holds. (The
             # mismatch is still named in its place; a capture record's veto stays a veto.)

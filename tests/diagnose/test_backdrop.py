@@ -15,6 +15,7 @@ import torch
 
 from recon.config.run_config import BackdropConfig, DecisionConfig
 from recon.diagnose.backdrop import (
+    backdrop_condition,
     backdrop_evidence,
     gain_components,
     object_log_gains,
@@ -180,3 +181,37 @@ def test_rendered_captures_have_no_frames(tiny_run):
 
     heldout = read_captures(RunPaths(tiny_run).dataset, "test", keep_frames=True)
     assert len(heldout) > 0 and heldout.frames is None
+
+
+def test_a_backdrop_that_changes_itself_makes_a_vetoed_gain_not_identifiable():
+    # The frames change by a few per cent (the backdrop shows it), the object's gains by far
+    # more and not with it: the camera's gain is there but the object hides it.
+    camera = 0.05 * torch.linspace(-1, 1, VIEWS).double()[:, None].expand(-1, 3)
+    reading = read_backdrop(*frames_with(camera), SETTINGS)
+    own = 0.3 * torch.randn(VIEWS, 1, generator=torch.Generator().manual_seed(4)).double()
+    veto = backdrop_evidence("exposure", own.expand(-1, 3), reading, SETTINGS)
+    condition = backdrop_condition(veto, reading, SETTINGS)
+    assert condition is not None and condition.kind == "identifiability" and not condition.passed
+    assert "hides that gain on the object" in condition.reason
+    assert "grey card" in condition.details["capture"]
+    exposure = Candidate("exposure")
+    exposure.add(
+        Evidence(
+            "probe",
+            "exposure",
+            0.1,
+            math.nan,
+            False,
+            "probe",
+            {"interval": [0.1, 0.2], "reduction": 0.15},
+        )
+    )
+    exposure.add(veto)
+    exposure.add(condition)
+    decided = decide(exposure, DecisionConfig())
+    assert decided.status == "not_identifiable" and not decided.significant
+    assert decided.why.startswith("not identifiable from this data, because the static backdrop")
+    # A backdrop that stays the same: the veto is the whole answer.
+    still = read_backdrop(*frames_with(torch.zeros(VIEWS, 3).double()), SETTINGS)
+    quiet = backdrop_evidence("exposure", own.expand(-1, 3), still, SETTINGS)
+    assert not quiet.passed and backdrop_condition(quiet, still, SETTINGS) is None
