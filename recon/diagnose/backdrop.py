@@ -19,7 +19,9 @@ The evidence (kind "backdrop", a veto in recon.diagnose.decision): the share of 
 log-gain change over the views that the backdrop shows, 1 - RMS(object - backdrop) /
 RMS(object), both centred over the views (a common scale or cast is the albedo's). Exposure is
 compared on the mean of the three channels' log gains, white balance on log(red / green) and
-log(blue / green). Below diagnose.backdrop.minimum_explained, the gain is not the camera's.
+log(blue / green). Below diagnose.backdrop.minimum_explained, the gain is not the camera's;
+at or above it, the backdrop's gains are what the candidate reports (a direct measurement,
+the turntable's grey card).
 Where the backdrop itself changes beyond its noise, the camera (or the room's light) did change
 the frames, but by less than the object's own change, which hides it: the candidate is then not
 identifiable from this data (an identifiability condition beside the veto).
@@ -27,6 +29,7 @@ identifiable from this data (an identifiability condition beside the veto).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -118,6 +121,21 @@ def object_log_gains(candidate: str, parameters: dict) -> torch.Tensor | None:
     return None
 
 
+def backdrop_parameters(candidate: str, reading: BackdropReading) -> dict:
+    """The backdrop's per-view gains in the candidate's parameters: exposure ratios and stops
+    (the channels' mean log gain, geometric mean 1 over the views), or white-balance gains per
+    view [red, 1, blue] (over green)."""
+    if candidate == "exposure":
+        log_ratios = reading.log_gains.mean(-1)
+        return {
+            "ratios": torch.exp(log_ratios).tolist(),
+            "stops": (log_ratios / math.log(2.0)).tolist(),
+            "estimator": KIND,
+        }
+    gains = torch.exp(reading.log_gains - reading.log_gains[:, 1:2])
+    return {"gains": gains.tolist(), "channels": ["red", "green", "blue"], "estimator": KIND}
+
+
 def _rms(values: torch.Tensor) -> float:
     return float(values.pow(2).mean().sqrt())
 
@@ -148,6 +166,10 @@ def backdrop_evidence(
         "backdrop_log_gains": reading.log_gains.tolist(),
     }
     passed = explained >= settings.minimum_explained
+    if passed:
+        # The camera's gain, measured on pixels no model has to explain: what the candidate
+        # reports (recon.diagnose.decision reads these parameters first).
+        details["parameters"] = backdrop_parameters(candidate, reading)
     what = "log gain" if candidate == "exposure" else "log colour gain"
     measured = (
         f"{candidate}: the static backdrop in the same frames ({reading.pixels} pixels, "

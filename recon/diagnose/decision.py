@@ -68,7 +68,8 @@ backdrop      veto          the static backdrop in the same frames does not show
                             gain the candidate (exposure, white balance) recovered on the
                             object (recon.diagnose.backdrop): a camera's gain scales the whole
                             frame, so the gain is the object's own change (its view-dependent
-                            reflectance); a backdrop that shows it changes nothing. Where
+                            reflectance); a backdrop that shows it supplies the parameters
+                            reported (read off the backdrop) and changes nothing else. Where
                             the backdrop changes itself, an identifiability condition beside
                             the veto makes it "not identifiable" (as for specificity)
 gain          inform        the exposure's per-view gains read apart from a highlight lobe
@@ -280,7 +281,7 @@ DECISION_TABLE: tuple[Rule, ...] = (
         strength=True,
         threshold=probe_threshold,
         passes=_lower_bound_clears,
-        parameters_from=("gain", "probe"),
+        parameters_from=("backdrop", "gain", "probe"),
     ),
     Rule(
         "absorption",
@@ -318,7 +319,7 @@ DECISION_TABLE: tuple[Rule, ...] = (
         measured=True,
         threshold=agreement_threshold,
         passes=_agrees,
-        parameters_from=("probe",),
+        parameters_from=("backdrop", "probe"),
         settles=("image_position", "intensity", "n_dot_h", "n_dot_v"),
         outlives_null=True,
     ),

@@ -215,3 +215,36 @@ def test_a_backdrop_that_changes_itself_makes_a_vetoed_gain_not_identifiable():
     still = read_backdrop(*frames_with(torch.zeros(VIEWS, 3).double()), SETTINGS)
     quiet = backdrop_evidence("exposure", own.expand(-1, 3), still, SETTINGS)
     assert not quiet.passed and backdrop_condition(quiet, still, SETTINGS) is None
+
+
+def test_a_confirmed_gain_reports_the_backdrops_reading():
+    truth = exposure_log_gains()
+    reading = read_backdrop(*frames_with(truth), SETTINGS)
+    noisy = (
+        truth + 0.03 * torch.randn(VIEWS, 1, generator=torch.Generator().manual_seed(6)).double()
+    )
+    camera = backdrop_evidence("exposure", noisy, reading, SETTINGS)
+    ratios = torch.tensor(camera.details["parameters"]["ratios"]).double()
+    assert torch.allclose(torch.log(ratios), centred(truth[:, 0]), atol=1e-9)
+    exposure = Candidate("exposure")
+    probe_parameters = {"ratios": torch.exp(noisy[:, 0]).tolist()}
+    exposure.add(
+        Evidence(
+            "probe",
+            "exposure",
+            0.1,
+            math.nan,
+            False,
+            "probe",
+            {"interval": [0.1, 0.2], "reduction": 0.15, "parameters": probe_parameters},
+        )
+    )
+    exposure.add(camera)
+    decided = decide(exposure, DecisionConfig())
+    assert decided.significant and decided.parameters["estimator"] == "backdrop"
+    # A vetoed gain reports no backdrop parameters.
+    own = 0.3 * torch.randn(VIEWS, 1, generator=torch.Generator().manual_seed(9)).double()
+    assert (
+        "parameters"
+        not in backdrop_evidence("exposure", own.expand(-1, 3), reading, SETTINGS).details
+    )
