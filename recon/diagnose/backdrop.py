@@ -66,7 +66,6 @@ def read_backdrop(
     static pixels or fewer than settings.minimum_views views are there."""
     if frames.shape[0] < settings.minimum_views:
         return None
-    frames = frames.double()
     coverage = (masks > 0.02).to(frames.dtype).permute(0, 3, 1, 2)
     near_object = box_dilate(coverage, settings.object_margin_pixels)[:, 0] > 0
     usable = (
@@ -74,7 +73,8 @@ def read_backdrop(
     ).all(0)
     if int(usable.sum()) < settings.minimum_pixels:
         return None
-    logs = torch.log(frames[:, usable])  # [B, P, 3]
+    # Only the usable pixels in double precision: large photos stay in their float32.
+    logs = torch.log(frames[:, usable].double())  # [B, P, 3]
     gains = (logs - logs.median(0).values).median(1).values
     static = torch.ones(logs.shape[1], dtype=torch.bool)
     for _ in range(REFINEMENTS):
