@@ -52,6 +52,17 @@ def frames_with(
     return frames, masks
 
 
+def cleared_exposure(parameters: dict | None = None) -> Candidate:
+    """An exposure candidate whose probe clears the default allowance (lower bound 0.1), with
+    the probe's parameters."""
+    exposure = Candidate("exposure")
+    details = {"interval": [0.1, 0.2], "reduction": 0.15}
+    if parameters is not None:
+        details["parameters"] = parameters
+    exposure.add(Evidence("probe", "exposure", 0.1, math.nan, False, "probe", details))
+    return exposure
+
+
 def exposure_log_gains(seed: int = 1, spread: float = 0.3) -> torch.Tensor:
     stops = spread * torch.randn(VIEWS, generator=torch.Generator().manual_seed(seed))
     return stops.double()[:, None].expand(-1, 3)
@@ -129,25 +140,13 @@ def test_recovered_parameters_read_as_log_gains():
 
 
 def test_a_backdrop_veto_keeps_a_cleared_gain_from_being_named():
-    exposure = Candidate("exposure")
-    exposure.add(
-        Evidence(
-            "probe",
-            "exposure",
-            0.1,
-            math.nan,
-            False,
-            "probe",
-            {"interval": [0.1, 0.2], "reduction": 0.15},
-        )
-    )
+    exposure = cleared_exposure()
     assert decide(exposure, DecisionConfig()).significant
     reason = "exposure: the static backdrop ... not the camera's"
     exposure.add(Evidence("backdrop", "exposure", 0.02, 0.5, False, reason))
     decided = decide(exposure, DecisionConfig())
     assert decided.status == "vetoed" and not decided.significant and decided.why == reason
-    agreeing = Candidate("exposure")
-    agreeing.evidence = [item for item in exposure.evidence if item.kind == "probe"]
+    agreeing = cleared_exposure()
     agreeing.add(Evidence("backdrop", "exposure", 0.9, 0.5, True, "the camera's gain"))
     assert decide(agreeing, DecisionConfig()).significant
 
@@ -194,18 +193,7 @@ def test_a_backdrop_that_changes_itself_makes_a_vetoed_gain_not_identifiable():
     assert condition is not None and condition.kind == "identifiability" and not condition.passed
     assert "hides that gain on the object" in condition.reason
     assert "grey card" in condition.details["capture"]
-    exposure = Candidate("exposure")
-    exposure.add(
-        Evidence(
-            "probe",
-            "exposure",
-            0.1,
-            math.nan,
-            False,
-            "probe",
-            {"interval": [0.1, 0.2], "reduction": 0.15},
-        )
-    )
+    exposure = cleared_exposure()
     exposure.add(veto)
     exposure.add(condition)
     decided = decide(exposure, DecisionConfig())
@@ -226,19 +214,7 @@ def test_a_confirmed_gain_reports_the_backdrops_reading():
     camera = backdrop_evidence("exposure", noisy, reading, SETTINGS)
     ratios = torch.tensor(camera.details["parameters"]["ratios"]).double()
     assert torch.allclose(torch.log(ratios), centred(truth[:, 0]), atol=1e-9)
-    exposure = Candidate("exposure")
-    probe_parameters = {"ratios": torch.exp(noisy[:, 0]).tolist()}
-    exposure.add(
-        Evidence(
-            "probe",
-            "exposure",
-            0.1,
-            math.nan,
-            False,
-            "probe",
-            {"interval": [0.1, 0.2], "reduction": 0.15, "parameters": probe_parameters},
-        )
-    )
+    exposure = cleared_exposure({"ratios": torch.exp(noisy[:, 0]).tolist()})
     exposure.add(camera)
     decided = decide(exposure, DecisionConfig())
     assert decided.significant and decided.parameters["estimator"] == "backdrop"
