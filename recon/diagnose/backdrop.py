@@ -41,6 +41,11 @@ from recon.diagnose.records import Evidence
 KIND = "backdrop"
 # The candidates whose parameters are per-view camera gains, and the backdrop's reading of them.
 GAIN_CANDIDATES = ("exposure", "white_balance")
+# The per-view log gains each candidate is compared on (gain_components).
+COMPONENTS = {
+    "exposure": ("log gain",),
+    "white_balance": ("log red / green", "log blue / green"),
+}
 REFINEMENTS = 3
 
 
@@ -164,6 +169,10 @@ def backdrop_evidence(
         "backdrop_noise": noise,
         "correlation": _correlation(found, frame),
         "backdrop_log_gains": reading.log_gains.tolist(),
+        # What was compared, per view (the figure's curves): centred log gains.
+        "components": list(COMPONENTS[candidate]),
+        "object_components": found.tolist(),
+        "backdrop_components": frame.tolist(),
     }
     passed = explained >= settings.minimum_explained
     if passed:

@@ -391,6 +391,36 @@ def flat_field_figure(measurement: dict, model: dict | None, path: Path) -> Path
     return _save(figure, path)
 
 
+def backdrop_figure(evidence: list[dict], path: Path) -> Path:
+    """The backdrop check (recon.diagnose.backdrop), one panel per checked candidate: the
+    per-view log gains recovered on the object beside the ones the static backdrop shows in
+    the same frames (centred over the views), a curve per compared component. evidence: the
+    backdrop Evidence records as JSON (candidate, statistic, passed, details)."""
+    figure, axes = plt.subplots(1, len(evidence), figsize=(5.0 * len(evidence), 3.3), squeeze=False)
+    colours = ("tab:red", "tab:blue")
+    for axis, record in zip(axes[0], evidence, strict=True):
+        details = record["details"]
+        found = _array(details["object_components"])
+        shown = _array(details["backdrop_components"])
+        views = np.arange(len(found))
+        for index, name in enumerate(details["components"]):
+            colour = "k" if len(details["components"]) == 1 else colours[index % 2]
+            axis.plot(views, found[:, index], "o-", color=colour, label=f"object: {name}")
+            axis.plot(
+                views, shown[:, index], "s--", color=colour, alpha=0.6, label=f"backdrop: {name}"
+            )
+        verdict = "the camera's" if record["passed"] else "not the camera's"
+        axis.set_title(
+            f"{record['candidate']}: backdrop shows {100 * record['statistic']:.0f} % ({verdict})",
+            fontsize=9,
+        )
+        axis.axhline(0.0, color="grey", linewidth=0.6)
+        axis.set_xlabel("held-out view")
+        axis.set_ylabel("log gain (centred)")
+        axis.legend(fontsize=7)
+    return _save(figure, path)
+
+
 def waterfall_figure(refits: list[dict], floor_rmse: float, path: Path) -> Path:
     """Held-out RMSE of the fitted scene and after each refit, against the noise floor."""
     labels = ["fitted"] + ["+ " + " + ".join(r["effects"]) for r in refits]

@@ -106,7 +106,12 @@ def diagnosis_inputs(paths: RunPaths, config: RunConfig, device: torch.device) -
 
 def write_figures(diagnosis: Diagnosis, data: DiagnosisData, paths: RunPaths) -> None:
     """The diagnosis' figures under RUN/diagnosis/, recorded relative to the run folder."""
-    from recon.diagnose.figures import flat_field_figure, waterfall_figure, where_figures
+    from recon.diagnose.figures import (
+        backdrop_figure,
+        flat_field_figure,
+        waterfall_figure,
+        where_figures,
+    )
 
     folder = paths.diagnosis_folder
     folder.mkdir(parents=True, exist_ok=True)
@@ -121,6 +126,15 @@ def write_figures(diagnosis: Diagnosis, data: DiagnosisData, paths: RunPaths) ->
             diagnosis.gap["flat_field"], radial_model(diagnosis), folder / "flat_field.png"
         )
         diagnosis.figures["flat_field"] = str(path.relative_to(paths.root))
+    backdrop = [
+        item.to_json()
+        for candidate in diagnosis.candidates
+        for item in candidate.evidence
+        if item.kind == "backdrop"
+    ]
+    if backdrop:
+        path = backdrop_figure(backdrop, folder / "backdrop.png")
+        diagnosis.figures["backdrop"] = str(path.relative_to(paths.root))
 
 
 def run_diagnosis(

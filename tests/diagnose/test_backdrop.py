@@ -224,3 +224,23 @@ def test_a_confirmed_gain_reports_the_backdrops_reading():
         "parameters"
         not in backdrop_evidence("exposure", own.expand(-1, 3), reading, SETTINGS).details
     )
+
+
+def test_the_backdrop_figure_draws_each_checked_gain(tmp_path):
+    from PIL import Image
+
+    from recon.diagnose.figures import backdrop_figure
+
+    colour = torch.zeros(VIEWS, 3).double()
+    colour[:, 2] = 0.1 * torch.linspace(-1, 1, VIEWS).double()
+    reading = read_backdrop(*frames_with(exposure_log_gains() + colour), SETTINGS)
+    own = 0.3 * torch.randn(VIEWS, 3, generator=torch.Generator().manual_seed(8)).double()
+    records = [
+        backdrop_evidence("exposure", exposure_log_gains(), reading, SETTINGS),
+        backdrop_evidence("white_balance", own, reading, SETTINGS),
+    ]
+    assert [len(record.details["components"]) for record in records] == [1, 2]
+    assert len(records[1].details["object_components"]) == VIEWS
+    path = backdrop_figure([record.to_json() for record in records], tmp_path / "backdrop.png")
+    with Image.open(path) as image:
+        assert image.format == "PNG" and image.width > image.height > 100
