@@ -102,6 +102,7 @@ ones the hand-ordered rule gave before this table (tests/diagnose/test_decision.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any, Literal
@@ -555,7 +556,7 @@ def _probe_reading(candidate: Candidate) -> str:
         return ""
     interval = probe.details.get("interval")
     reduction = probe.details.get("reduction")
-    if not interval or reduction is None or reduction != reduction:
+    if not interval or reduction is None or math.isnan(reduction):
         return ""
     low, high = float(interval[0]), float(interval[1])
     if low <= 0.0:
