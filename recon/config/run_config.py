@@ -971,7 +971,7 @@ class SpecificityConfig:
     )
     alpha: float = setting(
         0.01,
-        "The F-test's level: a candidate is specific when its own gain stands out above its scatter across every confusable domain's bins at this level (conventional, not tuned).",
+        "The F-test's level: a candidate is specific when its own gain stands out above its scatter across every confusable domain's bins at this level (conventional, not tuned), unless the held-out pixels keep the retained share of its reduction with confidence (the interval's lower end at or above it).",
     )
     retained_share: float = setting(
         0.5,

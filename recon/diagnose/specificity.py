@@ -15,6 +15,9 @@ exposure keeps its whole reduction whatever else is modelled (its gains are per 
 bin); a per-view gain made of highlight composition loses it to the n.h profile. The share
 and its bootstrap interval over views are the statistic: no tuned allowance, only the
 retained-share bar (a majority of the reduction survives) in the `diagnose.specificity` config.
+An F-test on all pixels (the gain against its scatter across the domain's bins) also speaks,
+but it cannot overrule held-out pixels that keep most of the reduction with confidence
+(domain_explains; docs/decisions/0222-blind-unseen-draws.md).
 
 Producers here return recon.diagnose.records.Evidence of kind "specificity": a failed one
 vetoes its candidate, and details["instead"] names the base-model mismatch (e.g.
@@ -226,6 +229,25 @@ def f_test(
     )
 
 
+def domain_explains(record: dict, settings: DiagnoseConfig) -> bool:
+    """Whether a confusable domain explains a candidate's gain (record: one entry of
+    signature_evidence's details["domains"]).
+
+    It does when, on held-out pixels, less than the retained share of the gain's reduction
+    survives the domain's profile with confidence (the interval's upper end below it); or when
+    the gain does not stand out of its scatter across the domain's bins (F-test) and the
+    held-out pixels do not show with confidence that most of its reduction survives. An F-test
+    failure beside a confidently retained held-out share is the fit's own misfit raising the
+    interaction: a fitted texture that averaged differently exposed training views is wrong by
+    a different factor in each surface region, so a real per-view gain differs from bin to bin
+    in every domain while still removing its whole held-out error."""
+    low, high = record["interval"]
+    retained = settings.specificity.retained_share
+    if high < retained:
+        return True
+    return record["p_value"] >= settings.specificity.alpha and low < retained
+
+
 def signature_evidence(
     name: str,
     table: PixelTable,
@@ -303,15 +325,7 @@ def signature_evidence(
         if slope is not None:
             record["view_slope"] = slope
         domains[domain] = record
-    # A domain explains the candidate's gain when the gain does not stand out above its
-    # scatter across the domain's bins (F-test), or when, on held-out pixels, less than the
-    # retained share of its reduction survives the domain's profile with confidence.
-    failing = [
-        domain
-        for domain, record in domains.items()
-        if record["p_value"] >= settings.specificity.alpha
-        or record["interval"][1] < settings.specificity.retained_share
-    ]
+    failing = [domain for domain, record in domains.items() if domain_explains(record, settings)]
     passed = not failing
     if passed:
         worst = max(domains, key=lambda domain: domains[domain]["p_value"])
@@ -332,12 +346,20 @@ def signature_evidence(
     share, (low, high) = record["share"], record["interval"]
     kept = f"keeps {100 * share:.0f} % (interval {100 * low:.0f} to {100 * high:.0f} %)"
     test = f"F = {record['f']:.1f}, p = {p_value:.2g}"
-    if passed:
+    if passed and p_value >= settings.specificity.alpha:
+        reason = (
+            f"{name} is specific: once a common profile of {word} is modelled, it {kept} of "
+            f"its held-out reduction of {100 * relative:.1f} %, although its gain does not "
+            f"stand out of its scatter across those bins ({test}): the fit's own misfit "
+            f"varies from bin to bin there"
+        )
+    elif passed:
         reason = (
             f"{name} is specific: its gain stands out above how it varies across bins of "
             f"every domain (least clear: {word}, {test}; it {kept} of its held-out "
             f"reduction of {100 * relative:.1f} % there)"
         )
+    if passed:
         return [Evidence(KIND, name, p_value, settings.specificity.alpha, True, reason, details)]
     alternative = record["alternative"]
     details["alternative"] = alternative

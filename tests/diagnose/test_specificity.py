@@ -14,11 +14,12 @@ from pathlib import Path
 
 import pytest
 import torch
-from diagnose_scenes import glossy_torus_views, turntable_torus_views
+from diagnose_scenes import albedo_error_views, glossy_torus_views, turntable_torus_views
 
 from recon.config.run_config import DiagnoseConfig
 from recon.diagnose.specificity import (
     VIEW_DEPENDENT_REFLECTANCE,
+    domain_explains,
     specificity_evidence,
 )
 from recon.diagnose.which import rank_candidates
@@ -233,3 +234,38 @@ def test_a_turntable_mismatch_is_not_exposure_but_a_real_exposure_is():
 def mismatch_reason(limb: float) -> str:
     data = turntable_torus_views(limb=limb)
     return by_candidate(specificity_evidence(data, ["exposure"]))["exposure"].reason
+
+
+@pytest.mark.parametrize("views", [6, 8])
+def test_a_real_exposure_over_a_misfit_texture_passes_where_the_f_test_alone_fails(views):
+    # A real per-view exposure over a fitted texture wrong by small smooth patches (what a
+    # texture that averaged differently exposed training views is): the misfit differs from
+    # bin to bin of the image position, so the gain's F-test there fails, but on held-out
+    # pixels the gain keeps its whole reduction once the position profile is modelled.
+    gains = torch.exp(0.1 * torch.randn(views, generator=torch.Generator().manual_seed(100)))
+    data = albedo_error_views(
+        0, views=views, channel_gains=gains[:, None].expand(-1, 3), error=0.5, cells=8, grey=True
+    )
+    settings = DiagnoseConfig()
+    exposure = by_candidate(specificity_evidence(data, ["exposure"], settings))["exposure"]
+    position = exposure.details["domains"]["image_position"]
+    assert position["p_value"] >= settings.specificity.alpha, position
+    assert position["interval"][0] >= settings.specificity.retained_share, position
+    assert exposure.passed, exposure.reason
+    assert "does not stand out" in exposure.reason and "misfit" in exposure.reason
+
+
+def test_a_domain_explains_a_gain_by_its_held_out_share_or_an_unanswered_f_test():
+    settings = DiagnoseConfig()
+
+    def record(p_value, low, high):
+        return {"p_value": p_value, "interval": [low, high]}
+
+    # Held-out pixels say the domain takes most of the reduction: explained, whatever F says.
+    assert domain_explains(record(1e-9, 0.1, 0.4), settings)
+    # F fails and the held-out share could be below the bar: explained.
+    assert domain_explains(record(0.3, 0.2, 1.2), settings)
+    # F fails but the held-out pixels keep most of it with confidence: not explained.
+    assert not domain_explains(record(0.3, 0.8, 1.2), settings)
+    # Both agree the gain is its own.
+    assert not domain_explains(record(1e-9, 0.6, 1.1), settings)
