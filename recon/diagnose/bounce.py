@@ -53,7 +53,13 @@ import torch
 
 from recon.config.run_config import DiagnoseConfig
 from recon.diagnose.data import DiagnosisData
-from recon.diagnose.lobe import LUMINANCE, interior_pixels, placebo_excess_evidence, project_out
+from recon.diagnose.lobe import (
+    LUMINANCE,
+    divide_view_gains,
+    interior_pixels,
+    placebo_excess_evidence,
+    project_out,
+)
 from recon.diagnose.pixel_table import view_directions
 from recon.diagnose.records import Candidate, Evidence
 from recon.effects.light_transport import fibonacci_directions
@@ -452,6 +458,7 @@ def bounce_statistic(
     rendered = (relight.rendered.double() * weights).sum(-1)[keep]
     one_cell = torch.zeros_like(view)
     nuisance = features["direct"]
+    residual = divide_view_gains(residual, rendered, view)
     residual = project_out(residual[:, None], one_cell, view, rendered, nuisance)[:, 0]
     bounce = project_out(features["bounce"], one_cell, view, rendered, nuisance)
     norms = bounce.norm(dim=0).clamp_min(1e-30)

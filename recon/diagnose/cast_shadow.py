@@ -55,6 +55,7 @@ from recon.config.run_config import DiagnoseConfig
 from recon.diagnose.data import DiagnosisData
 from recon.diagnose.lobe import (
     LUMINANCE,
+    divide_view_gains,
     interior_pixels,
     placebo_excess_evidence,
     project_out,
@@ -283,6 +284,7 @@ def cast_shadow_statistic(
     if hull is not None:
         occluders["silhouettes"] = hull.visibility(points, directions)
     one_cell = torch.zeros_like(view)
+    residual = divide_view_gains(residual, rendered, view)
     residual = project_out(residual[:, None], one_cell, view, rendered)[:, 0]
     lambert = (normals @ directions.T).clamp_min(0.0) * rendered[:, None]  # [N, K]
     lambert_projected = project_out(lambert, one_cell, view, rendered)

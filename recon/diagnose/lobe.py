@@ -12,8 +12,10 @@ it, at every pixel the object covers.
 The check, on the training views and the held-out views together (N object pixels, interior
 only: silhouette pixels carry the misalignment):
 
-1. the luminance residual r [N] and, for each exponent e of diagnose.lobe.exponents, the
-   normalised Blinn-Phong lobe of the Specular effect under the fitted light,
+1. the luminance residual r [N], each view's observed pixels first divided by that view's
+   gain against the render (divide_view_gains: an exposure times the albedo's own misfit is
+   a product no additive nuisance takes out), and, for each exponent e of
+   diagnose.lobe.exponents, the normalised Blinn-Phong lobe of the Specular effect under the fitted light,
    f_e = max(0, n.l) (e + 8) / (8 pi) max(0, n.h)^e [N];
 2. both with the nuisances the fit could have absorbed or a camera could have made projected
    out: one offset per surface cell (a voxel grid over the object's surface points,
@@ -93,6 +95,30 @@ def surface_cells(points: torch.Tensor, cells_per_axis: int) -> torch.Tensor:
     index = ((points - low) / span * cells_per_axis).long().clamp(0, cells_per_axis - 1)
     flat = (index[:, 0] * cells_per_axis + index[:, 1]) * cells_per_axis + index[:, 2]
     return torch.unique(flat, return_inverse=True)[1]
+
+
+def divide_view_gains(
+    residual: torch.Tensor, rendered: torch.Tensor, view: torch.Tensor
+) -> torch.Tensor:
+    """The residual [N] again once each view's observed pixels (residual + rendered [N]) are
+    divided by that view's least-squares gain against the render (view [N]: view indices).
+
+    Why before the nuisance projection, which has a per-view gain too: under a per-view
+    exposure g_v the fitted albedo has averaged differently exposed training views, so it is
+    off by a factor e(point) that differs over the surface, and the residual holds
+    g_v x e(point) x render, a product of the view and the surface point. An additive gain per
+    view and an offset per surface cell cannot take a product out; what is left is brightest
+    where the light under test shines, so it follows that light's lobe or shadow more than a
+    placebo light's. Dividing the view's gain out first leaves e(point) x render, which under
+    the relight split's fixed sun the offsets per surface cell take. On data without an
+    exposure every view's gain is about 1 and nothing changes."""
+    observed = residual + rendered
+    views = int(view.max()) + 1 if view.numel() else 0
+    cross = torch.zeros(views, dtype=residual.dtype).index_add_(0, view, observed * rendered)
+    power = torch.zeros(views, dtype=residual.dtype).index_add_(0, view, rendered * rendered)
+    usable = (power > 0) & (cross > 0)
+    gain = torch.where(usable, cross / power.clamp_min(1e-30), torch.ones_like(power))
+    return observed / gain[view] - rendered
 
 
 def project_out(
@@ -273,6 +299,7 @@ def lobe_statistic(
     keep = torch.arange(0, view.numel(), max(1, math.ceil(view.numel() / lobe.maximum_pixels)))
     view = view[keep]
     residual, rendered = joined("residual")[keep], joined("rendered")[keep]
+    residual = divide_view_gains(residual, rendered, view)
     normals, to_camera = joined("normals")[keep], joined("to_camera")[keep]
     cell = surface_cells(joined("points")[keep], lobe.cells_per_axis)
     # A blur changes the shading where it curves, under the fitted light only (placebo lights

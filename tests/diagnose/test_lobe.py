@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import pytest
 import torch
 from diagnose_scenes import glossy_torus_views
 
@@ -340,3 +341,52 @@ def test_a_highlight_on_top_of_a_sunlit_residual_is_still_named():
     data = _relight_views(_sunlit_noise(5), seed=5, specular=0.3)
     evidence = lobe_evidence([data], "specular", SETTINGS, RELIGHT_KIND)
     assert evidence.passed, evidence.reason
+
+
+def test_dividing_each_views_gain_leaves_a_surface_misfit_the_same_in_every_view():
+    # An exposure g_v over an albedo that averaged differently exposed views (off by e(point)):
+    # the residual g_v e render - render is a product of view and point, which no additive
+    # per-view gain or per-cell offset takes out. Divided by each view's gain first, the same
+    # point has the same residual in every view, up to the one common factor.
+    from recon.diagnose.lobe import divide_view_gains
+
+    generator = torch.Generator().manual_seed(4)
+    points, views = 50, 5
+    render = 0.2 + torch.rand(points, generator=generator, dtype=torch.float64)
+    misfit = 1 + 0.3 * torch.randn(points, generator=generator, dtype=torch.float64)
+    gains = torch.tensor([0.5, 0.8, 1.0, 1.6, 2.2], dtype=torch.float64)
+    view = torch.arange(views).repeat_interleave(points)
+    rendered = render.repeat(views)
+    residual = gains[view] * misfit.repeat(views) * rendered - rendered
+    before = residual.view(views, points)
+    assert float((before - before.mean(0)).abs().max()) > 0.3
+    divided = divide_view_gains(residual, rendered, view).view(views, points)
+    assert torch.allclose(divided, divided[0].expand_as(divided), atol=1e-12)
+    # Without an exposure every view's gain is the same and only that common factor moves.
+    flat = divide_view_gains(misfit.repeat(views) * rendered - rendered, rendered, view)
+    assert torch.allclose(flat.view(views, points), flat.view(views, points)[0].expand(views, -1))
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_relight_split_with_an_exposure_over_a_misfit_albedo_names_only_a_highlight(seed):
+    # The relight views under a strong exposure (gains 0.5-2) over an albedo misfit that
+    # varies over the surface: a highlight under the known sun is still named, and without
+    # one nothing is.
+    def misfit(observed, output):
+        normals = output.normals
+        error = 1 + 0.3 * torch.sin(3 * normals[..., 0:1] + 1) * torch.cos(2 * normals[..., 2:3])
+        return observed * error
+
+    for specular, named in ((0.0, False), (0.3, True)):
+        data, _ = glossy_torus_views(
+            views=8,
+            size=40,
+            specular=specular,
+            shininess=30.0,
+            light_direction=L_RELIGHT,
+            seed=seed,
+            exposure_sigma=0.5,
+            transform=misfit,
+        )
+        evidence = lobe_evidence([data], "specular", SETTINGS, RELIGHT_KIND)
+        assert evidence.passed is named, evidence.reason
