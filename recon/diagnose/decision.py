@@ -46,8 +46,9 @@ specificity   veto          a failed check says the signature is not the candida
                             significant, and ``details["instead"]`` (a base-model mismatch
                             such as view_dependent_reflectance) is named in its place, with the
                             vetoed candidate's rank, when the vetoed one had cleared; a
-                            candidate decided on other data than the held-out residual
-                            (flat_field, relight: ``Rule.independent``) is not vetoed by it;
+                            candidate that also cleared on other data than the held-out
+                            residual (flat_field, relight: ``Rule.independent``) is not
+                            vetoed by it, whichever row decided;
                             a geometric check (details["pairs"]) is judged again with the
                             config's probe allowances, and applies only where the probe
                             clears (recon.diagnose.geometric_judgement)
@@ -466,7 +467,8 @@ def decide(candidate: Candidate, config: DecisionConfig) -> Candidate:
         for rule in DECISION_TABLE
         if rule.role in ("clear", "name") and not rule.outlives_null
     )
-    deciding = _first_cleared(candidate, skip=blocked_by_null if failed_nulls else ())
+    skipped = blocked_by_null if failed_nulls else ()
+    deciding = _first_cleared(candidate, skip=skipped)
     blocked = failed_nulls and deciding is None and _first_cleared(candidate) is not None
     if blocked:
         why = failed_nulls[0].reason
@@ -476,9 +478,16 @@ def decide(candidate: Candidate, config: DecisionConfig) -> Candidate:
         why = explain(deciding)
     status = "significant" if deciding is not None else "not_significant"
     vetoes = [item for item in _role_evidence(candidate, "veto") if not item.passed]
-    if deciding is not None and RULES[deciding.kind].independent:
+    independent = [
+        item
+        for role in ("overrule", "clear")
+        for item in _role_evidence(candidate, role)
+        if item.passed and RULES[item.kind].independent and item.kind not in skipped
+    ]
+    if deciding is not None and independent:
         # Measured on other data (flat-field frames, the relight split): the held-out
-        # residual's pattern (specificity) does not overturn it; the capture's record does.
+        # residual's pattern (specificity) does not overturn it, whichever passing row comes
+        # first in the table; the capture's record does.
         vetoes = [item for item in vetoes if item.kind != "specificity"]
     if deciding is not None:
         # Any clearing evidence that passed and tests a domain itself settles a veto in it

@@ -524,6 +524,32 @@ def test_the_relight_lobe_has_the_relight_splits_floor_and_decides_independently
     assert named.significant and named.decided_by == "relight_lobe", named.why
 
 
+def test_a_specificity_veto_does_not_overturn_a_pass_on_the_relight_split_in_either_order():
+    # The lobe under the fitted light comes first in the table; when it passes too, the
+    # relight split's pass (other data) still keeps the held-out pattern's veto off.
+    def lobe(kind: str, excess: float) -> Evidence:
+        return Evidence(
+            kind=kind,
+            candidate="specular",
+            statistic=excess,
+            threshold=0.0,
+            passed=True,
+            reason=f"{kind}: excess",
+            details={"p_value": 0.006, "correlation": 0.1, "placebo_quantile": 0.1 - excess},
+        )
+
+    veto = Evidence("specificity", "specular", 0.97, 0.01, False, "shadows, not specular", {})
+    both = Candidate("specular")
+    for item in (lobe("lobe", 0.03), lobe("relight_lobe", 0.14), veto):
+        both.add(item)
+    decide(both, CONFIG)
+    assert both.decided_by == "lobe" and both.significant, both.why
+    alone = Candidate("specular")
+    for item in (lobe("lobe", 0.03), veto):
+        alone.add(item)
+    assert decide(alone, CONFIG).status == "vetoed"
+
+
 def test_a_lens_condition_is_settled_where_the_probe_beat_its_confusers():
     # A reference distortion's condition says a pose correction explains it as well; the lens
     # probe measured otherwise (it keeps 2.6 % on top of every confuser, pose included, beyond
