@@ -227,7 +227,8 @@ def build_cases(
     """Every case of the benchmark, in a stable order.
 
     Plain scenes: each world's single effects (restricted to effects when given) for every seed,
-    one clean case per seed, and the pairs (their first seed). Glossy scenes (Mitsuba only): the
+    one clean case per seed, and the pairs for every seed (a seed is one draw of every
+    effect's strength: docs/decisions/0222-blind-unseen-draws.md). Glossy scenes (Mitsuba only): the
     glossy object alone (truth: specular) and with each of glossy_effects (truth: specular +
     that effect), which is the case built to fool a diagnosis into naming a camera effect.
     The real world gets its injected effects and the untouched photos, whatever scenes says."""
@@ -257,7 +258,9 @@ def build_cases(
                 BlindCase(world, scene_name, (name,), seed) for name in names for seed in seeds
             ]
             cases += [BlindCase(world, scene_name, (), seed) for seed in seeds]
-            cases += [BlindCase(world, scene_name, tuple(pair), seeds[0]) for pair in pairs]
+            cases += [
+                BlindCase(world, scene_name, tuple(pair), seed) for pair in pairs for seed in seeds
+            ]
     return cases
 
 

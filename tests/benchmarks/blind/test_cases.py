@@ -71,3 +71,12 @@ def test_case_config_sets_backend_scene_and_seed():
     assert config["scene"]["shape"]["mesh_path"].endswith("spot_triangulated.obj")
     assert config["capture"]["effects"][0]["name"] == "specular"
     assert base["scene"]["shape"]["procedural"] == "torus"  # the base is not modified
+
+
+def test_every_seed_draws_its_own_pairs():
+    # A seed is one draw of every effect's strength; a pair scored on one seed only would
+    # weigh that draw's pairs alone in a record over several (decision 0222).
+    cases = build_cases(["own"], ["spot"], None, [0, 1, 2], list(DEFAULT_PAIRS))
+    pairs = [case for case in cases if len(case.withheld) == 2]
+    assert len(pairs) == 3 * len(DEFAULT_PAIRS)
+    assert {case.seed for case in pairs} == {0, 1, 2}
