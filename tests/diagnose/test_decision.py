@@ -497,22 +497,26 @@ def test_a_colour_gain_shared_by_separate_halves_is_not_vetoed_in_the_domains_th
     assert decide(probed, CONFIG).status == "significant"
 
 
+def lobe_evidence(kind: str, excess: float) -> Evidence:
+    """A lobe-like Evidence of specular (kind lobe or relight_lobe) with this excess over its
+    placebo lights (p = 0.006)."""
+    return Evidence(
+        kind=kind,
+        candidate="specular",
+        statistic=excess,
+        threshold=0.0,
+        passed=True,
+        reason=f"{kind}: excess",
+        details={"p_value": 0.006, "correlation": 0.1, "placebo_quantile": 0.1 - excess},
+    )
+
+
 def test_the_relight_lobe_has_the_relight_splits_floor_and_decides_independently():
     config = DecisionConfig()
 
     def lobe_like(kind: str, excess: float) -> Candidate:
         candidate = Candidate("specular")
-        candidate.add(
-            Evidence(
-                kind=kind,
-                candidate="specular",
-                statistic=excess,
-                threshold=0.0,
-                passed=True,
-                reason=f"{kind}: excess",
-                details={"p_value": 0.006, "correlation": 0.1, "placebo_quantile": 0.1 - excess},
-            )
-        )
+        candidate.add(lobe_evidence(kind, excess))
         return decide(candidate, config)
 
     # An excess of 0.03 clears the lobe's floor (0.02) but not the relight split's (0.05):
@@ -527,25 +531,14 @@ def test_the_relight_lobe_has_the_relight_splits_floor_and_decides_independently
 def test_a_specificity_veto_does_not_overturn_a_pass_on_the_relight_split_in_either_order():
     # The lobe under the fitted light comes first in the table; when it passes too, the
     # relight split's pass (other data) still keeps the held-out pattern's veto off.
-    def lobe(kind: str, excess: float) -> Evidence:
-        return Evidence(
-            kind=kind,
-            candidate="specular",
-            statistic=excess,
-            threshold=0.0,
-            passed=True,
-            reason=f"{kind}: excess",
-            details={"p_value": 0.006, "correlation": 0.1, "placebo_quantile": 0.1 - excess},
-        )
-
     veto = Evidence("specificity", "specular", 0.97, 0.01, False, "shadows, not specular", {})
     both = Candidate("specular")
-    for item in (lobe("lobe", 0.03), lobe("relight_lobe", 0.14), veto):
+    for item in (lobe_evidence("lobe", 0.03), lobe_evidence("relight_lobe", 0.14), veto):
         both.add(item)
     decide(both, CONFIG)
     assert both.decided_by == "lobe" and both.significant, both.why
     alone = Candidate("specular")
-    for item in (lobe("lobe", 0.03), veto):
+    for item in (lobe_evidence("lobe", 0.03), veto):
         alone.add(item)
     assert decide(alone, CONFIG).status == "vetoed"
 

@@ -271,9 +271,10 @@ def test_spread_weights_follow_the_residuals_spread_along_the_sun_and_ignore_a_s
 L_RELIGHT = (0.8, 0.5, -0.3)
 
 
-def _relight_views(transform, seed: int = 0, specular: float = 0.0):
+def _relight_views(transform, seed: int = 0, specular: float = 0.0, exposure_sigma: float = 0.0):
     """A Lambertian torus's 8 relight views under the sun toward L_RELIGHT (+ a highlight of
-    specular), the observed views changed by transform(observed, output)."""
+    specular, a per-view exposure exp(exposure_sigma N(0, 1))), the observed views changed by
+    transform(observed, output)."""
     data, _ = glossy_torus_views(
         views=8,
         size=40,
@@ -281,6 +282,7 @@ def _relight_views(transform, seed: int = 0, specular: float = 0.0):
         shininess=30.0,
         light_direction=L_RELIGHT,
         seed=seed,
+        exposure_sigma=exposure_sigma,
         transform=transform,
     )
     return data
@@ -378,15 +380,6 @@ def test_a_relight_split_with_an_exposure_over_a_misfit_albedo_names_only_a_high
         return observed * error
 
     for specular, named in ((0.0, False), (0.3, True)):
-        data, _ = glossy_torus_views(
-            views=8,
-            size=40,
-            specular=specular,
-            shininess=30.0,
-            light_direction=L_RELIGHT,
-            seed=seed,
-            exposure_sigma=0.5,
-            transform=misfit,
-        )
+        data = _relight_views(misfit, seed=seed, specular=specular, exposure_sigma=0.5)
         evidence = lobe_evidence([data], "specular", SETTINGS, RELIGHT_KIND)
         assert evidence.passed is named, evidence.reason
