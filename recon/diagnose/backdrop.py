@@ -198,9 +198,9 @@ def backdrop_evidence(
 
 CAPTURE = {
     "exposure": "a grey card that turns with the object in every view, or the photos' EXIF "
-    "exposure,",
+    "exposure",
     "white_balance": "a grey card or colour chart that turns with the object in every view, or "
-    "a manual white balance,",
+    "a manual white balance",
 }
 
 
@@ -228,7 +228,7 @@ def backdrop_condition(
         "backdrop_spread": shown,
         "backdrop_noise": noise,
         "object_spread": spread,
-        "capture": CAPTURE[candidate].rstrip(","),
+        "capture": CAPTURE[candidate],
         "source": KIND,
     }
     return Evidence(

@@ -346,20 +346,20 @@ def signature_evidence(
     share, (low, high) = record["share"], record["interval"]
     kept = f"keeps {100 * share:.0f} % (interval {100 * low:.0f} to {100 * high:.0f} %)"
     test = f"F = {record['f']:.1f}, p = {p_value:.2g}"
-    if passed and p_value >= settings.specificity.alpha:
-        reason = (
-            f"{name} is specific: once a common profile of {word} is modelled, it {kept} of "
-            f"its held-out reduction of {100 * relative:.1f} %, although its gain does not "
-            f"stand out of its scatter across those bins ({test}): the fit's own misfit "
-            f"varies from bin to bin there"
-        )
-    elif passed:
-        reason = (
-            f"{name} is specific: its gain stands out above how it varies across bins of "
-            f"every domain (least clear: {word}, {test}; it {kept} of its held-out "
-            f"reduction of {100 * relative:.1f} % there)"
-        )
     if passed:
+        if p_value >= settings.specificity.alpha:  # held-out pixels overruled the F-test
+            reason = (
+                f"{name} is specific: once a common profile of {word} is modelled, it {kept} "
+                f"of its held-out reduction of {100 * relative:.1f} %, although its gain does "
+                f"not stand out of its scatter across those bins ({test}): the fit's own "
+                f"misfit varies from bin to bin there"
+            )
+        else:
+            reason = (
+                f"{name} is specific: its gain stands out above how it varies across bins of "
+                f"every domain (least clear: {word}, {test}; it {kept} of its held-out "
+                f"reduction of {100 * relative:.1f} % there)"
+            )
         return [Evidence(KIND, name, p_value, settings.specificity.alpha, True, reason, details)]
     alternative = record["alternative"]
     details["alternative"] = alternative
