@@ -930,8 +930,14 @@ class DecisionConfig:
         "Floor of the relight split's lobe evidence (kind relight_lobe; the lobe's own allowance applies when higher): the relight split's floor, as the cast shadow's, set before its pixels were weighted (docs/decisions/0211-shadows-specular-mitsuba.md) and kept. Weighted (lobe.relight_spread_bins), its excess without a highlight reached +0.022 on the blind check's own and Mitsuba cases, with one +0.047 to +0.407 (docs/decisions/0216-relight-specular.md).",
     )
 
+    edge_blur_minimum_ratio: float = setting(
+        0.5,
+        "Least share of a blur probe's variance the data's own silhouette edges must show (kind edge_blur, a null: recon.diagnose.edge_width.edge_blur_evidence). Below it the probe's reduction is the fit's silhouette misfit, which any blur reduces, not a blur in the data. Half, not a measured level: on the blind check's four draws the blurred cases' edges showed 0.5-1.3 of their probes' variance, clean and pose-error cases 0.05-0.4 (docs/decisions/0223-edge-blur-null.md).",
+    )
+
     def __post_init__(self) -> None:
         check_range(self.relight_lobe_minimum, "relight_lobe_minimum", low=0.0, high=1.0)
+        check_range(self.edge_blur_minimum_ratio, "edge_blur_minimum_ratio", low=0.0, high=10.0)
         check_range(self.agreement_minimum, "agreement_minimum", low=0.0, high=1.0)
         check_range(self.agreement_alpha, "agreement_alpha", low=0.0, high=1.0)
         check_range(self.lobe_minimum, "lobe_minimum", low=0.0, high=1.0)

@@ -42,6 +42,10 @@ fingerprint   name          the fitted albedo is darker where the fitted mesh hi
 null          raise bar     a failed null from the run (placebo, permutation, split half)
                             keeps the probe from making the candidate significant (the
                             other clearing rows still decide without it)
+edge_blur     raise bar     the same for a blur probe whose blur the data's silhouette edges
+                            do not show (at least edge_blur_minimum_ratio of its variance;
+                            recon.diagnose.edge_width): its reduction is the fit's silhouette
+                            misfit
 specificity   veto          a failed check says the signature is not the candidate's: it is not
                             significant, and ``details["instead"]`` (a base-model mismatch
                             such as view_dependent_reflectance) is named in its place, with the
@@ -179,6 +183,11 @@ def _agrees(evidence: Evidence, threshold: float, config: DecisionConfig) -> boo
     """The halves share a spread above the allowance, and more than permuted views do."""
     p_value = evidence.details.get("p_value", 1.0)
     return evidence.statistic > threshold and p_value < config.agreement_alpha
+
+
+def _edges_show_blur(evidence: Evidence, threshold: float, config: DecisionConfig) -> bool:
+    """The data's silhouette edges show at least the threshold's share of the probe's blur."""
+    return evidence.statistic >= threshold
 
 
 def _lower_bound_clears(evidence: Evidence, threshold: float, config: DecisionConfig) -> bool:
@@ -371,6 +380,12 @@ DECISION_TABLE: tuple[Rule, ...] = (
         outlives_null=True,
     ),
     Rule("null", "null"),
+    Rule(
+        "edge_blur",
+        "null",
+        threshold=lambda effect, config: config.edge_blur_minimum_ratio,
+        passes=_edges_show_blur,
+    ),
     Rule(
         "specificity",
         "veto",
@@ -622,7 +637,9 @@ def _why_not(candidate: Candidate) -> str:
     measured = [
         item
         for item in candidate.evidence
-        if item.kind in RULES and RULES[item.kind].threshold is not None
+        if item.kind in RULES
+        and RULES[item.kind].threshold is not None
+        and RULES[item.kind].role in ("overrule", "clear", "name")
     ]
     if not measured:
         return "no evidence measured"

@@ -219,3 +219,105 @@ def _alone_lower_bound(candidate: Candidate) -> float:
     alone = probe.details.get("alone") if probe.details.get("conditional_on") else None
     statistic = alone.get("statistic") if alone else probe.statistic
     return float(statistic) if statistic is not None else -math.inf
+
+
+NULL_KIND = "edge_blur"
+
+
+def probe_blur_covariances(candidate: Candidate, view_count: int) -> torch.Tensor | None:
+    """[B, 2, 2] the blur covariance (px^2, x along columns) of a blur candidate's probe in each
+    held-out view (the probe alone where it was measured on top of another effect), rebuilt
+    from its reported parameters: a defocus's variance times I; a motion blur's line of length
+    L at its angle (variance L^2 / 12 along it, its minor variance across). None without a
+    probe or its parameters."""
+    probe = candidate.evidence_of("probe")
+    if probe is None:
+        return None
+    alone = probe.details.get("alone") if probe.details.get("conditional_on") else None
+    details = alone.get("details", {}) if alone else probe.details
+    parameters = details.get("parameters") or {}
+    if candidate.name == DEFOCUS and "variance_px2" in parameters:
+        variance = max(float(parameters["variance_px2"]), 0.0)
+        return variance * torch.eye(2, dtype=torch.float64).expand(view_count, 2, 2)
+    lengths = parameters.get("lengths_px") or []
+    if candidate.name != MOTION or len(lengths) != view_count:
+        return None
+    major = torch.tensor(lengths, dtype=torch.float64) ** 2 / 12
+    minor = torch.tensor(parameters.get("minor_sigma_px") or [0.0] * view_count).double() ** 2
+    angle = torch.deg2rad(torch.tensor(parameters["angles_deg"], dtype=torch.float64))
+    along = torch.stack([torch.cos(angle), torch.sin(angle)], dim=-1)  # [B, 2] (column, row)
+    across = torch.stack([-torch.sin(angle), torch.cos(angle)], dim=-1)
+    return (
+        major[:, None, None] * along[:, :, None] * along[:, None, :]
+        + minor[:, None, None] * across[:, :, None] * across[:, None, :]
+    )
+
+
+def probe_widening(
+    rendered_alpha: torch.Tensor, covariances: torch.Tensor, gradient_minimum: float
+) -> torch.Tensor:
+    """[B] how much wider (mean width, px; edge_profile) the fitted render's edges
+    (rendered_alpha [B, H, W, 1]) become under the blur covariances [B, 2, 2]."""
+    sharp = rendered_alpha.double()
+    largest = float(torch.linalg.eigvalsh(covariances).max().clamp_min(0.0))
+    padding = math.ceil(3.5 * math.sqrt(largest)) + 1
+    blurred = gaussian_blur(sharp, covariances, padding)
+    return (
+        edge_profile(blurred, gradient_minimum)[:, 0] - edge_profile(sharp, gradient_minimum)[:, 0]
+    )
+
+
+def edge_blur_evidence(
+    data: DiagnosisData, candidates: list[Candidate], options: GeometricSpecificityConfig
+) -> list[Evidence]:
+    """The "edge_blur" null of each blur candidate (defocus_blur, motion_blur) whose probe
+    found a blur: how much the data's silhouette edges are wider than the fitted render's
+    (edge_measurement), over how much the probe's own blur widens the render's edges
+    (probe_widening), both averaged over the held-out views. A blur in the data widens its
+    edges as the probe's blur does; a probe that reduces the fit's silhouette misfit (a pose or
+    shape error: edges in the wrong place, not wider) recovers a blur the data's edges do not
+    show. The threshold is the decision's (diagnose.decision.edge_blur_minimum_ratio). None
+    where the matte has no soft edges (no width to measure: binary or missing alpha) or the
+    probe's blur widens nothing."""
+    measurement = edge_measurement(data, options)
+    if measurement is None:
+        return []
+    per_view = torch.tensor(measurement["widening_per_view_px"], dtype=torch.float64)
+    evidence = []
+    for candidate in candidates:
+        if candidate.name not in (DEFOCUS, MOTION):
+            continue
+        covariances = probe_blur_covariances(candidate, data.view_count)
+        if covariances is None:
+            continue
+        expected = probe_widening(data.rendered_alpha, covariances, options.edge_gradient_minimum)
+        valid = torch.isfinite(per_view) & torch.isfinite(expected)
+        if not bool(valid.any()) or float(expected[valid].mean()) <= 0:
+            continue
+        observed_mean = float(per_view[valid].mean())
+        expected_mean = float(expected[valid].mean())
+        ratio = observed_mean / expected_mean
+        reason = (
+            f"the data's silhouette edges are {observed_mean:.2f} px wider than the fitted "
+            f"render's; {candidate.name}'s probe blur widens them by {expected_mean:.2f} px "
+            f"({100 * ratio:.0f} % of it shows in the data)"
+        )
+        details = {
+            "data_widening_px": observed_mean,
+            "probe_widening_px": expected_mean,
+            "probe_widening_per_view_px": [float(value) for value in expected],
+            "views": int(valid.sum()),
+        }
+        evidence.append(
+            Evidence(NULL_KIND, candidate.name, ratio, math.nan, False, reason, details)
+        )
+    return evidence
+
+
+def edge_blur_producer(
+    inputs: EvidenceInputs, candidates: list[Candidate], settings: DiagnoseConfig
+) -> list[Evidence]:
+    """The edge_blur null as a producer (recon.diagnose.producers), on the held-out views."""
+    if not settings.geometric_specificity.edge_widths:
+        return []
+    return edge_blur_evidence(inputs.data, candidates, settings.geometric_specificity)

@@ -67,7 +67,7 @@ def _register_checks() -> None:
     from recon.diagnose.bounce import bounce_producer
     from recon.diagnose.cast_shadow import cast_shadow_producer
     from recon.diagnose.checks import CHECK_PRODUCERS
-    from recon.diagnose.edge_width import edge_producer
+    from recon.diagnose.edge_width import edge_blur_producer, edge_producer
     from recon.diagnose.geometric_checks import GEOMETRIC_PRODUCERS
     from recon.diagnose.lobe import lobe_producer
 
@@ -79,6 +79,7 @@ def _register_checks() -> None:
     # The edges before the geometric checks: a blur they rule out is vetoed, and the probes
     # measured on top of it are restored alone (geometric_checks.restore_unconditioned).
     PRODUCERS.append(edge_producer)
+    PRODUCERS.append(edge_blur_producer)
     PRODUCERS.extend(GEOMETRIC_PRODUCERS)
 
 
