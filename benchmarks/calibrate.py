@@ -94,7 +94,8 @@ def bounce_otherwise_passes(evidence) -> bool:
 def blocked_by_failed_null(candidate) -> tuple[str, ...]:
     """The evidence kinds a failed null of the run (decision role "null", judged with the
     default decision config) keeps from deciding this candidate: on a clean case they cannot
-    make it significant whatever their allowance, so they set no allowance either."""
+    make it significant whatever their allowance, so they count as measured at 0 (they need
+    no allowance above the floor)."""
     from recon.config.run_config import DecisionConfig
     from recon.diagnose.decision import DECISION_TABLE, RULES, rethreshold
 
@@ -151,19 +152,25 @@ def clean_statistics(
             ("absorption", f"absorption.{candidate.name}"),
             ("relight", "relight"),
         ):
-            if kind in blocked:
-                continue
             evidence = candidate.evidence_of(kind)
+            if kind in blocked and evidence is not None:
+                # Measured, and it can name nothing here: no higher allowance needed.
+                keep(name, 0.0)
+                continue
             if evidence is not None:
                 keep(name, evidence_statistic(evidence, statistic))
         agreement = candidate.evidence_of("agreement")
         if agreement is not None:
             keep(f"agreement.{candidate.name}", agreement.statistic)
         lobe = candidate.evidence_of("lobe")
-        if lobe is not None and "lobe" not in blocked:
+        if lobe is not None and "lobe" in blocked:
+            keep(f"lobe.{candidate.name}", 0.0)
+        elif lobe is not None:
             keep(f"lobe.{candidate.name}", lobe.statistic)
         beyond = beyond_statistic(candidate)
-        if beyond is not None and BEYOND not in blocked:
+        if beyond is not None and BEYOND in blocked:
+            keep(f"beyond.{candidate.name}", 0.0)
+        elif beyond is not None:
             keep(f"beyond.{candidate.name}", beyond)
         flat_field = candidate.evidence_of("flat_field")
         if flat_field is not None:

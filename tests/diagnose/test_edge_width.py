@@ -12,17 +12,20 @@ from types import SimpleNamespace
 
 import torch
 
-from recon.config.run_config import DiagnoseConfig, GeometricSpecificityConfig
+from recon.config.run_config import DecisionConfig, DiagnoseConfig, GeometricSpecificityConfig
+from recon.diagnose.decision import decide
 from recon.diagnose.edge_width import (
     DEFOCUS,
     MOTION,
+    edge_blur_evidence,
     edge_evidence,
     edge_measurement,
     edge_producer,
     edge_profile,
+    probe_blur_covariances,
 )
 from recon.diagnose.records import Candidate, Evidence
-from recon.effects.optics import gaussian_blur
+from recon.effects.optics import MotionBlur, gaussian_blur
 
 SIZE = 48
 OPTIONS = GeometricSpecificityConfig()
@@ -65,7 +68,11 @@ def line_covariances(views: int, variance: float, angles_deg: list[float]) -> to
 
 
 def data(observed: torch.Tensor, rendered: torch.Tensor) -> SimpleNamespace:
-    return SimpleNamespace(observed_alpha=observed.float(), rendered_alpha=rendered.float())
+    return SimpleNamespace(
+        observed_alpha=observed.float(),
+        rendered_alpha=rendered.float(),
+        view_count=observed.shape[0],
+    )
 
 
 def test_edge_width_grows_with_the_blur_and_points_along_a_line_blur():
@@ -155,3 +162,92 @@ def test_the_producer_measures_only_where_both_blur_probes_could_clear():
     # A clean fit's blur probes below the floor of every allowance: nothing to tie, no cost.
     assert edge_producer(inputs, [probed(DEFOCUS, 0.25), probed(MOTION, 0.01)], settings) == []
     assert edge_producer(inputs, [probed(DEFOCUS, 0.25)], settings) == []
+
+
+# The edge_blur null: a blur probe's blur must show in the data's own edges.
+
+
+def blur_probed(name: str, parameters: dict, lower_bound: float = 0.3) -> Candidate:
+    """A blur candidate whose probe clears its allowance with the parameters given."""
+    candidate = Candidate(name)
+    details = {"reduction": lower_bound + 0.05, "parameters": parameters}
+    candidate.add(Evidence("probe", name, lower_bound, math.nan, False, "probe", details))
+    return candidate
+
+
+def motion_parameters(lengths: list[float], angles: list[float]) -> dict:
+    """A motion blur probe's reported parameters (MotionBlur.parameters_summary) for lines of
+    these lengths (px) and angles (degrees)."""
+    module = MotionBlur(len(lengths))
+    with torch.no_grad():
+        for view, (length, angle) in enumerate(zip(lengths, angles, strict=True)):
+            size = length**2 / 24  # |w|: major variance ~ 2 |w| = L^2 / 12
+            doubled = math.radians(2 * angle)
+            module.line[view] = torch.tensor([size * math.cos(doubled), size * math.sin(doubled)])
+    return module.parameters_summary()
+
+
+def test_a_motion_probe_blur_is_rebuilt_from_its_reported_parameters():
+    parameters = motion_parameters([3.0, 4.5, 2.0], [20.0, 95.0, 150.0])
+    module = MotionBlur(3)
+    with torch.no_grad():
+        for view, (length, angle) in enumerate([(3.0, 20.0), (4.5, 95.0), (2.0, 150.0)]):
+            size = length**2 / 24
+            doubled = math.radians(2 * angle)
+            module.line[view] = torch.tensor([size * math.cos(doubled), size * math.sin(doubled)])
+        expected = module.covariances().double()
+    rebuilt = probe_blur_covariances(blur_probed(MOTION, parameters), 3)
+    assert rebuilt is not None
+    # The summary reports the minor variance clamped at 0; the module's is down to -0.05 px^2
+    # (its smoothing of |w| at 0), a sharpening across the line too slight to widen anything.
+    assert torch.allclose(rebuilt, expected, atol=0.06)
+    assert torch.allclose(
+        torch.linalg.eigvalsh(rebuilt)[:, 1], torch.linalg.eigvalsh(expected)[:, 1], atol=1e-3
+    )
+    defocus = probe_blur_covariances(blur_probed(DEFOCUS, {"variance_px2": 0.7}), 2)
+    assert torch.allclose(defocus, 0.7 * torch.eye(2, dtype=torch.float64).expand(2, 2, 2))
+
+
+def test_a_blur_in_the_data_shows_in_its_edges_as_its_probe_blur_does():
+    angles = [10.0, 60.0, 100.0, 150.0, 30.0, 120.0]
+    rendered = ellipse(6, 16, 11)
+    defocused = blurred(rendered, torch.eye(2)[None] * 0.6)
+    defocus = blur_probed(DEFOCUS, {"variance_px2": 0.6})
+    (found,) = edge_blur_evidence(data(defocused, rendered), [defocus], OPTIONS)
+    assert 0.8 < found.statistic < 1.2, found.reason
+    parameters = motion_parameters([3.5] * 6, angles)
+    streaked = blurred(rendered, probe_blur_covariances(blur_probed(MOTION, parameters), 6))
+    motion = blur_probed(MOTION, parameters)
+    (found,) = edge_blur_evidence(data(streaked, rendered), [motion], OPTIONS)
+    assert 0.8 < found.statistic < 1.2, found.reason
+    # Decided, the null passes and the probe decides.
+    motion.add(found)
+    assert decide(motion, DecisionConfig()).significant
+
+
+def test_a_misplaced_silhouette_is_no_blur_whatever_the_blur_probe_found():
+    """Built to fool the blur probes: the fit's outline is off (shifted, larger), which any blur
+    of the render reduces; the data's edges are as sharp as the render's."""
+    rendered = ellipse(4, 12, 9)
+    observed = ellipse(4, 13, 10, shift=(0.7, -0.5))
+    defocus = blur_probed(DEFOCUS, {"variance_px2": 0.8})
+    (found,) = edge_blur_evidence(data(observed, rendered), [defocus], OPTIONS)
+    assert found.statistic < 0.2, found.reason
+    defocus.add(found)
+    decide(defocus, DecisionConfig())
+    assert not defocus.significant and "silhouette edges" in defocus.why
+    # Blurred by a third of the probe's variance, the edges show less than half its widening.
+    faint = blurred(observed, torch.eye(2)[None] * 0.25)
+    (found,) = edge_blur_evidence(data(faint, rendered), [defocus], OPTIONS)
+    assert 0.2 < found.statistic < DecisionConfig().edge_blur_minimum_ratio
+
+
+def test_no_edge_blur_null_without_soft_edges_or_a_probe_blur():
+    rendered = ellipse(3, 12, 9)
+    mask = (blurred(rendered, torch.eye(2)[None] * 0.6) > 0.5).double()
+    defocus = blur_probed(DEFOCUS, {"variance_px2": 0.6})
+    assert edge_blur_evidence(data(mask, rendered), [defocus], OPTIONS) == []
+    observed = blurred(rendered, torch.eye(2)[None] * 0.6)
+    sharpening = blur_probed(DEFOCUS, {"variance_px2": -0.2})
+    assert edge_blur_evidence(data(observed, rendered), [sharpening], OPTIONS) == []
+    assert edge_blur_evidence(data(observed, rendered), [Candidate(DEFOCUS)], OPTIONS) == []
