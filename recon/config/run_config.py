@@ -1027,6 +1027,10 @@ class GeometricSpecificityConfig:
         0.5,
         "Share of the fitted render's edge pixels the observed matte must hold soft values at (strictly between 0 and 1) for its edges to have a width: a binary mask has none.",
     )
+    edge_blur_soft_minimum: float = setting(
+        0.1,
+        "For the edge_blur null only (recon.diagnose.edge_width.edge_blur_evidence): the share of the fitted render's edge pixels the observed matte must hold soft values at. Lower than edge_soft_minimum: a matte harder than the render's (a renderer whose coverage is fractional on few edge pixels) is itself what a blur-free capture shows; a binary mask (none soft) still carries no width.",
+    )
     edge_anisotropy_margin: float = setting(
         2.0,
         "How many times the anisotropy an isotropic blur of the run's own silhouettes shows (its null) the data's edges must show to be wider across one direction (the calibration's 'twice').",
@@ -1036,6 +1040,7 @@ class GeometricSpecificityConfig:
         check_range(self.margin, "margin", low=0.0, high=1.0)
         check_range(self.edge_gradient_minimum, "edge_gradient_minimum", low=0.0, high=1.0)
         check_range(self.edge_soft_minimum, "edge_soft_minimum", low=0.0, high=1.0)
+        check_range(self.edge_blur_soft_minimum, "edge_blur_soft_minimum", low=0.0, high=1.0)
         check_range(self.edge_anisotropy_margin, "edge_anisotropy_margin", low=1.0, high=100.0)
 
 

@@ -120,17 +120,17 @@ def _anisotropy(rows: torch.Tensor, reference: torch.Tensor, widening: torch.Ten
 
 
 def edge_measurement(
-    data: DiagnosisData, options: GeometricSpecificityConfig
+    data: DiagnosisData, options: GeometricSpecificityConfig, soft_minimum: float | None = None
 ) -> dict[str, object] | None:
     """The edge widths of the held-out views (module docstring), or None where the observed
-    matte has no soft edges (binary or missing alpha: fewer than
-    options.edge_soft_minimum of its edge pixels hold a value strictly between 0 and 1)."""
+    matte has no soft edges (binary or missing alpha: fewer than soft_minimum, default
+    options.edge_soft_minimum, of its edge pixels hold a value strictly between 0 and 1)."""
     observed_alpha = data.observed_alpha.double()
     gradient_minimum = options.edge_gradient_minimum
     band = (observed_alpha > 0.02) & (observed_alpha < 0.98)
     edge_pixels = (data.rendered_alpha > 0.02) & (data.rendered_alpha < 0.98)
     soft = float(band.sum()) / max(float(edge_pixels.sum()), 1.0)
-    if soft < options.edge_soft_minimum:
+    if soft < (options.edge_soft_minimum if soft_minimum is None else soft_minimum):
         return None
     observed = edge_profile(observed_alpha, gradient_minimum)
     rendered = edge_profile(data.rendered_alpha.double(), gradient_minimum)
@@ -277,9 +277,9 @@ def edge_blur_evidence(
     edges as the probe's blur does; a probe that reduces the fit's silhouette misfit (a pose or
     shape error: edges in the wrong place, not wider) recovers a blur the data's edges do not
     show. The threshold is the decision's (diagnose.decision.edge_blur_minimum_ratio). None
-    where the matte has no soft edges (no width to measure: binary or missing alpha) or the
-    probe's blur widens nothing."""
-    measurement = edge_measurement(data, options)
+    where the matte has no soft edges (no width to measure: binary or missing alpha; the bar is
+    options.edge_blur_soft_minimum) or the probe's blur widens nothing."""
+    measurement = edge_measurement(data, options, options.edge_blur_soft_minimum)
     if measurement is None:
         return []
     per_view = torch.tensor(measurement["widening_per_view_px"], dtype=torch.float64)
