@@ -251,3 +251,18 @@ def test_no_edge_blur_null_without_soft_edges_or_a_probe_blur():
     sharpening = blur_probed(DEFOCUS, {"variance_px2": -0.2})
     assert edge_blur_evidence(data(observed, rendered), [sharpening], OPTIONS) == []
     assert edge_blur_evidence(data(observed, rendered), [Candidate(DEFOCUS)], OPTIONS) == []
+
+
+def test_a_matte_harder_than_the_render_is_no_blur():
+    """A renderer whose coverage is fractional on few edge pixels (most are 0 or 1) gives a
+    matte harder than the fitted render's: too few soft pixels for the edges' shape (the
+    inform row), enough to show that the data's edges are not wider."""
+    rendered = ellipse(4, 12, 9)
+    observed = torch.where((rendered > 0.35) & (rendered < 0.65), rendered, rendered.round())
+    band = ((observed > 0.02) & (observed < 0.98)).sum()
+    edge = ((rendered > 0.02) & (rendered < 0.98)).sum()
+    assert OPTIONS.edge_blur_soft_minimum <= band / edge < OPTIONS.edge_soft_minimum
+    assert edge_measurement(data(observed, rendered), OPTIONS) is None
+    defocus = blur_probed(DEFOCUS, {"variance_px2": 0.5})
+    (found,) = edge_blur_evidence(data(observed, rendered), [defocus], OPTIONS)
+    assert found.statistic < 0, found.reason
