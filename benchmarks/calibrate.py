@@ -31,7 +31,6 @@ from pathlib import Path
 import yaml
 
 from benchmarks.record import commit as record_commit
-from recon.diagnose.geometric_judgement import BEYOND
 
 # An allowance is this many times the largest statistic seen on the clean calibration fits.
 CALIBRATION_MARGIN = 2.0
@@ -91,29 +90,6 @@ def bounce_otherwise_passes(evidence) -> bool:
     return p_value < config.bounce_alpha and 0.0 < strength <= config.bounce_maximum_strength
 
 
-def blocked_by_failed_null(candidate) -> tuple[str, ...]:
-    """The evidence kinds a failed null of the run (decision role "null", judged with the
-    default decision config) keeps from deciding this candidate: on a clean case they cannot
-    make it significant whatever their allowance, so they count as measured at 0 (they need
-    no allowance above the floor)."""
-    from recon.config.run_config import DecisionConfig
-    from recon.diagnose.decision import DECISION_TABLE, RULES, rethreshold
-
-    config = DecisionConfig()
-    failed = any(
-        not rethreshold(item, config).passed
-        for item in candidate.evidence
-        if item.counts and item.kind in RULES and RULES[item.kind].role == "null"
-    )
-    if not failed:
-        return ()
-    return tuple(
-        rule.kind
-        for rule in DECISION_TABLE
-        if rule.role in ("clear", "name") and not rule.outlives_null
-    )
-
-
 def clean_statistics(
     diagnosis: dict, present: tuple[str, ...] = (), statistic: str = "per_rule"
 ) -> dict[str, float]:
@@ -146,31 +122,22 @@ def clean_statistics(
     for candidate in stored.candidates:
         if candidate.name in present:
             continue
-        blocked = blocked_by_failed_null(candidate)
         for kind, name in (
             ("probe", f"probe.{candidate.name}"),
             ("absorption", f"absorption.{candidate.name}"),
             ("relight", "relight"),
         ):
             evidence = candidate.evidence_of(kind)
-            if kind in blocked and evidence is not None:
-                # Measured, and it can name nothing here: no higher allowance needed.
-                keep(name, 0.0)
-                continue
             if evidence is not None:
                 keep(name, evidence_statistic(evidence, statistic))
         agreement = candidate.evidence_of("agreement")
         if agreement is not None:
             keep(f"agreement.{candidate.name}", agreement.statistic)
         lobe = candidate.evidence_of("lobe")
-        if lobe is not None and "lobe" in blocked:
-            keep(f"lobe.{candidate.name}", 0.0)
-        elif lobe is not None:
+        if lobe is not None:
             keep(f"lobe.{candidate.name}", lobe.statistic)
         beyond = beyond_statistic(candidate)
-        if beyond is not None and BEYOND in blocked:
-            keep(f"beyond.{candidate.name}", 0.0)
-        elif beyond is not None:
+        if beyond is not None:
             keep(f"beyond.{candidate.name}", beyond)
         flat_field = candidate.evidence_of("flat_field")
         if flat_field is not None:

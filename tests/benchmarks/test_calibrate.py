@@ -194,26 +194,3 @@ def test_the_bounce_floor_rises_only_for_clean_cases_the_floor_alone_keeps_silen
     assert calibrate.calibrate_thresholds([passing], present)["bounce"] == floor
     section = calibrate.calibration_record(thresholds, [], {})["diagnose"]["decision"]
     assert section["bounce_minimum"] == pytest.approx(0.09)
-
-
-def _blurred_clean(probe: tuple[float, float], edges_show: float) -> dict:
-    """A clean diagnosis whose defocus probe (lower bound, point) recovered a blur of which the
-    data's edges show the share edges_show (its edge_blur null)."""
-    defocus = Candidate("defocus_blur")
-    defocus.add(_evidence("probe", "defocus_blur", *probe))
-    defocus.add(Evidence("edge_blur", "defocus_blur", edges_show, math.nan, False, "edges"))
-    return Diagnosis(candidates=[defocus]).to_json()
-
-
-def test_a_probe_its_failed_null_blocks_sets_no_allowance():
-    """A clean fit's silhouette misfit that any blur reduces (the probe removes 20 %) while the
-    data's edges show no blur: its failed null keeps the probe from naming a defocus at any
-    allowance, so it must not raise the allowance the other scenes' blurs are held to."""
-    floor = DecisionConfig().minimum_share
-    misfit = _blurred_clean(probe=(0.15, 0.2), edges_show=0.1)
-    assert calibrate.calibrate_thresholds([misfit])["probe.defocus_blur"] == pytest.approx(floor)
-    # The same probe where the edges do show its blur: it is the null, and sets the allowance.
-    shown = _blurred_clean(probe=(0.15, 0.2), edges_show=0.9)
-    assert calibrate.calibrate_thresholds([shown])["probe.defocus_blur"] == pytest.approx(0.4)
-    assert calibrate.blocked_by_failed_null(Diagnosis.from_json(misfit).candidates[0])
-    assert not calibrate.blocked_by_failed_null(Diagnosis.from_json(shown).candidates[0])
