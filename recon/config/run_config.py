@@ -932,7 +932,7 @@ class DecisionConfig:
 
     edge_blur_minimum_ratio: float = setting(
         0.5,
-        "Least share of a blur probe's variance the data's own silhouette edges must show (kind edge_blur, a null: recon.diagnose.edge_width.edge_blur_evidence). Below it the probe's reduction is the fit's silhouette misfit, which any blur reduces, not a blur in the data. Half, not a measured level: on the blind check's four draws the blurred cases' edges showed 0.5-1.3 of their probes' variance, clean and pose-error cases 0.05-0.4 (docs/decisions/0223-edge-blur-null.md).",
+        "Least share of the widening a blur probe's blur gives the fitted render's silhouette edges that the data's own edges must show (kind edge_blur, a null: recon.diagnose.edge_width.edge_blur_evidence); below it the probe's reduction is the fit's silhouette misfit, which any blur reduces, not a blur in the data. Half: on the blind check's four draws the injected blurs' edges showed 0.57-1.35 of their probes' widening, the own world's other cases none (all below 0) (docs/decisions/0223-edge-blur-null.md).",
     )
 
     def __post_init__(self) -> None:
