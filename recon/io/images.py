@@ -12,6 +12,7 @@ writes 16-bit RGB(A) nor reads it without silently truncating it to 8 bits.
 
 from __future__ import annotations
 
+import errno
 import math
 import os
 import struct
@@ -24,7 +25,7 @@ import OpenEXR
 import torch
 from PIL import Image, UnidentifiedImageError
 
-from recon.errors import ReconError
+from recon.errors import ReconError, WriteError, describe_os_error
 from recon.io.atomic import atomic_path, atomic_write_bytes
 
 # --------------------------------------------------------------------------------------------
@@ -457,7 +458,24 @@ def write_exr(
             with OpenEXR.File(header, planes) as exr_file:
                 exr_file.write(str(temporary))
         except (RuntimeError, ValueError) as error:
+            os_error = _os_error_named_in(str(error), path)
+            if os_error is not None:
+                raise WriteError(describe_os_error(os_error, path)) from error
             raise ReconError(f"{path}: cannot write EXR ({error})") from error
+
+
+# The OS errors a write meets most (recon.errors' hints), recognised in a library's message.
+_WRITE_ERRNOS = ("ENOSPC", "EDQUOT", "EROFS", "EACCES", "EPERM")
+
+
+def _os_error_named_in(message: str, path: str | os.PathLike) -> OSError | None:
+    """The OSError whose text a library's exception carries (OpenEXR reports a full disk as a
+    RuntimeError with the OS's "No space left on device" inside), or None."""
+    for name in _WRITE_ERRNOS:
+        code = getattr(errno, name, None)
+        if code is not None and os.strerror(code) in message:
+            return OSError(code, os.strerror(code), str(path))
+    return None
 
 
 # --------------------------------------------------------------------------------------------

@@ -227,6 +227,32 @@ def test_exr_errors_name_the_file(tmp_path: Path) -> None:
         write_exr(tmp_path / "twice.exr", torch.zeros(2, 2, 2), channel_names=["Z", "Z"])
 
 
+def test_a_full_disk_during_an_exr_write_says_so_by_name(tmp_path: Path, monkeypatch) -> None:
+    """OpenEXR reports a full disk as a RuntimeError with the OS's text inside; the error must
+    read as every other full disk does (the errno's name and what to do), and leave no file."""
+
+    def full(self, path):
+        raise RuntimeError(
+            f'Failed to write pixel data to image file "{path}". No space left on device.'
+        )
+
+    monkeypatch.setattr(OpenEXR.File, "write", full)
+    with pytest.raises(
+        ReconError, match=r"full\.exr: No space left on device \(ENOSPC: the disk is full"
+    ):
+        write_exr(tmp_path / "full.exr", torch.zeros(2, 2, 3))
+    assert list(tmp_path.iterdir()) == []
+
+    def other(self, path):
+        raise RuntimeError("unsupported compression")
+
+    monkeypatch.setattr(OpenEXR.File, "write", other)
+    with pytest.raises(
+        ReconError, match=r"other\.exr: cannot write EXR \(unsupported compression\)"
+    ):
+        write_exr(tmp_path / "other.exr", torch.zeros(2, 2, 3))
+
+
 def test_contact_sheet_size(tmp_path: Path) -> None:
     images = [torch.full((16, 20, 3), index / 5) for index in range(5)]
     sheet = save_contact_sheet(images, tmp_path / "sheet.png", columns=3)
