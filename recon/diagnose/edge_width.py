@@ -299,8 +299,9 @@ def edge_blur_evidence(
         ratio = observed_mean / expected_mean
         reason = (
             f"the data's silhouette edges are {observed_mean:.2f} px wider than the fitted "
-            f"render's; {candidate.name}'s probe blur widens them by {expected_mean:.2f} px "
-            f"({100 * ratio:.0f} % of it shows in the data)"
+            f"render's: {100 * ratio:.0f} % of the {expected_mean:.2f} px {candidate.name}'s "
+            "probe blur would widen them by (a blur the edges do not show is the fit's "
+            "silhouette misfit)"
         )
         details = {
             "data_widening_px": observed_mean,
