@@ -43,9 +43,9 @@ null          raise bar     a failed null from the run (placebo, permutation, sp
                             keeps the probe from making the candidate significant (the
                             other clearing rows still decide without it)
 edge_blur     raise bar     the same for a blur probe whose blur the data's silhouette edges
-                            do not show (at least edge_blur_minimum_ratio of its variance;
-                            recon.diagnose.edge_width): its reduction is the fit's silhouette
-                            misfit
+                            do not show (at least edge_blur_minimum_ratio of the widening it
+                            gives the render's edges; recon.diagnose.edge_width): its
+                            reduction is the fit's silhouette misfit
 specificity   veto          a failed check says the signature is not the candidate's: it is not
                             significant, and ``details["instead"]`` (a base-model mismatch
                             such as view_dependent_reflectance) is named in its place, with the

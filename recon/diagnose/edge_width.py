@@ -119,21 +119,36 @@ def _anisotropy(rows: torch.Tensor, reference: torch.Tensor, widening: torch.Ten
     return torch.linalg.vector_norm(difference, dim=-1) / widening
 
 
-def edge_measurement(
-    data: DiagnosisData, options: GeometricSpecificityConfig, soft_minimum: float | None = None
-) -> dict[str, object] | None:
-    """The edge widths of the held-out views (module docstring), or None where the observed
-    matte has no soft edges (binary or missing alpha: fewer than soft_minimum, default
-    options.edge_soft_minimum, of its edge pixels hold a value strictly between 0 and 1)."""
+def soft_edge_profiles(
+    data: DiagnosisData, options: GeometricSpecificityConfig, soft_minimum: float
+) -> tuple[torch.Tensor, torch.Tensor, float] | None:
+    """The edge profiles (edge_profile) [B, 3] of the observed and the fitted render's matte and
+    the observed matte's soft share (the share of the render's edge pixels at which it holds a
+    value strictly between 0 and 1), or None where that share is below soft_minimum (a binary
+    or missing alpha has no edge width)."""
     observed_alpha = data.observed_alpha.double()
-    gradient_minimum = options.edge_gradient_minimum
     band = (observed_alpha > 0.02) & (observed_alpha < 0.98)
     edge_pixels = (data.rendered_alpha > 0.02) & (data.rendered_alpha < 0.98)
     soft = float(band.sum()) / max(float(edge_pixels.sum()), 1.0)
-    if soft < (options.edge_soft_minimum if soft_minimum is None else soft_minimum):
+    if soft < soft_minimum:
         return None
+    gradient_minimum = options.edge_gradient_minimum
     observed = edge_profile(observed_alpha, gradient_minimum)
     rendered = edge_profile(data.rendered_alpha.double(), gradient_minimum)
+    return observed, rendered, soft
+
+
+def edge_measurement(
+    data: DiagnosisData, options: GeometricSpecificityConfig
+) -> dict[str, object] | None:
+    """The edge widths of the held-out views (module docstring), or None where the observed
+    matte has no soft edges (binary or missing alpha: fewer than
+    options.edge_soft_minimum of its edge pixels hold a value strictly between 0 and 1)."""
+    profiles = soft_edge_profiles(data, options, options.edge_soft_minimum)
+    if profiles is None:
+        return None
+    observed, rendered, soft = profiles
+    gradient_minimum = options.edge_gradient_minimum
     widening = observed[:, 0] - rendered[:, 0]
     valid = torch.isfinite(widening) & torch.isfinite(observed).all(-1)
     if not bool(valid.any()):
@@ -210,14 +225,22 @@ def edge_producer(
     return edge_evidence(inputs.data, settings.geometric_specificity)
 
 
-def _alone_lower_bound(candidate: Candidate) -> float:
-    """The lower bound of the candidate's probe alone (a probe measured on top of another
-    effect keeps its probe alone in details["alone"]); -inf without a probe."""
+def _probe_alone(candidate: Candidate) -> tuple[float | None, dict] | None:
+    """The (statistic, details) of the candidate's probe alone (a probe measured on top of
+    another effect keeps its probe alone in details["alone"]); None without a counted probe."""
     probe = candidate.evidence_of("probe")
     if probe is None or not probe.counts:
-        return -math.inf
+        return None
     alone = probe.details.get("alone") if probe.details.get("conditional_on") else None
-    statistic = alone.get("statistic") if alone else probe.statistic
+    if alone:
+        return alone.get("statistic"), alone.get("details", {})
+    return probe.statistic, probe.details
+
+
+def _alone_lower_bound(candidate: Candidate) -> float:
+    """The lower bound of the candidate's probe alone; -inf without a probe."""
+    alone = _probe_alone(candidate)
+    statistic = None if alone is None else alone[0]
     return float(statistic) if statistic is not None else -math.inf
 
 
@@ -230,12 +253,10 @@ def probe_blur_covariances(candidate: Candidate, view_count: int) -> torch.Tenso
     from its reported parameters: a defocus's variance times I; a motion blur's line of length
     L at its angle (variance L^2 / 12 along it, its minor variance across). None without a
     probe or its parameters."""
-    probe = candidate.evidence_of("probe")
-    if probe is None:
+    alone = _probe_alone(candidate)
+    if alone is None:
         return None
-    alone = probe.details.get("alone") if probe.details.get("conditional_on") else None
-    details = alone.get("details", {}) if alone else probe.details
-    parameters = details.get("parameters") or {}
+    parameters = alone[1].get("parameters") or {}
     if candidate.name == DEFOCUS and "variance_px2" in parameters:
         variance = max(float(parameters["variance_px2"]), 0.0)
         return variance * torch.eye(2, dtype=torch.float64).expand(view_count, 2, 2)
@@ -253,18 +274,15 @@ def probe_blur_covariances(candidate: Candidate, view_count: int) -> torch.Tenso
     )
 
 
-def probe_widening(
+def blurred_edge_width(
     rendered_alpha: torch.Tensor, covariances: torch.Tensor, gradient_minimum: float
 ) -> torch.Tensor:
-    """[B] how much wider (mean width, px; edge_profile) the fitted render's edges
-    (rendered_alpha [B, H, W, 1]) become under the blur covariances [B, 2, 2]."""
-    sharp = rendered_alpha.double()
+    """[B] the mean edge width (px; edge_profile) of the fitted render's matte
+    (rendered_alpha [B, H, W, 1]) blurred by the covariances [B, 2, 2]."""
     largest = float(torch.linalg.eigvalsh(covariances).max().clamp_min(0.0))
     padding = math.ceil(3.5 * math.sqrt(largest)) + 1
-    blurred = gaussian_blur(sharp, covariances, padding)
-    return (
-        edge_profile(blurred, gradient_minimum)[:, 0] - edge_profile(sharp, gradient_minimum)[:, 0]
-    )
+    blurred = gaussian_blur(rendered_alpha.double(), covariances, padding)
+    return edge_profile(blurred, gradient_minimum)[:, 0]
 
 
 def edge_blur_evidence(
@@ -272,17 +290,18 @@ def edge_blur_evidence(
 ) -> list[Evidence]:
     """The "edge_blur" null of each blur candidate (defocus_blur, motion_blur) whose probe
     found a blur: how much the data's silhouette edges are wider than the fitted render's
-    (edge_measurement), over how much the probe's own blur widens the render's edges
-    (probe_widening), both averaged over the held-out views. A blur in the data widens its
+    (soft_edge_profiles), over how much the probe's own blur widens the render's edges
+    (blurred_edge_width), both averaged over the held-out views. A blur in the data widens its
     edges as the probe's blur does; a probe that reduces the fit's silhouette misfit (a pose or
     shape error: edges in the wrong place, not wider) recovers a blur the data's edges do not
     show. The threshold is the decision's (diagnose.decision.edge_blur_minimum_ratio). None
     where the matte has no soft edges (no width to measure: binary or missing alpha; the bar is
     options.edge_blur_soft_minimum) or the probe's blur widens nothing."""
-    measurement = edge_measurement(data, options, options.edge_blur_soft_minimum)
-    if measurement is None:
+    profiles = soft_edge_profiles(data, options, options.edge_blur_soft_minimum)
+    if profiles is None:
         return []
-    per_view = torch.tensor(measurement["widening_per_view_px"], dtype=torch.float64)
+    observed, rendered, _ = profiles
+    per_view = observed[:, 0] - rendered[:, 0]
     evidence = []
     for candidate in candidates:
         if candidate.name not in (DEFOCUS, MOTION):
@@ -290,7 +309,8 @@ def edge_blur_evidence(
         covariances = probe_blur_covariances(candidate, data.view_count)
         if covariances is None:
             continue
-        expected = probe_widening(data.rendered_alpha, covariances, options.edge_gradient_minimum)
+        widths = blurred_edge_width(data.rendered_alpha, covariances, options.edge_gradient_minimum)
+        expected = widths - rendered[:, 0]
         valid = torch.isfinite(per_view) & torch.isfinite(expected)
         if not bool(valid.any()) or float(expected[valid].mean()) <= 0:
             continue

@@ -175,27 +175,27 @@ def blur_probed(name: str, parameters: dict, lower_bound: float = 0.3) -> Candid
     return candidate
 
 
-def motion_parameters(lengths: list[float], angles: list[float]) -> dict:
-    """A motion blur probe's reported parameters (MotionBlur.parameters_summary) for lines of
-    these lengths (px) and angles (degrees)."""
+def motion_module(lengths: list[float], angles: list[float]) -> MotionBlur:
+    """A MotionBlur whose per-view lines have these lengths (px) and angles (degrees)."""
     module = MotionBlur(len(lengths))
     with torch.no_grad():
         for view, (length, angle) in enumerate(zip(lengths, angles, strict=True)):
             size = length**2 / 24  # |w|: major variance ~ 2 |w| = L^2 / 12
             doubled = math.radians(2 * angle)
             module.line[view] = torch.tensor([size * math.cos(doubled), size * math.sin(doubled)])
-    return module.parameters_summary()
+    return module
+
+
+def motion_parameters(lengths: list[float], angles: list[float]) -> dict:
+    """A motion blur probe's reported parameters (MotionBlur.parameters_summary)."""
+    return motion_module(lengths, angles).parameters_summary()
 
 
 def test_a_motion_probe_blur_is_rebuilt_from_its_reported_parameters():
-    parameters = motion_parameters([3.0, 4.5, 2.0], [20.0, 95.0, 150.0])
-    module = MotionBlur(3)
+    lengths, angles = [3.0, 4.5, 2.0], [20.0, 95.0, 150.0]
+    parameters = motion_parameters(lengths, angles)
     with torch.no_grad():
-        for view, (length, angle) in enumerate([(3.0, 20.0), (4.5, 95.0), (2.0, 150.0)]):
-            size = length**2 / 24
-            doubled = math.radians(2 * angle)
-            module.line[view] = torch.tensor([size * math.cos(doubled), size * math.sin(doubled)])
-        expected = module.covariances().double()
+        expected = motion_module(lengths, angles).covariances().double()
     rebuilt = probe_blur_covariances(blur_probed(MOTION, parameters), 3)
     assert rebuilt is not None
     # The summary reports the minor variance clamped at 0; the module's is down to -0.05 px^2
