@@ -42,6 +42,15 @@ from recon.diagnose.records import Evidence
 KIND = "agreement"
 DEFAULTS = DiagnoseConfig()
 SPLITS = ["left-right", "top-bottom", "intensity", "n.h", "n.v"]
+# The specificity domain (recon.diagnose.specificity) each split tests: a gain the same on both
+# halves does not vary along it. Position in the image takes both image splits.
+SPLIT_DOMAINS = {
+    "left-right": "image_position",
+    "top-bottom": "image_position",
+    "intensity": "intensity",
+    "n.h": "n_dot_h",
+    "n.v": "n_dot_v",
+}
 # Fewer views leave a permutation null with too few orderings to reach any level (two views:
 # p >= 1/2) and, once centred, next to no degrees of freedom.
 MINIMUM_VIEWS = 3
@@ -253,13 +262,17 @@ def spread_statistics(
     weights = weights / weights.sum()
     covariance = float((weights * (one * other).sum(dim=0)).sum()) / freedom
     noise = (float((weights * (one - other).pow(2).sum(dim=0)).sum()) / (2 * freedom)) ** 0.5
-    scaled_one, scaled_other = one * weights.sqrt(), other * weights.sqrt()
-    scale = (scaled_one.pow(2).sum() * scaled_other.pow(2).sum()).sqrt().clamp_min(1e-30)
-    correlation = float((scaled_one * scaled_other).sum() / scale)
-    null = permuted_correlations(scaled_one, scaled_other, permutations, seed)
-    p_value = float((1 + (null >= correlation).sum()) / (1 + null.numel()))
+    correlation, p_value, null = _weighted_agreement(one, other, weights, permutations, seed)
     critical = min(float(torch.quantile(null.double(), 1.0 - alpha)), 1.0 - 1e-9)
     detectable = noise * (max(critical, 0.0) / (1.0 - critical)) ** 0.5
+    per_split = {}
+    for index, split in enumerate(SPLITS):
+        # Each split's two colour ratios alone, weighted as in the pooled statistic.
+        columns = slice(2 * index, 2 * index + 2)
+        split_correlation, split_p_value, _ = _weighted_agreement(
+            one[:, columns], other[:, columns], weights[columns], permutations, seed
+        )
+        per_split[split] = {"correlation": split_correlation, "p_value": split_p_value}
     return {
         "spread": max(covariance, 0.0) ** 0.5,
         "correlation": correlation,
@@ -269,7 +282,34 @@ def spread_statistics(
         "noise": noise,
         "critical_correlation": critical,
         "detectable": detectable,
+        "per_split": per_split,
     }
+
+
+def _weighted_agreement(
+    one: torch.Tensor, other: torch.Tensor, weights: torch.Tensor, permutations: int, seed: int
+) -> tuple[float, float, torch.Tensor]:
+    """(correlation, permutation p-value, null correlations [permutations]) of the halves' gains
+    one and other [B, K] over views, each component weighted by weights [K]."""
+    scaled_one, scaled_other = one * weights.sqrt(), other * weights.sqrt()
+    scale = (scaled_one.pow(2).sum() * scaled_other.pow(2).sum()).sqrt().clamp_min(1e-30)
+    correlation = float((scaled_one * scaled_other).sum() / scale)
+    null = permuted_correlations(scaled_one, scaled_other, permutations, seed)
+    p_value = float((1 + (null >= correlation).sum()) / (1 + null.numel()))
+    return correlation, p_value, null
+
+
+def domain_p_values(per_split: dict[str, dict]) -> dict[str, float]:
+    """Per specificity domain (recon.diagnose.specificity), the largest permutation p-value of
+    the splits that test it (SPLIT_DOMAINS): the domain counts as tested by the agreement only
+    where every one of its splits' halves agree on their own (recon.diagnose.decision compares
+    it with diagnose.decision.agreement_alpha). A pooled agreement can come from four splits
+    while the fifth disagrees: a colour change that differs between the bright and the dark
+    half of each view is no camera's, whatever the image halves show."""
+    values: dict[str, float] = {}
+    for split, domain in SPLIT_DOMAINS.items():
+        values[domain] = max(values.get(domain, 0.0), per_split[split]["p_value"])
+    return values
 
 
 def shared_spread(
@@ -333,5 +373,7 @@ def agreement_evidence(data: DiagnosisData, name: str, settings: DiagnoseConfig)
             "noise": statistics["noise"],
             "critical_correlation": statistics["critical_correlation"],
             "detectable": statistics["detectable"],
+            "per_split": statistics["per_split"],
+            "domain_p_values": domain_p_values(statistics["per_split"]),
         },
     )

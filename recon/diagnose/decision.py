@@ -227,11 +227,13 @@ class Rule:
     independent: whether it measures the effect on other data than the held-out residual
         (flat-field frames, the relight split under its own light): a specificity veto, a
         pattern of the held-out residual, does not overturn it.
-    settles: specificity domains (recon.diagnose.specificity) this evidence tests itself: a
+    settles: specificity domains (recon.diagnose.specificity) this evidence can test itself: a
         specificity veto whose failing domains (details["failing_domains"]) all lie among
-        them does not overturn a candidate this evidence passed for (whichever row decided
-        it): the agreement's halves of each view, split by image position, intensity, n.h and
-        n.v, share the colour change, so it is no profile of those domains.
+        those it tested does not overturn a candidate this evidence passed for (whichever row
+        decided it). The agreement splits each view's halves by image position, intensity,
+        n.h and n.v; it records a p-value per domain (details["domain_p_values"]), and only
+        the domains whose splits agreed on their own are settled (a pooled agreement can come from four splits
+        while the fifth disagrees).
     outlives_null: whether it still decides when the probe's null from the run failed (the
         null tests the probe's claim; these rows measure on their own terms). The rows
         without it are the ones a failed null blocked before the null was measured for
@@ -511,9 +513,9 @@ def decide(candidate: Candidate, config: DecisionConfig) -> Candidate:
             domain
             for item in _role_evidence(candidate, "clear")
             if item.passed
-            for domain in RULES[item.kind].settles
+            for domain in _domains_tested(item, config)
         }
-        settled |= set(RULES[deciding.kind].settles)
+        settled |= set(_domains_tested(deciding, config))
         if settled:
             vetoes = [item for item in vetoes if not _settled(item, tuple(sorted(settled)))]
     if vetoes and status == "significant":
@@ -604,6 +606,24 @@ def _settles(candidate: Candidate, kinds: list[str] | tuple[str, ...]) -> bool:
         item.counts and item.passed and RULES[item.kind].role == "clear"
         for item in candidate.evidence
         if item.kind in kinds and item.kind in RULES
+    )
+
+
+def _domains_tested(evidence: Evidence, config: DecisionConfig) -> tuple[str, ...]:
+    """The specificity domains the evidence tested itself: where it records a p-value per
+    domain (details["domain_p_values"]: the agreement's splits), those below
+    diagnose.decision.agreement_alpha; else its row's Rule.settles (records from before the
+    evidence kept them)."""
+    rule = RULES.get(evidence.kind)
+    if rule is None:
+        return ()
+    recorded = evidence.details.get("domain_p_values")
+    if recorded is None:
+        return rule.settles
+    return tuple(
+        domain
+        for domain in rule.settles
+        if float(recorded.get(domain, 1.0)) < config.agreement_alpha
     )
 
 
