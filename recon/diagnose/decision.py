@@ -21,7 +21,8 @@ confusers                   probe above its allowance (derived again at every de
 agreement     clear         a per-view colour gain shared by separate halves of each view
                             above its allowance, beyond permuted views (recon.diagnose.agreement);
                             its halves split the image position, intensity, n.h and n.v, so a
-                            specificity veto in those domains alone does not overturn it
+                            specificity veto in the domains whose splits agreed on their own
+                            (below agreement_alpha) does not overturn it
 lobe          clear         the view-to-view residual (training and held-out views) follows a
                             highlight's lobe under the fitted light beyond placebo lights
                             (recon.diagnose.lobe); ranks after clearing residual evidence

@@ -184,3 +184,36 @@ def test_split_gains_read_the_colour_ratios_once_with_the_same_gains():
     assert torch.equal(first, projection @ plain_first)
     assert torch.equal(second, projection @ plain_second)
     assert float(first.abs().max()) > 1e-4
+
+
+def test_a_colour_change_only_in_the_bright_half_of_each_view_does_not_settle_the_intensity():
+    # A per-view colour change confined to the pixels brighter than the view's median rendered
+    # intensity (what a channel clipping in the brighter views leaves): the angle halves each
+    # hold bright pixels and agree, the intensity split's halves do not.
+    # Pooled, the halves still agree; the intensity is not a domain the agreement tested.
+    data = misfit(None)
+    gains = white_balance(0.08, varying=True)
+    brightness = data.rendered.mean(dim=-1)
+    inside = (data.observed_alpha[..., 0] > 0.5) & (data.rendered_alpha[..., 0] > 0.5)
+    bright = torch.zeros_like(brightness, dtype=torch.bool)
+    for view in range(brightness.shape[0]):
+        bright[view] = brightness[view] > brightness[view][inside[view]].median()
+    data.observed = torch.where(
+        bright[..., None], data.observed * gains[:, None, None, :], data.observed
+    )
+    evidence = agreement_evidence(data, "white_balance", SETTINGS)
+    per_domain = evidence.details["domain_p_values"]
+    alpha = SETTINGS.decision.agreement_alpha
+    assert evidence.details["p_value"] < alpha, evidence.reason
+    assert per_domain["intensity"] > alpha, per_domain
+    assert per_domain["n_dot_h"] < alpha and per_domain["n_dot_v"] < alpha, per_domain
+    split = evidence.details["per_split"]
+    assert split["intensity"]["correlation"] < split["n.v"]["correlation"], split
+
+
+def test_a_colour_change_over_the_whole_view_settles_every_domain_it_splits():
+    data = misfit(white_balance(0.08, varying=True))
+    evidence = agreement_evidence(data, "white_balance", SETTINGS)
+    per_domain = evidence.details["domain_p_values"]
+    assert set(per_domain) == {"image_position", "intensity", "n_dot_h", "n_dot_v"}
+    assert max(per_domain.values()) < SETTINGS.decision.agreement_alpha, per_domain

@@ -497,6 +497,39 @@ def test_a_colour_gain_shared_by_separate_halves_is_not_vetoed_in_the_domains_th
     assert decide(probed, CONFIG).status == "significant"
 
 
+def test_the_agreement_settles_only_the_domains_whose_splits_agreed_on_their_own():
+    # Own bob beside a strong exposure in the blind check: the halves share a 10 % colour
+    # change pooled (p = 0.001), but the bright and the dark halves of each view agree only at
+    # p = 0.033; the specificity check failed in the intensity (and n.h, image position).
+    def white_balance(domain_p_values, failing):
+        result = Candidate("white_balance")
+        result.add(
+            evidence(
+                "agreement",
+                "white_balance",
+                0.1,
+                p_value=0.001,
+                views=8,
+                domain_p_values=domain_p_values,
+            )
+        )
+        details = {"worst_domain": "intensity", "failing_domains": failing}
+        result.add(Evidence("specificity", "white_balance", 0.15, 0.01, False, "veto", details))
+        return decide(result, CONFIG)
+
+    agreed = {"image_position": 0.002, "intensity": 0.001, "n_dot_h": 0.003, "n_dot_v": 0.001}
+    bright_only = {**agreed, "intensity": 0.033}
+    assert white_balance(agreed, ["intensity", "n_dot_h"]).status == "significant"
+    assert white_balance(bright_only, ["intensity", "n_dot_h"]).status == "vetoed"
+    # A veto outside the split that disagreed is still settled.
+    assert white_balance(bright_only, ["n_dot_h", "image_position"]).status == "significant"
+    # The level is the config's: at a looser agreement_alpha the intensity split agreed.
+    loose = replace(CONFIG, agreement_alpha=0.05)
+    result = white_balance(bright_only, ["intensity"])
+    assert result.status == "vetoed"
+    assert decide(result, loose).status == "significant"
+
+
 def lobe_evidence(kind: str, excess: float) -> Evidence:
     """A lobe-like Evidence of specular (kind lobe or relight_lobe) with this excess over its
     placebo lights (p = 0.006)."""
