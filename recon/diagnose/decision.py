@@ -14,7 +14,11 @@ kind          role          effect on the decision
 flat_field    overrule      measures the falloff itself: decides alone, either way
 probe         clear         held-out reduction's lower bound above its allowance: significant
 absorption    clear         the same for the absorption refit (unless voided)
-relight       clear         the same for the relight split's probe
+relight       clear         the same for the relight split's probe; for an effect only the
+                            relight split identifies (DiagnosisFacts.relight_exponent: under
+                            one light the albedo absorbs a curve), an exponent measured there
+                            that removes no error beyond the light's balance vetoes whatever
+                            else cleared (the split shows no curve)
 beyond_       clear         a geometric probe's least reduction on top of each confuser's
 confusers                   probe above its allowance (derived again at every decision from
                             the specificity records; recon.diagnose.geometric_judgement)
@@ -519,6 +523,9 @@ def decide(candidate: Candidate, config: DecisionConfig) -> Candidate:
         settled |= set(_domains_tested(deciding, config))
         if settled:
             vetoes = [item for item in vetoes if not _settled(item, tuple(sorted(settled)))]
+    silent = _relight_shows_none(candidate)
+    if deciding is not None and silent is not None and deciding.kind != "relight":
+        vetoes.append(silent)
     if vetoes and status == "significant":
         status, why = "vetoed", vetoes[0].reason
     unidentifiable = [
@@ -607,6 +614,35 @@ def _settles(candidate: Candidate, kinds: list[str] | tuple[str, ...]) -> bool:
         item.counts and item.passed and RULES[item.kind].role == "clear"
         for item in candidate.evidence
         if item.kind in kinds and item.kind in RULES
+    )
+
+
+def _relight_shows_none(candidate: Candidate) -> Evidence | None:
+    """A veto when the relight split measured the candidate's exponent and found none.
+
+    For an effect the relight split identifies (DiagnosisFacts.relight_exponent: a response
+    curve, which under one light the albedo absorbs), the relight split is the one place its
+    curve shows: the same surface under a second, known light. When the exponent fitted there
+    removes no held-out error beyond the first light's balance (details["specific"] False),
+    the split shows no curve, and what a held-out probe under the training light removed is
+    the fit's own misfit (a strong exposure's texels at their ceiling bend the intensities the
+    same way). None without such a measurement (no relight split, or a voided one)."""
+    facts = diagnosis_facts(candidate.name)
+    relight = candidate.evidence_of("relight")
+    if facts is None or not facts.relight_exponent or relight is None or not relight.counts:
+        return None
+    if relight.details.get("specific", True):
+        return None
+    gamma = (relight.details.get("parameters") or {}).get("gamma")
+    measured = f" (its exponent {gamma:.2f} on the shading ratio)" if gamma is not None else ""
+    return replace(
+        relight,
+        passed=False,
+        reason=(
+            f"the relight split, where a tone curve cannot hide in the albedo, shows none"
+            f"{measured}: the exponent removes no held-out error beyond the fitted light's "
+            "own balance; what the other evidence removed is the fit's own misfit"
+        ),
     )
 
 

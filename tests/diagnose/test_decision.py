@@ -530,6 +530,39 @@ def test_the_agreement_settles_only_the_domains_whose_splits_agreed_on_their_own
     assert decide(result, loose).status == "significant"
 
 
+def test_a_relight_split_that_shows_no_curve_vetoes_a_response_curve_the_probe_found():
+    # Own spot beside a strong exposure in the blind check (a 12 dB fit): the probe on top of
+    # the exposure removed 23 % of the held-out error as a response curve, while the relight
+    # split's exponent (1.82, expanding) removed nothing beyond the fitted light's balance.
+    def curve(specific, probe=(0.15, 0.28), relight=(0.0, 0.0)):
+        result = candidate("response_curve", probe=probe, relight=relight)
+        item = result.evidence_of("relight")
+        item.details.update(specific=specific, parameters={"gamma": 1.82})
+        return decide(result, CONFIG)
+
+    vetoed = curve(specific=False)
+    assert vetoed.status == "vetoed" and not vetoed.significant
+    assert "relight split" in vetoed.why and "1.82" in vetoed.why, vetoed.why
+    # A specific exponent the allowance does not reach leaves the probe's verdict alone.
+    assert curve(specific=True).status == "significant"
+    # The relight split decides on its own, whatever the probe.
+    found = curve(specific=True, probe=(-0.01, 0.01), relight=(0.1, 0.2))
+    assert found.significant and found.decided_by == "relight"
+    # Only for an effect the relight split identifies: an exposure's probe is not vetoed by it.
+    gain = candidate("exposure", probe=(0.15, 0.28), relight=(0.0, 0.0))
+    gain.evidence_of("relight").details["specific"] = False
+    assert decide(gain, CONFIG).significant
+    # A voided relight measurement says nothing.
+    voided = candidate("response_curve", probe=(0.15, 0.28), relight=(0.0, 0.0))
+    relight = voided.evidence_of("relight")
+    relight.details["specific"] = False
+    voided.evidence = [
+        replace(item, void="the relight split's views are too few") if item is relight else item
+        for item in voided.evidence
+    ]
+    assert decide(voided, CONFIG).significant
+
+
 def lobe_evidence(kind: str, excess: float) -> Evidence:
     """A lobe-like Evidence of specular (kind lobe or relight_lobe) with this excess over its
     placebo lights (p = 0.006)."""
