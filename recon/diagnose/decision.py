@@ -237,8 +237,8 @@ class Rule:
         those it tested does not overturn a candidate this evidence passed for (whichever row
         decided it). The agreement splits each view's halves by image position, intensity,
         n.h and n.v; it records a p-value per domain (details["domain_p_values"]), and only
-        the domains whose splits agreed on their own are settled (a pooled agreement can come from four splits
-        while the fifth disagrees).
+        the domains whose splits agreed on their own are settled (a pooled agreement can
+        come from four splits while the fifth disagrees).
     outlives_null: whether it still decides when the probe's null from the run failed (the
         null tests the probe's claim; these rows measure on their own terms). The rows
         without it are the ones a failed null blocked before the null was measured for
