@@ -246,6 +246,10 @@ class Rule:
     revise: judges a stored evidence again under the config when its verdict depends on the
         allowances in a way threshold and passes cannot say (the geometric specificity
         check compares two probes, each with its own allowance).
+    contradicts: for evidence of this row that measured the candidate's own signature on
+        data of its own and found none, the reason it vetoes whatever other row cleared the
+        candidate (None: it does not contradict them). Relight: a tone curve shows only under
+        a second light, so a relight split without one overrules a held-out probe.
     """
 
     kind: str
@@ -259,6 +263,7 @@ class Rule:
     settles: tuple[str, ...] = ()
     revise: Callable[[Evidence, DecisionConfig], Evidence] | None = None
     outlives_null: bool = False
+    contradicts: Callable[[Evidence], str | None] | None = None
 
 
 def _rejudge_geometric(evidence: Evidence, config: DecisionConfig) -> Evidence:
@@ -278,6 +283,26 @@ def _rejudge_expected_share(evidence: Evidence, config: DecisionConfig) -> Evide
     return replace(
         judge_expected_share(evidence.candidate, share, allowance, evidence.details),
         void=evidence.void,
+    )
+
+
+def _relight_shows_no_curve(evidence: Evidence) -> str | None:
+    """Row relight's contradiction: for an effect the relight split identifies
+    (DiagnosisFacts.relight_exponent: a response curve, which under one light the albedo
+    absorbs), the relight split is the one place its curve shows, the same surface under a
+    second, known light. When the exponent fitted there removes no held-out error beyond the
+    first light's balance (details["specific"] False), the split shows no curve, and what a
+    held-out probe under the training light removed is the fit's own misfit (beside a strong
+    exposure, texels at the albedo's ceiling bend the intensities; decision 0224)."""
+    facts = diagnosis_facts(evidence.candidate)
+    if facts is None or not facts.relight_exponent or evidence.details.get("specific", True):
+        return None
+    gamma = (evidence.details.get("parameters") or {}).get("gamma")
+    measured = f" (its exponent {gamma:.2f} on the shading ratio)" if gamma is not None else ""
+    return (
+        f"the relight split, where a tone curve cannot hide in the albedo, shows none"
+        f"{measured}: the exponent removes no held-out error beyond the fitted light's own "
+        "balance; what the other evidence removed is the fit's own misfit"
     )
 
 
@@ -321,6 +346,7 @@ DECISION_TABLE: tuple[Rule, ...] = (
         parameters_from=("relight", "probe"),
         independent=True,
         outlives_null=True,
+        contradicts=_relight_shows_no_curve,
     ),
     Rule(
         BEYOND,
@@ -523,9 +549,8 @@ def decide(candidate: Candidate, config: DecisionConfig) -> Candidate:
         settled |= set(_domains_tested(deciding, config))
         if settled:
             vetoes = [item for item in vetoes if not _settled(item, tuple(sorted(settled)))]
-    silent = _relight_shows_none(candidate)
-    if deciding is not None and silent is not None and deciding.kind != "relight":
-        vetoes.append(silent)
+    if deciding is not None:
+        vetoes += _contradictions(candidate, deciding)
     if vetoes and status == "significant":
         status, why = "vetoed", vetoes[0].reason
     unidentifiable = [
@@ -617,33 +642,20 @@ def _settles(candidate: Candidate, kinds: list[str] | tuple[str, ...]) -> bool:
     )
 
 
-def _relight_shows_none(candidate: Candidate) -> Evidence | None:
-    """A veto when the relight split measured the candidate's exponent and found none.
-
-    For an effect the relight split identifies (DiagnosisFacts.relight_exponent: a response
-    curve, which under one light the albedo absorbs), the relight split is the one place its
-    curve shows: the same surface under a second, known light. When the exponent fitted there
-    removes no held-out error beyond the first light's balance (details["specific"] False),
-    the split shows no curve, and what a held-out probe under the training light removed is
-    the fit's own misfit (a strong exposure's texels at their ceiling bend the intensities the
-    same way). None without such a measurement (no relight split, or a voided one)."""
-    facts = diagnosis_facts(candidate.name)
-    relight = candidate.evidence_of("relight")
-    if facts is None or not facts.relight_exponent or relight is None or not relight.counts:
-        return None
-    if relight.details.get("specific", True):
-        return None
-    gamma = (relight.details.get("parameters") or {}).get("gamma")
-    measured = f" (its exponent {gamma:.2f} on the shading ratio)" if gamma is not None else ""
-    return replace(
-        relight,
-        passed=False,
-        reason=(
-            f"the relight split, where a tone curve cannot hide in the albedo, shows none"
-            f"{measured}: the exponent removes no held-out error beyond the fitted light's "
-            "own balance; what the other evidence removed is the fit's own misfit"
-        ),
-    )
+def _contradictions(candidate: Candidate, deciding: Evidence) -> list[Evidence]:
+    """Vetoes from rows whose evidence measured the candidate's signature and found none
+    (Rule.contradicts), other than the deciding row's own kind."""
+    vetoes = []
+    for item in candidate.evidence:
+        rule = RULES.get(item.kind)
+        if rule is None or rule.contradicts is None or not item.counts:
+            continue
+        if item.kind == deciding.kind:
+            continue
+        reason = rule.contradicts(item)
+        if reason is not None:
+            vetoes.append(replace(item, passed=False, reason=reason))
+    return vetoes
 
 
 def _domains_tested(evidence: Evidence, config: DecisionConfig) -> tuple[str, ...]:
