@@ -1445,6 +1445,13 @@ class DiagnoseConfig:
     absorption_smoothness_weight: float = setting(
         0.01, "Texture total-variation weight of the frozen-geometry absorption refits."
     )
+    refit_first: bool = setting(
+        True,
+        "When a per-view gain (exposure, white balance) tops the ranking, refit the texture and light with it (frozen geometry) and measure the other candidates on that model: a fit without the gain bends its albedo against the texture's ceiling, and the other evidence reads the bend.",
+    )
+    refit_first_steps: int = setting(
+        96, "Steps of the frozen-geometry refit that adds the first per-view gain (refit_first)."
+    )
     smallest_remaining_share: float = setting(
         0.05,
         "Least share of the error a given (conditioning) effect is taken to leave when deciding whether absorption refits are worth repeating on top of it.",
@@ -1622,7 +1629,13 @@ class DiagnoseConfig:
             "flat_field_maximum_clipped_share",
         ):
             check_range(getattr(self, name), name, low=0.0, high=1.0)
-        for name in ("absorption_steps", "geometry_steps", "refit_steps", "max_greedy_effects"):
+        for name in (
+            "absorption_steps",
+            "geometry_steps",
+            "refit_steps",
+            "refit_first_steps",
+            "max_greedy_effects",
+        ):
             check_range(getattr(self, name), name, low=1)
         check_range(self.geometry_resolution, "geometry_resolution", low=MINIMUM_VIEW_SIZE)
         check_range(self.confirming_share, "confirming_share", low=0.0, high=1.0)

@@ -82,11 +82,12 @@ def frozen_refit(
     names: list[str],
     renderer: Renderer,
     settings: DiagnoseConfig,
+    steps: int | None = None,
 ) -> tuple[Mesh, Lighting, list[ModelEffect]]:
     """Refit texture, light and the named effects (from the identity) on the training views with
-    the geometry frozen, for diagnose.absorption_steps (one group of views per step). Returns
-    the re-textured mesh, the light (detached) and the fitted effect modules."""
-    steps = settings.absorption_steps
+    the geometry frozen, for steps (default diagnose.absorption_steps; one group of views per
+    step). Returns the re-textured mesh, the light (detached) and the fitted effect modules."""
+    steps = settings.absorption_steps if steps is None else steps
     device = frozen.mesh.verts.device
     modules = [make_effect(name, view_count=frozen.view_count).to(device) for name in names]
     texture = torch.nn.Parameter(frozen.mesh.texture.clone())
@@ -186,6 +187,33 @@ def _could_clear_on_top(
     return interval[1] / remaining > absorption_threshold(candidate.name, settings.decision)
 
 
+# Bilinear without mipmaps: the training views sample the texture near 1:1, and the refits
+# only compare with each other (the held-out evaluation renders in full).
+FROZEN_RENDERER = {"texture_filter": "linear", "texture_boundary": "clamp"}
+
+
+def refit_frozen(
+    names: list[str],
+    data: DiagnosisData,
+    inputs: AbsorptionInputs,
+    cache: AbsorptionCache,
+    steps: int | None = None,
+) -> tuple[Mesh, Lighting, list[ModelEffect]]:
+    """frozen_refit of the named effects on the training views rasterised once with data's
+    mesh and light (kept in cache.frozen for the next refit of the same diagnosis); steps:
+    default diagnose.absorption_steps. Returns the re-textured mesh and the light on the
+    refits' device, and the fitted modules."""
+    renderer = Renderer(**FROZEN_RENDERER)
+    if cache.frozen is None:
+        cache.frozen = FrozenTrainingViews.build(
+            inputs.training,
+            data.mesh.to(inputs.device),
+            data.lighting.to(inputs.device),
+            renderer,
+        )
+    return frozen_refit(cache.frozen, names, renderer, inputs.config.diagnose, steps)
+
+
 def absorption_probes(
     candidates: list[Candidate],
     data: DiagnosisData,
@@ -214,9 +242,6 @@ def absorption_probes(
     cache: shared between the two passes of one diagnosis (the rasterised training views).
     """
     settings = inputs.config.diagnose
-    # Bilinear without mipmaps: the training views sample the texture near 1:1, and the
-    # refits only compare with each other (the held-out evaluation renders in full).
-    renderer = Renderer(texture_filter="linear", texture_boundary="clamp")
     cache = cache if cache is not None else AbsorptionCache()
     base = [given] if given else []
     given_candidate = next((c for c in candidates if c.name == given), None) if given else None
@@ -235,14 +260,7 @@ def absorption_probes(
             modules = heldout_modules(names, fitted, data.view_count, data.observed.device)
             moved = replace(data, mesh=refitted.mesh, lighting=refitted.lighting, model=refitted)
             return heldout_errors(moved, modules, settings)[0], fitted
-        if cache.frozen is None:
-            cache.frozen = FrozenTrainingViews.build(
-                inputs.training,
-                data.mesh.to(device),
-                data.lighting.to(device),
-                renderer,
-            )
-        mesh, lighting, fitted = frozen_refit(cache.frozen, names, renderer, settings)
+        mesh, lighting, fitted = refit_frozen(names, data, inputs, cache)
         modules = heldout_modules(names, fitted, data.view_count, data.observed.device)
         refitted = replace(data, mesh=mesh.to("cpu"), lighting=lighting.to("cpu"))
         return heldout_errors(refitted, modules, settings)[0], fitted
