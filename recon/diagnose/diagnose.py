@@ -28,7 +28,7 @@ from recon.diagnose.data import (
     render_diagnosis_data,
     render_views_once,
 )
-from recon.diagnose.decision import decide, decide_all, verdict_of
+from recon.diagnose.decision import decide, decide_all, rank_key, verdict_of
 from recon.diagnose.domains import where_analysis
 from recon.diagnose.fingerprint import visibility_fingerprint
 from recon.diagnose.flat_field import measure_flat_field
@@ -398,8 +398,8 @@ def which(
     # absorption evidence is gathered before this choice: a lens distortion that the fit bent
     # into the geometry looks like per-view misalignment to the probes alone.)
     given = conditioning_effect(ranked)
-    first = given if refit_first and refits_first(given, inputs.model, settings) else None
-    if given and not first:
+    first = leading_gain(ranked, inputs.model, settings) if refit_first else None
+    if given:
         conditional_probes(ranked, probe, given)
         lap("conditional_probes")
         if settings.absorption:
@@ -421,6 +421,22 @@ def which(
     if leader is None or not leader.significant:  # its own specificity may have vetoed it
         return ranked
     return [leader] + on_top_of(leader, inputs, data, absorption, cache, gap, lap, candidates)
+
+
+def leading_gain(
+    candidates: list[Candidate], model: FittedModel, settings: DiagnoseConfig
+) -> str | None:
+    """The best-ranked per-view gain its probe made significant (refits_first), or None: the
+    effect the model is refitted with before the others are measured again (on_top_of). It
+    need not top the ranking: an effect that the bent albedo imitates can outrank it."""
+    gains = [
+        candidate
+        for candidate in candidates
+        if candidate.significant
+        and candidate.decided_by == "probe"
+        and refits_first(candidate.name, model, settings)
+    ]
+    return max(gains, key=rank_key).name if gains else None
 
 
 def refits_first(given: str | None, model: FittedModel, settings: DiagnoseConfig) -> bool:
