@@ -423,6 +423,22 @@ def which(
     return [leader] + on_top_of(leader, inputs, data, absorption, cache, gap, lap, candidates)
 
 
+def ceiling_share(texture: torch.Tensor, data: DiagnosisData) -> list[float]:
+    """Per channel, the share of data's covered pixels whose texel (nearest, at texel_uv) of
+    texture [T, T, 3] is at or above the ceiling of 1 that the fit clamps its texture to: how far a
+    fit bent its albedo against the ceiling (on_top_of records it before and after its refit,
+    which does not clamp)."""
+    covered = data.rendered_mask & (data.texel_uv[..., 0] >= 0)
+    if not bool(covered.any()):
+        return [0.0, 0.0, 0.0]
+    rows, columns = texture.shape[:2]
+    uv = data.texel_uv[covered]  # [P, 2], (0, 0) the texture's top-left
+    column = (uv[:, 0] * columns).long().clamp(0, columns - 1)
+    row = (uv[:, 1] * rows).long().clamp(0, rows - 1)
+    texels = texture.detach().to(uv.device)[row, column]  # [P, 3]
+    return [round(float(share), 4) for share in (texels >= 1 - 1e-4).double().mean(dim=0)]
+
+
 def leading_gain(
     candidates: list[Candidate], model: FittedModel, settings: DiagnoseConfig
 ) -> str | None:
@@ -485,6 +501,10 @@ def on_top_of(
         "effect": leader.name,
         "steps": settings.refit_first_steps,
         "heldout_rmse": gap_summary(data_on_top)["rmse"],
+        "ceiling_share": {
+            "fit": ceiling_share(data.mesh.texture, data),
+            "refit": ceiling_share(model.mesh.texture, data),
+        },
     }
     lap("refit_first_views")
     on_top = lap.prefixed("on_top_")
