@@ -1450,7 +1450,8 @@ class DiagnoseConfig:
         "When a per-view gain (exposure, white balance) tops the ranking, refit the texture and light with it (frozen geometry) and measure the other candidates on that model: a fit without the gain bends its albedo against the texture's ceiling, and the other evidence reads the bend.",
     )
     refit_first_steps: int = setting(
-        96, "Steps of the frozen-geometry refit that adds the first per-view gain (refit_first)."
+        300,
+        "Steps of the frozen-geometry refit that adds the first per-view gain (refit_first): about where its training error stops falling (decision 0225).",
     )
     smallest_remaining_share: float = setting(
         0.05,

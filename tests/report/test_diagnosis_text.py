@@ -47,14 +47,14 @@ def test_the_refit_first_line_says_what_the_others_were_measured_on():
     ranked = decide_all([exposure], DecisionConfig())
     on_top = {
         "effect": "exposure",
-        "steps": 96,
+        "steps": 300,
         "heldout_rmse": 0.0321,
         "ceiling_share": {"fit": [0.33, 0.12, 0.0], "refit": [0.01, 0.0, 0.0]},
     }
     gap = {"rmse": 0.1234, "on_top_of": on_top}
     lines = diagnosis_lines(Diagnosis(gap=gap, candidates=ranked, verdict=verdict_of(ranked)))
     assert (
-        "the others measured on the model refitted with exposure (96 steps): held-out RMSE "
+        "the others measured on the model refitted with exposure (300 steps): held-out RMSE "
         "0.1234 -> 0.0321; albedo at its ceiling (r/g/b % of pixels) 33/12/0 -> 1/0/0"
     ) in lines
     assert not any("refitted with" in line for line in diagnosis_lines(Diagnosis()))
