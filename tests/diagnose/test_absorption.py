@@ -231,7 +231,7 @@ def test_both_absorption_passes_rasterise_the_training_views_once(monkeypatch):
         builds.append(1)
         return SimpleNamespace(view_count=2)
 
-    def frozen_refit(frozen, names, renderer, settings):
+    def frozen_refit(frozen, names, renderer, settings, steps=None):
         modules = [SimpleNamespace(name=name, parameters_summary=dict) for name in names]
         return movable, movable, modules
 
