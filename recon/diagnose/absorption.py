@@ -19,7 +19,9 @@ like every other held-out number.
 
 from __future__ import annotations
 
+import copy
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -83,13 +85,18 @@ def frozen_refit(
     renderer: Renderer,
     settings: DiagnoseConfig,
     steps: int | None = None,
+    fixed: Sequence[ModelEffect] = (),
 ) -> tuple[Mesh, Lighting, list[ModelEffect]]:
     """Refit texture, light and the named effects (from the identity) on the training views with
     the geometry frozen, for steps (default diagnose.absorption_steps; one group of views per
-    step). Returns the re-textured mesh, the light (detached) and the fitted effect modules."""
+    step). fixed: shading and image effects applied as they are, before the named ones (a fit's
+    own effects; camera effects are not re-applied to the frozen rasterisation). Returns the
+    re-textured mesh, the light (detached) and the fitted effect modules."""
     steps = settings.absorption_steps if steps is None else steps
     device = frozen.mesh.verts.device
     modules = [make_effect(name, view_count=frozen.view_count).to(device) for name in names]
+    applied = [copy.deepcopy(module).to(device).requires_grad_(False) for module in fixed]
+    applied += modules
     texture = torch.nn.Parameter(frozen.mesh.texture.clone())
     light = LightModel.from_lighting(frozen.lighting)
     groups = [{"params": [texture], "lr": settings.absorption_texture_learning_rate}]
@@ -112,8 +119,8 @@ def frozen_refit(
         )
         cameras = frozen.cameras[views]
         context = EffectContext(frozen.mesh, lighting, cameras, views, renderer)
-        output = apply_shading_effects(modules, output, context)
-        color, _ = apply_image_effects(modules, output.color, output.alpha, cameras, views)
+        output = apply_shading_effects(applied, output, context)
+        color, _ = apply_image_effects(applied, output.color, output.alpha, cameras, views)
         smoothness = texture_total_variation(texture)  # as in the fit
         # Squared error, like the held-out evaluation: an L1 loss keeps Adam's texel steps at
         # full size to the end, and that jitter would swamp a small absorbed effect.
@@ -198,11 +205,12 @@ def refit_frozen(
     inputs: AbsorptionInputs,
     cache: AbsorptionCache,
     steps: int | None = None,
+    fixed: Sequence[ModelEffect] = (),
 ) -> tuple[Mesh, Lighting, list[ModelEffect]]:
     """frozen_refit of the named effects on the training views rasterised once with data's
     mesh and light (kept in cache.frozen for the next refit of the same diagnosis); steps:
-    default diagnose.absorption_steps. Returns the re-textured mesh and the light on the
-    refits' device, and the fitted modules."""
+    default diagnose.absorption_steps; fixed: effects applied unchanged (frozen_refit). Returns
+    the re-textured mesh and the light on the refits' device, and the fitted modules."""
     renderer = Renderer(**FROZEN_RENDERER)
     if cache.frozen is None:
         cache.frozen = FrozenTrainingViews.build(
@@ -211,7 +219,7 @@ def refit_frozen(
             data.lighting.to(inputs.device),
             renderer,
         )
-    return frozen_refit(cache.frozen, names, renderer, inputs.config.diagnose, steps)
+    return frozen_refit(cache.frozen, names, renderer, inputs.config.diagnose, steps, fixed)
 
 
 def absorption_probes(

@@ -436,6 +436,7 @@ def ceiling_share(texture: torch.Tensor, data: DiagnosisData) -> list[float]:
     column = (uv[:, 0] * columns).long().clamp(0, columns - 1)
     row = (uv[:, 1] * rows).long().clamp(0, rows - 1)
     texels = texture.detach().to(uv.device)[row, column]  # [P, 3]
+    # A texel the fit clamped is 1 to float32 rounding.
     return [round(float(share), 4) for share in (texels >= 1 - 1e-4).double().mean(dim=0)]
 
 
@@ -485,7 +486,7 @@ def on_top_of(
     gap['on_top_of']."""
     settings = inputs.config.diagnose
     mesh, lighting, modules = refit_frozen(
-        [leader.name], data, absorption, cache, settings.refit_first_steps
+        [leader.name], data, absorption, cache, settings.refit_first_steps, inputs.model.effects
     )
     model = replace(
         inputs.model,
