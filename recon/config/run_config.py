@@ -1449,6 +1449,10 @@ class DiagnoseConfig:
         True,
         "When a per-view gain (exposure, white balance) tops the ranking, refit the texture and light with it (frozen geometry) and measure the other candidates on that model: a fit without the gain bends its albedo against the texture's ceiling, and the other evidence reads the bend.",
     )
+    refit_first_light: bool = setting(
+        False,
+        "Whether the refit_first refit re-estimates the light with the texture and the gain; by default the light stays as fitted: re-estimated in a short frozen refit it trades its balance against the albedo, and the relight split reads that as a tone curve (decision 0225).",
+    )
     refit_first_steps: int = setting(
         300,
         "Steps of the frozen-geometry refit that adds the first per-view gain (refit_first): about where its training error stops falling (decision 0225).",

@@ -86,12 +86,14 @@ def frozen_refit(
     settings: DiagnoseConfig,
     steps: int | None = None,
     fixed: Sequence[ModelEffect] = (),
+    refit_light: bool = True,
 ) -> tuple[Mesh, Lighting, list[ModelEffect]]:
     """Refit texture, light and the named effects (from the identity) on the training views with
     the geometry frozen, for steps (default diagnose.absorption_steps; one group of views per
     step). fixed: shading and image effects applied as they are, before the named ones (a fit's
-    own effects; camera effects are not re-applied to the frozen rasterisation). Returns the
-    re-textured mesh, the light (detached) and the fitted effect modules."""
+    own effects; camera effects are not re-applied to the frozen rasterisation). refit_light:
+    False keeps the light as fitted. Returns the re-textured mesh, the light (detached) and the
+    fitted effect modules."""
     steps = settings.absorption_steps if steps is None else steps
     device = frozen.mesh.verts.device
     modules = [make_effect(name, view_count=frozen.view_count).to(device) for name in names]
@@ -100,9 +102,12 @@ def frozen_refit(
     texture = torch.nn.Parameter(frozen.mesh.texture.clone())
     light = LightModel.from_lighting(frozen.lighting)
     groups = [{"params": [texture], "lr": settings.absorption_texture_learning_rate}]
-    groups.append(
-        {"params": list(light.parameters()), "lr": settings.absorption_light_learning_rate}
-    )
+    if refit_light:
+        groups.append(
+            {"params": list(light.parameters()), "lr": settings.absorption_light_learning_rate}
+        )
+    else:
+        light.requires_grad_(False)
     groups += [group for module in modules for group in module.parameter_groups()]
     optimizer = torch.optim.Adam(groups)
     for step in range(steps):
@@ -206,10 +211,11 @@ def refit_frozen(
     cache: AbsorptionCache,
     steps: int | None = None,
     fixed: Sequence[ModelEffect] = (),
+    refit_light: bool = True,
 ) -> tuple[Mesh, Lighting, list[ModelEffect]]:
     """frozen_refit of the named effects on the training views rasterised once with data's
     mesh and light (kept in cache.frozen for the next refit of the same diagnosis); steps:
-    default diagnose.absorption_steps; fixed: effects applied unchanged (frozen_refit). Returns
+    default diagnose.absorption_steps; fixed, refit_light: as frozen_refit. Returns
     the re-textured mesh and the light on the refits' device, and the fitted modules."""
     renderer = Renderer(**FROZEN_RENDERER)
     if cache.frozen is None:
@@ -219,7 +225,9 @@ def refit_frozen(
             data.lighting.to(inputs.device),
             renderer,
         )
-    return frozen_refit(cache.frozen, names, renderer, inputs.config.diagnose, steps, fixed)
+    return frozen_refit(
+        cache.frozen, names, renderer, inputs.config.diagnose, steps, fixed, refit_light
+    )
 
 
 def absorption_probes(

@@ -486,7 +486,13 @@ def on_top_of(
     gap['on_top_of']."""
     settings = inputs.config.diagnose
     mesh, lighting, modules = refit_frozen(
-        [leader.name], data, absorption, cache, settings.refit_first_steps, inputs.model.effects
+        [leader.name],
+        data,
+        absorption,
+        cache,
+        settings.refit_first_steps,
+        inputs.model.effects,
+        settings.refit_first_light,
     )
     model = replace(
         inputs.model,
