@@ -326,3 +326,13 @@ def test_fixed_effects_are_applied_not_refitted():
     assert torch.equal(vignetting.state_dict()["coefficients"], before)
     # Without it the refit bakes the darkening into texture and light.
     assert kept < 0.5 * baked, (kept, baked)
+
+
+def test_a_refit_without_the_light_keeps_the_fitted_light():
+    frozen, _ = scene_and_views(0.3)
+    renderer = Renderer(texture_filter="linear")
+    settings = replace_settings(SETTINGS, absorption_steps=8)
+    _, kept, _ = frozen_refit(frozen, ["exposure"], renderer, settings, refit_light=False)
+    _, moved, _ = frozen_refit(frozen, ["exposure"], renderer, settings)
+    assert torch.allclose(kept.sh_coefficients, frozen.lighting.sh_coefficients)
+    assert not torch.allclose(moved.sh_coefficients, frozen.lighting.sh_coefficients)
