@@ -479,10 +479,11 @@ def on_top_of(
 
     A fit without the gain that the views carry bends its albedo: the texels the bright views
     need above the texture's ceiling stop there in some channels, and each held-out view sees
-    its own mix of them, which the colour, curve and shadow evidence read as effects. Texture
-    and light are refitted with the gain on the frozen geometry (diagnose.refit_first_steps);
-    the gain becomes one of the model's own effects (its held-out gains fitted per view like
-    a fit's own), and the whole measurement runs again for the rest. Records the refit in
+    its own mix of them, which the colour, curve and shadow evidence read as effects. The
+    texture is refitted with the gain on the frozen geometry (diagnose.refit_first_steps; the
+    light too only with diagnose.refit_first_light, the fit's own effects applied); the gain
+    becomes one of the model's own effects (its held-out gains fitted per view like a fit's
+    own), and the whole measurement runs again for the rest. Records the refit in
     gap['on_top_of']."""
     settings = inputs.config.diagnose
     mesh, lighting, modules = refit_frozen(
