@@ -1445,18 +1445,6 @@ class DiagnoseConfig:
     absorption_smoothness_weight: float = setting(
         0.01, "Texture total-variation weight of the frozen-geometry absorption refits."
     )
-    refit_first: bool = setting(
-        True,
-        "When a per-view gain (exposure, white balance) tops the ranking, refit the texture and light with it (frozen geometry) and measure the other candidates on that model: a fit without the gain bends its albedo against the texture's ceiling, and the other evidence reads the bend.",
-    )
-    refit_first_light: bool = setting(
-        False,
-        "Whether the refit_first refit re-estimates the light with the texture and the gain; by default the light stays as fitted: re-estimated in a short frozen refit it trades its balance against the albedo, and the relight split reads that as a tone curve (decision 0225).",
-    )
-    refit_first_steps: int = setting(
-        300,
-        "Steps of the frozen-geometry refit that adds the first per-view gain (refit_first): about where its training error stops falling (decision 0225).",
-    )
     smallest_remaining_share: float = setting(
         0.05,
         "Least share of the error a given (conditioning) effect is taken to leave when deciding whether absorption refits are worth repeating on top of it.",
@@ -1634,13 +1622,7 @@ class DiagnoseConfig:
             "flat_field_maximum_clipped_share",
         ):
             check_range(getattr(self, name), name, low=0.0, high=1.0)
-        for name in (
-            "absorption_steps",
-            "geometry_steps",
-            "refit_steps",
-            "refit_first_steps",
-            "max_greedy_effects",
-        ):
+        for name in ("absorption_steps", "geometry_steps", "refit_steps", "max_greedy_effects"):
             check_range(getattr(self, name), name, low=1)
         check_range(self.geometry_resolution, "geometry_resolution", low=MINIMUM_VIEW_SIZE)
         check_range(self.confirming_share, "confirming_share", low=0.0, high=1.0)

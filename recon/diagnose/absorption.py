@@ -19,9 +19,7 @@ like every other held-out number.
 
 from __future__ import annotations
 
-import copy
 import math
-from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -84,30 +82,19 @@ def frozen_refit(
     names: list[str],
     renderer: Renderer,
     settings: DiagnoseConfig,
-    steps: int | None = None,
-    fixed: Sequence[ModelEffect] = (),
-    refit_light: bool = True,
 ) -> tuple[Mesh, Lighting, list[ModelEffect]]:
     """Refit texture, light and the named effects (from the identity) on the training views with
-    the geometry frozen, for steps (default diagnose.absorption_steps; one group of views per
-    step). fixed: shading and image effects applied as they are, before the named ones (a fit's
-    own effects; camera effects are not re-applied to the frozen rasterisation). refit_light:
-    False keeps the light as fitted. Returns the re-textured mesh, the light (detached) and the
-    fitted effect modules."""
-    steps = settings.absorption_steps if steps is None else steps
+    the geometry frozen, for diagnose.absorption_steps (one group of views per step). Returns
+    the re-textured mesh, the light (detached) and the fitted effect modules."""
+    steps = settings.absorption_steps
     device = frozen.mesh.verts.device
     modules = [make_effect(name, view_count=frozen.view_count).to(device) for name in names]
-    applied = [copy.deepcopy(module).to(device).requires_grad_(False) for module in fixed]
-    applied += modules
     texture = torch.nn.Parameter(frozen.mesh.texture.clone())
     light = LightModel.from_lighting(frozen.lighting)
     groups = [{"params": [texture], "lr": settings.absorption_texture_learning_rate}]
-    if refit_light:
-        groups.append(
-            {"params": list(light.parameters()), "lr": settings.absorption_light_learning_rate}
-        )
-    else:
-        light.requires_grad_(False)
+    groups.append(
+        {"params": list(light.parameters()), "lr": settings.absorption_light_learning_rate}
+    )
     groups += [group for module in modules for group in module.parameter_groups()]
     optimizer = torch.optim.Adam(groups)
     for step in range(steps):
@@ -124,8 +111,8 @@ def frozen_refit(
         )
         cameras = frozen.cameras[views]
         context = EffectContext(frozen.mesh, lighting, cameras, views, renderer)
-        output = apply_shading_effects(applied, output, context)
-        color, _ = apply_image_effects(applied, output.color, output.alpha, cameras, views)
+        output = apply_shading_effects(modules, output, context)
+        color, _ = apply_image_effects(modules, output.color, output.alpha, cameras, views)
         smoothness = texture_total_variation(texture)  # as in the fit
         # Squared error, like the held-out evaluation: an L1 loss keeps Adam's texel steps at
         # full size to the end, and that jitter would swamp a small absorbed effect.
@@ -199,37 +186,6 @@ def _could_clear_on_top(
     return interval[1] / remaining > absorption_threshold(candidate.name, settings.decision)
 
 
-# Bilinear without mipmaps: the training views sample the texture near 1:1, and the refits
-# only compare with each other (the held-out evaluation renders in full).
-FROZEN_RENDERER = {"texture_filter": "linear", "texture_boundary": "clamp"}
-
-
-def refit_frozen(
-    names: list[str],
-    data: DiagnosisData,
-    inputs: AbsorptionInputs,
-    cache: AbsorptionCache,
-    steps: int | None = None,
-    fixed: Sequence[ModelEffect] = (),
-    refit_light: bool = True,
-) -> tuple[Mesh, Lighting, list[ModelEffect]]:
-    """frozen_refit of the named effects on the training views rasterised once with data's
-    mesh and light (kept in cache.frozen for the next refit of the same diagnosis); steps:
-    default diagnose.absorption_steps; fixed, refit_light: as frozen_refit. Returns
-    the re-textured mesh and the light on the refits' device, and the fitted modules."""
-    renderer = Renderer(**FROZEN_RENDERER)
-    if cache.frozen is None:
-        cache.frozen = FrozenTrainingViews.build(
-            inputs.training,
-            data.mesh.to(inputs.device),
-            data.lighting.to(inputs.device),
-            renderer,
-        )
-    return frozen_refit(
-        cache.frozen, names, renderer, inputs.config.diagnose, steps, fixed, refit_light
-    )
-
-
 def absorption_probes(
     candidates: list[Candidate],
     data: DiagnosisData,
@@ -258,6 +214,9 @@ def absorption_probes(
     cache: shared between the two passes of one diagnosis (the rasterised training views).
     """
     settings = inputs.config.diagnose
+    # Bilinear without mipmaps: the training views sample the texture near 1:1, and the
+    # refits only compare with each other (the held-out evaluation renders in full).
+    renderer = Renderer(texture_filter="linear", texture_boundary="clamp")
     cache = cache if cache is not None else AbsorptionCache()
     base = [given] if given else []
     given_candidate = next((c for c in candidates if c.name == given), None) if given else None
@@ -276,7 +235,14 @@ def absorption_probes(
             modules = heldout_modules(names, fitted, data.view_count, data.observed.device)
             moved = replace(data, mesh=refitted.mesh, lighting=refitted.lighting, model=refitted)
             return heldout_errors(moved, modules, settings)[0], fitted
-        mesh, lighting, fitted = refit_frozen(names, data, inputs, cache)
+        if cache.frozen is None:
+            cache.frozen = FrozenTrainingViews.build(
+                inputs.training,
+                data.mesh.to(device),
+                data.lighting.to(device),
+                renderer,
+            )
+        mesh, lighting, fitted = frozen_refit(cache.frozen, names, renderer, settings)
         modules = heldout_modules(names, fitted, data.view_count, data.observed.device)
         refitted = replace(data, mesh=mesh.to("cpu"), lighting=lighting.to("cpu"))
         return heldout_errors(refitted, modules, settings)[0], fitted

@@ -16,19 +16,14 @@ import torch
 
 from recon.config import to_dict
 from recon.config.run_config import DiagnoseConfig, RunConfig
-from recon.diagnose.absorption import (
-    AbsorptionCache,
-    AbsorptionInputs,
-    absorption_probes,
-    refit_frozen,
-)
+from recon.diagnose.absorption import AbsorptionCache, AbsorptionInputs, absorption_probes
 from recon.diagnose.data import (
     DiagnosisData,
     FittedModel,
     render_diagnosis_data,
     render_views_once,
 )
-from recon.diagnose.decision import decide, decide_all, rank_key, verdict_of
+from recon.diagnose.decision import decide, decide_all, verdict_of
 from recon.diagnose.domains import where_analysis
 from recon.diagnose.fingerprint import visibility_fingerprint
 from recon.diagnose.flat_field import measure_flat_field
@@ -87,24 +82,16 @@ class DiagnosisInputs:
 
 
 class _Lap:
-    """Seconds since the previous lap, recorded under a stage name (the timings' breakdown);
-    prefix: put before every name (a second pass of the same stages)."""
+    """Seconds since the previous lap, recorded under a stage name (the timings' breakdown)."""
 
-    def __init__(self, record: dict[str, float], prefix: str = "") -> None:
+    def __init__(self, record: dict[str, float]) -> None:
         self.record = record
-        self.prefix = prefix
         self.last = time.perf_counter()
 
     def __call__(self, name: str) -> None:
         now = time.perf_counter()
-        self.record[self.prefix + name] = round(now - self.last, 2)
+        self.record[name] = round(now - self.last, 2)
         self.last = now
-
-    def prefixed(self, prefix: str) -> _Lap:
-        """The same clock and record, its names with prefix."""
-        lap = _Lap(self.record, prefix)
-        lap.last = self.last
-        return lap
 
 
 def candidate_names(
@@ -363,14 +350,11 @@ def which(
     gap: dict,
     lap: _Lap,
     candidates: list[str] | None = None,
-    refit_first: bool = True,
 ) -> list[Candidate]:
     """Which: the probes, the fingerprint, the relight probe, the flat field and the absorption
     refits; then, when a per-view effect tops the ranking, the others again on top of it; then
-    the registered producers; every candidate decided and ranked. A significant per-view gain
-    at the top is instead refitted into the model and the others measured again on that
-    (on_top_of; refit_first False: not again). Records the fingerprint and flat field in
-    gap."""
+    the registered producers; every candidate decided and ranked. Records the fingerprint and
+    flat field in gap."""
     settings = inputs.config.diagnose
     names = candidate_names(candidates, inputs.model, settings)
     ranked = rank_candidates(data, names, probe=probe, settings=settings)
@@ -398,7 +382,6 @@ def which(
     # absorption evidence is gathered before this choice: a lens distortion that the fit bent
     # into the geometry looks like per-view misalignment to the probes alone.)
     given = conditioning_effect(ranked)
-    first = leading_gain(ranked, inputs.model, settings) if refit_first else None
     if given:
         conditional_probes(ranked, probe, given)
         lap("conditional_probes")
@@ -416,110 +399,7 @@ def which(
     )
     gather(PRODUCERS, evidence_inputs, ranked, settings)
     lap("producers")
-    ranked = decide_all(ranked, settings.decision)
-    leader = next(item for item in ranked if item.name == first) if first else None
-    if leader is None or not leader.significant:  # its own specificity may have vetoed it
-        return ranked
-    return [leader] + on_top_of(leader, inputs, data, absorption, cache, gap, lap, candidates)
-
-
-def ceiling_share(texture: torch.Tensor, data: DiagnosisData) -> list[float]:
-    """Per channel, the share of data's covered pixels whose texel (nearest, at texel_uv) of
-    texture [T, T, 3] is at or above the ceiling of 1 that the fit clamps its texture to: how far a
-    fit bent its albedo against the ceiling (on_top_of records it before and after its refit,
-    which does not clamp)."""
-    covered = data.rendered_mask & (data.texel_uv[..., 0] >= 0)
-    if not bool(covered.any()):
-        return [0.0, 0.0, 0.0]
-    rows, columns = texture.shape[:2]
-    uv = data.texel_uv[covered]  # [P, 2], (0, 0) the texture's top-left
-    column = (uv[:, 0] * columns).long().clamp(0, columns - 1)
-    row = (uv[:, 1] * rows).long().clamp(0, rows - 1)
-    texels = texture.detach().to(uv.device)[row, column]  # [P, 3]
-    # A texel the fit clamped is 1 to float32 rounding.
-    return [round(float(share), 4) for share in (texels >= 1 - 1e-4).double().mean(dim=0)]
-
-
-def leading_gain(
-    candidates: list[Candidate], model: FittedModel, settings: DiagnoseConfig
-) -> str | None:
-    """The best-ranked per-view gain its probe made significant (refits_first), or None: the
-    effect the model is refitted with before the others are measured again (on_top_of). It
-    need not top the ranking: an effect that the bent albedo imitates can outrank it."""
-    gains = [
-        candidate
-        for candidate in candidates
-        if candidate.significant
-        and candidate.decided_by == "probe"
-        and refits_first(candidate.name, model, settings)
-    ]
-    return max(gains, key=rank_key).name if gains else None
-
-
-def refits_first(given: str | None, model: FittedModel, settings: DiagnoseConfig) -> bool:
-    """Whether the others are measured on a model refitted with the given effect first
-    (diagnose.refit_first): a per-view gain on a Lambertian model (the frozen refit re-textures
-    the Lambertian model only)."""
-    if not given or not settings.refit_first or model.pbr is not None:
-        return False
-    return diagnosis_facts(given).gain_signature and MODEL_EFFECTS[given].per_view
-
-
-def on_top_of(
-    leader: Candidate,
-    inputs: DiagnosisInputs,
-    data: DiagnosisData,
-    absorption: AbsorptionInputs,
-    cache: AbsorptionCache,
-    gap: dict,
-    lap: _Lap,
-    candidates: list[str] | None,
-) -> list[Candidate]:
-    """The other candidates measured on the model refitted with the leading per-view gain.
-
-    A fit without the gain that the views carry bends its albedo: the texels the bright views
-    need above the texture's ceiling stop there in some channels, and each held-out view sees
-    its own mix of them, which the colour, curve and shadow evidence read as effects. The
-    texture is refitted with the gain on the frozen geometry (diagnose.refit_first_steps; the
-    light too only with diagnose.refit_first_light, the fit's own effects applied); the gain
-    becomes one of the model's own effects (its held-out gains fitted per view like a fit's
-    own), and the whole measurement runs again for the rest. Records the refit in
-    gap['on_top_of']."""
-    settings = inputs.config.diagnose
-    mesh, lighting, modules = refit_frozen(
-        [leader.name],
-        data,
-        absorption,
-        cache,
-        settings.refit_first_steps,
-        inputs.model.effects,
-        settings.refit_first_light,
-    )
-    model = replace(
-        inputs.model,
-        mesh=mesh.to("cpu"),
-        lighting=lighting.to("cpu"),
-        effects=[*inputs.model.effects, *(module.to("cpu") for module in modules)],
-    )
-    lap("refit_first")
-    refitted = replace(inputs, model=model)
-    data_on_top, probe = heldout_views(refitted)
-    _, relight = relight_views(refitted)
-    record: dict = {
-        "effect": leader.name,
-        "steps": settings.refit_first_steps,
-        "heldout_rmse": gap_summary(data_on_top)["rmse"],
-        "ceiling_share": {
-            "fit": ceiling_share(data.mesh.texture, data),
-            "refit": ceiling_share(model.mesh.texture, data),
-        },
-    }
-    lap("refit_first_views")
-    on_top = lap.prefixed("on_top_")
-    others = which(refitted, data_on_top, probe, relight, record, on_top, candidates, False)
-    lap.last = on_top.last
-    gap["on_top_of"] = record
-    return others
+    return decide_all(ranked, settings.decision)
 
 
 def how_far_refits(

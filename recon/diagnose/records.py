@@ -179,9 +179,7 @@ class Diagnosis:
         "parameters.geometry {chamfer_l1, normal_consistency, f1@1%} against a ground truth; "
         "heldout_mse (with a refit mode: the held-out MSE the refits are measured against); "
         "how_far_relight_skipped when a pbr model's refits are measured on the held-out views "
-        "only; on_top_of {effect, steps, heldout_rmse, ceiling_share {fit, refit} (per channel), "
-        "visibility_fingerprint, flat_field} when the other candidates were measured on the "
-        "model refitted with a leading per-view gain (diagnose.refit_first).",
+        "only.",
         default_factory=dict,
     )
     where: dict[str, Any] = doc(

@@ -65,19 +65,6 @@ def diagnosis_lines(diagnosis: Diagnosis) -> list[str]:
             f"model: material {model.get('material')}, light frame {model.get('light_frame')}, "
             f"fit effects {effects} (part of the model, not candidates)"
         )
-    on_top = gap.get("on_top_of")
-    if on_top:
-        shares = on_top.get("ceiling_share", {})
-        ceiling = ""
-        if shares:
-            fit = "/".join(f"{100 * share:.0f}" for share in shares["fit"])
-            refit = "/".join(f"{100 * share:.0f}" for share in shares["refit"])
-            ceiling = f"; albedo at its ceiling (r/g/b % of pixels) {fit} -> {refit}"
-        lines.append(
-            f"the others measured on the model refitted with {on_top['effect']} "
-            f"({on_top['steps']} steps): held-out RMSE {gap['rmse']:.4f} -> "
-            f"{on_top['heldout_rmse']:.4f}{ceiling}"
-        )
     if gap.get("flat_field_error"):
         lines.append(f"flat field not used: {gap['flat_field_error']}")
     flat = gap.get("flat_field")

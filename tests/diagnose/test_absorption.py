@@ -231,7 +231,7 @@ def test_both_absorption_passes_rasterise_the_training_views_once(monkeypatch):
         builds.append(1)
         return SimpleNamespace(view_count=2)
 
-    def frozen_refit(frozen, names, renderer, settings, steps=None):
+    def frozen_refit(frozen, names, renderer, settings):
         modules = [SimpleNamespace(name=name, parameters_summary=dict) for name in names]
         return movable, movable, modules
 
@@ -287,52 +287,3 @@ def test_a_given_effect_voids_the_geometry_refits_evidence_without_refitting(mon
     fresh = make("lens_distortion", (-0.01, 0.01), reduction=0.1)
     with pytest.raises(RefitCalled):
         absorption.absorption_probes([fresh], None, inputs)
-
-
-def test_fixed_effects_are_applied_not_refitted():
-    """A fit's own effect passed as fixed explains its part of the images: the refitted scene
-    without it still renders the undarkened views, and the module itself is not changed."""
-    frozen, _ = scene_and_views(0.0)
-    renderer = Renderer(texture_filter="linear")
-    vignetting = make_effect("vignetting")
-    vignetting.set_polynomial(-0.5)
-    clean, darkened = [], []
-    for buffers, views, _ in frozen.groups:
-        with torch.no_grad():
-            output = renderer.shade(
-                buffers, frozen.lighting, texture=frozen.mesh.texture, antialias_edges=False
-            )
-            clean.append(output.color)
-            darkened.append(vignetting(output.color, output.alpha, frozen.cameras[views], None)[0])
-    frozen.groups = [
-        (buffers, views, image)
-        for (buffers, views, _), image in zip(frozen.groups, darkened, strict=True)
-    ]
-    before = vignetting.state_dict()["coefficients"].clone()
-    settings = replace_settings(SETTINGS, absorption_steps=40)
-
-    def scene_error(fixed) -> float:
-        mesh, lighting, _ = frozen_refit(frozen, [], renderer, settings, fixed=fixed)
-        error = 0.0
-        for (buffers, _, _), target in zip(frozen.groups, clean, strict=True):
-            with torch.no_grad():
-                output = renderer.shade(
-                    buffers, lighting, texture=mesh.texture, antialias_edges=False
-                )
-            error += float((output.color - target).abs().mean())
-        return error
-
-    kept, baked = scene_error([vignetting]), scene_error([])
-    assert torch.equal(vignetting.state_dict()["coefficients"], before)
-    # Without it the refit bakes the darkening into texture and light.
-    assert kept < 0.5 * baked, (kept, baked)
-
-
-def test_a_refit_without_the_light_keeps_the_fitted_light():
-    frozen, _ = scene_and_views(0.3)
-    renderer = Renderer(texture_filter="linear")
-    settings = replace_settings(SETTINGS, absorption_steps=8)
-    _, kept, _ = frozen_refit(frozen, ["exposure"], renderer, settings, refit_light=False)
-    _, moved, _ = frozen_refit(frozen, ["exposure"], renderer, settings)
-    assert torch.allclose(kept.sh_coefficients, frozen.lighting.sh_coefficients)
-    assert not torch.allclose(moved.sh_coefficients, frozen.lighting.sh_coefficients)

@@ -1,6 +1,5 @@
-"""What `recon diagnose` prints (recon.report.diagnosis_text): ambiguous candidates are flagged,
-the capture-metadata comparison is shown under its candidate, and a refit-first pass says what
-the others were measured on."""
+"""What `recon diagnose` prints (recon.report.diagnosis_text): ambiguous candidates are flagged
+and the capture-metadata comparison is shown under its candidate."""
 
 from __future__ import annotations
 
@@ -40,21 +39,3 @@ def test_ambiguous_and_metadata_lines():
     assert lines[-1].startswith(
         "verdict: significant unmodelled effects: response_curve or exposure, exposure"
     )
-
-
-def test_the_refit_first_line_says_what_the_others_were_measured_on():
-    exposure = probed("exposure", 0.5, 0.7)
-    ranked = decide_all([exposure], DecisionConfig())
-    on_top = {
-        "effect": "exposure",
-        "steps": 300,
-        "heldout_rmse": 0.0321,
-        "ceiling_share": {"fit": [0.33, 0.12, 0.0], "refit": [0.01, 0.0, 0.0]},
-    }
-    gap = {"rmse": 0.1234, "on_top_of": on_top}
-    lines = diagnosis_lines(Diagnosis(gap=gap, candidates=ranked, verdict=verdict_of(ranked)))
-    assert (
-        "the others measured on the model refitted with exposure (300 steps): held-out RMSE "
-        "0.1234 -> 0.0321; albedo at its ceiling (r/g/b % of pixels) 33/12/0 -> 1/0/0"
-    ) in lines
-    assert not any("refitted with" in line for line in diagnosis_lines(Diagnosis()))
