@@ -132,12 +132,15 @@ def render_split(
     description: str,
     device: torch.device,
     material: WorldMaterial | None = None,
+    supersampling: int = 1,
 ) -> RenderedViews:
     """Render one split with the configured backend (Mitsuba for light-transport effects;
     'own' renders the 'specular' effect with recon's split-sum shading).
 
     material: the specular effect's material (data_synth.material.world_material), whose
-    roughness map both backends render when it is textured."""
+    roughness map both backends render when it is textured.
+    supersampling: cameras are at this many times the output resolution per side (their
+    pixels are averaged down later): Mitsuba's samples per pixel are divided by its square."""
     backend = config.capture.backend
     light_transport = _light_transport_names(effects)
     traced = [effect.name for effect in light_transport if effect.name != "specular"]
@@ -172,7 +175,9 @@ def render_split(
 
         options = mitsuba_options_for(
             light_transport,
-            MitsubaOptions(spp=config.capture.mitsuba_spp, seed=config.seed),
+            MitsubaOptions(
+                spp=max(1, config.capture.mitsuba_spp // supersampling**2), seed=config.seed
+            ),
             material=config.scene.material,
         )
         if material is not None and material.textured:
@@ -316,21 +321,35 @@ def synth_stage(
             if split == "relight"
             else effects
         )
+        factor = supersampling(image_effects, capture_config.distortion_supersampling)
+        height, width = cameras.image_size
+        render_cameras = (
+            cameras.with_image_size((height * factor, width * factor)) if factor > 1 else cameras
+        )
         rendered = render_split(
             mesh,
-            cameras,
+            render_cameras,
             split_world,
             config,
             split_effects,
             f"synth {split}",
             device,
             material,
+            supersampling=factor,
         )
-        capture = Capture(rendered.colors, rendered.alphas, cameras)
+        # Depth and normals stay the ideal camera's buffers: one sample per output pixel.
+        rendered = replace(
+            rendered,
+            depth=rendered.depth[:, factor // 2 :: factor, factor // 2 :: factor],
+            normals=rendered.normals[:, factor // 2 :: factor, factor // 2 :: factor],
+        )
+        capture = Capture(rendered.colors, rendered.alphas, render_cameras, pixel_scale=factor)
         applied: list[AppliedEffect] = []
         if image_effects:
             from data_synth.effects.registry import apply_effects
 
+            # Leaves the capture at the output resolution, on the split's own cameras (or the
+            # ones a pose error records).
             applied = apply_effects(capture, image_effects, effect_generator)
         realised[split] = [{"name": item.name, "parameters": item.parameters} for item in applied]
         write_nerf_synthetic(
@@ -379,6 +398,12 @@ def synth_stage(
     # Finished: env.json's stage record says so from here on; the progress file has done its job.
     paths.synth_progress.unlink(missing_ok=True)
     return summary
+
+
+def supersampling(image_effects: list, factor: int) -> int:
+    """Samples per output pixel side a split is rendered with: the config's factor where an
+    effect acts on the optical image (ImageEffect.supersampled: a lens distortion), else 1."""
+    return factor if any(getattr(effect, "supersampled", False) for effect in image_effects) else 1
 
 
 def _image_effects(effects: list[EffectConfig]) -> list:

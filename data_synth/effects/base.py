@@ -40,11 +40,16 @@ class Capture:
     images: [B, H, W, 3] linear radiance, premultiplied by coverage (background 0).
     alpha: [B, H, W, 1] coverage.
     cameras: the cameras written to the dataset (pose_error replaces them).
+    pixel_scale: samples per output pixel side: a capture rendered above the dataset's
+        resolution for the effects that act on the optical image (ImageEffect.supersampled;
+        registry.apply_effects averages it down after them). Pixel-sized quantities an effect
+        reports are in output pixels.
     """
 
     images: torch.Tensor
     alpha: torch.Tensor
     cameras: Cameras
+    pixel_scale: int = 1
 
 
 @dataclass
@@ -60,6 +65,10 @@ class ImageEffect(Protocol):
 
     name: str
     stage: Stage
+    # Whether it acts on the optical image before the sensor integrates it, so that a capture
+    # rendered above the output resolution (Capture.pixel_scale) takes it before being averaged
+    # down (registry.apply_effects). Effects without the attribute act on output pixels.
+    supersampled: bool
 
     def apply(self, capture: Capture, generator: torch.Generator) -> AppliedEffect:
         """Modify capture in place (images, alpha, cameras) and return what was realised

@@ -332,11 +332,18 @@ class LensDistortion(WorldEffect):
     position x_d looks up the ideal image at the x with brown_conrady(x) = x_d (Newton
     inversion), bilinearly (torch grid_sample). Positive k1 is pincushion, negative barrel.
     Outside the ideal frame is background. Realised: the five coefficients, the largest pixel
-    displacement and the fraction of pixels where the mapping folded.
+    displacement (in output pixels) and the fraction of pixels where the mapping folded.
+
+    It bends the optical image (supersampled): given a capture rendered above the output
+    resolution (config capture.distortion_supersampling), the bilinear lookup's smoothing is a
+    fraction of an output pixel, and averaging down integrates each pixel like a sensor.
+    Bent at the output resolution, the lookup would blur by up to 0.5 px (sigma), as much as
+    the smallest defocus the blind check draws.
     """
 
     name = "lens_distortion"
     stage = "optics"
+    supersampled = True
     PARAMETERS = {
         "k1": ParameterSpec(0.0, -1.0, 1.0, "r^2 radial coefficient (normalised coordinates)"),
         "k2": ParameterSpec(0.0, -1.0, 1.0, "r^4 radial coefficient"),
@@ -410,7 +417,7 @@ class LensDistortion(WorldEffect):
             {
                 **self.parameters,
                 "max_displacement_px": round_float(
-                    float(displacement.max()) if displacement.numel() else 0.0
+                    float(displacement.max()) / capture.pixel_scale if displacement.numel() else 0.0
                 ),
                 "folded_fraction": round_float(
                     1.0 - float(valid[view_to_distinct].double().mean())

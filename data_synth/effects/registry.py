@@ -6,6 +6,12 @@ WORLD_EFFECTS; make_world_effect refuses them and apply_effects skips them (the 
 them).
 
 Order: STAGE_ORDER (camera < optics < sensor < response), then APPLICATION_ORDER within a stage.
+Supersampling: a capture rendered above the output resolution (Capture.pixel_scale > 1) takes
+the effects that act on the optical image first (ImageEffect.supersampled: a lens distortion),
+is then averaged down to the output pixels, and takes the rest in order. A blur drawn before
+a distortion in APPLICATION_ORDER then comes after it: the two commute but for the local
+scale the distortion gives the blur's kernel (a few per cent at the corners).
+
 Randomness: apply_effects draws one base seed from the generator, then gives each effect its own
 generator seeded from that base and the effect's name, so an effect's realised values (e.g. the
 exposure ratios) do not change when another effect is switched on or off, and the same
@@ -133,8 +139,37 @@ def apply_effects(
     if repeated:
         raise ReconError(f"effects: each effect may be applied once; repeated: {repeated}")
     base_seed = int(torch.randint(0, 2**62, (), generator=generator, device=generator.device))
+    ordered = sorted(built, key=_order_key)
+    if capture.pixel_scale > 1:
+        # The optical image's effects first, on the supersampled capture (a stable sort).
+        ordered.sort(key=lambda effect: not getattr(effect, "supersampled", False))
     applied = []
-    for effect in sorted(built, key=_order_key):
+    for effect in ordered:
+        if capture.pixel_scale > 1 and not getattr(effect, "supersampled", False):
+            average_down(capture)
         own_generator = effect_generator(base_seed, effect.name, generator.device)
         applied.append(effect.apply(capture, own_generator))
+    average_down(capture)
     return applied
+
+
+def average_down(capture: Capture) -> None:
+    """A supersampled capture (Capture.pixel_scale s > 1) in place at its output resolution:
+    each output pixel averages its s x s samples of the premultiplied colour and the coverage
+    (as a sensor integrates the optical image over its photosite), and the cameras take the
+    output size. A capture at its output resolution is left as it is."""
+    scale = capture.pixel_scale
+    if scale <= 1:
+        return
+    count, height, width = capture.images.shape[:3]
+    if height % scale or width % scale:
+        raise ReconError(
+            f"average_down: capture of {height}x{width} px is not a whole multiple of its "
+            f"pixel_scale {scale}"
+        )
+    stacked = torch.cat([capture.images, capture.alpha], dim=-1).permute(0, 3, 1, 2)
+    averaged = torch.nn.functional.avg_pool2d(stacked, scale).permute(0, 2, 3, 1)
+    capture.images = averaged[..., :3].contiguous()
+    capture.alpha = averaged[..., 3:].clamp(0.0, 1.0).contiguous()
+    capture.cameras = capture.cameras.with_image_size((height // scale, width // scale))
+    capture.pixel_scale = 1

@@ -53,6 +53,7 @@ class WorldEffect:
 
     name: ClassVar[str] = ""
     stage: ClassVar[Stage] = "sensor"
+    supersampled: ClassVar[bool] = False
     PARAMETERS: ClassVar[dict[str, ParameterSpec]] = {}
 
     def __init__(self, parameters: Mapping[str, object] | None = None) -> None:

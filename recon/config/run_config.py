@@ -387,6 +387,14 @@ class CaptureConfig:
         "Renderer of the captures: own (recon's rasterizer; the specular effect with its split-sum shading, no shadows or interreflection), mitsuba (the path tracer), or auto (mitsuba only when a light-transport effect, specular, shadows or interreflection, is requested).",
     )
     mitsuba_spp: int = setting(64, "Samples per pixel of the Mitsuba path tracer.")
+    distortion_supersampling: int = setting(
+        4,
+        "With a lens_distortion effect, views are rendered at this many times the resolution "
+        "per side, bent there, and each pixel averages its samples: a lens bends the optical "
+        "image before the sensor integrates it, while bending the finished image resamples it "
+        "(bilinearly: a blur of up to 0.5 px). 1: bend the finished image. Mitsuba's samples "
+        "per pixel are divided by its square (at least 1), so the samples per output pixel stay.",
+    )
     own_specular: OwnSpecularConfig = setting(
         factory=OwnSpecularConfig,
         doc="How backend 'own' renders the 'specular' effect (recon's split-sum shading).",
@@ -400,6 +408,7 @@ class CaptureConfig:
         check_range(self.val_views, "val_views", low=0, high=10000)
         check_range(self.test_views, "test_views", low=0, high=10000)
         check_range(self.mitsuba_spp, "mitsuba_spp", low=1, high=65536)
+        check_range(self.distortion_supersampling, "distortion_supersampling", low=1, high=16)
         _check_vector(self.background, "background")
         names = [effect.name for effect in self.effects]
         # recon's own renderer shades 'specular' with its split-sum model; it traces no rays.
