@@ -649,3 +649,32 @@ def test_a_lens_condition_is_settled_where_the_probe_beat_its_confusers():
     # Where the probe kept nothing beyond its confusers the condition still answers.
     unsettled = decide(lens(False), config)
     assert unsettled.status == "not_identifiable" and "0.10 px" in unsettled.why
+
+
+def test_a_distortion_absorbed_alone_does_not_count_beside_a_blur_its_probe_found():
+    # A blurred teapot at 48 px: the fit bent the blur's silhouette misfit into the geometry,
+    # and the lens refit that moves the vertices takes part of it back (absorption lower bound
+    # 0.06 against 0.043), while its probe clears nothing. Beside a defocus blur that its own
+    # probe made significant, that absorption measured alone does not count.
+    lens_threshold = absorption_threshold("lens_distortion", CONFIG)
+    blur_threshold = probe_threshold("defocus_blur", CONFIG)
+    lens = candidate("lens_distortion", probe=(0.01, 0.05), absorption=(lens_threshold + 0.02, 0.2))
+    blur = candidate("defocus_blur", probe=(blur_threshold + 0.02, 0.4))
+    assert lens.significant and blur.significant
+    ranking = decide_all([lens, blur], CONFIG)
+    assert [item.name for item in ranking if item.significant] == ["defocus_blur"]
+    voided = ranking[1].evidence_of("absorption")
+    assert not voided.counts and "void beside defocus_blur" in voided.void
+    # Recorded, and re-derived under another calibration: where the blur's allowance hides the
+    # blur, the absorption counts again and names the distortion.
+    stored = json.loads(json.dumps(Diagnosis(candidates=ranking).to_json(), allow_nan=False))
+    strict_blur = DecisionConfig(probe_allowance={**CONFIG.probe_allowance, "defocus_blur": 0.5})
+    decided = redecide(stored, DiagnoseConfig(decision=strict_blur))
+    assert [item.name for item in decided.candidates if item.significant] == ["lens_distortion"]
+    assert decided.candidate("lens_distortion").evidence_of("absorption").counts
+    # A distortion beside an effect that is not its confuser keeps its absorption.
+    exposure = candidate("exposure", probe=(0.2, 0.4))
+    kept = decide_all(
+        [candidate("lens_distortion", absorption=(lens_threshold + 0.02, 0.2)), exposure], CONFIG
+    )
+    assert {item.name for item in kept if item.significant} == {"exposure", "lens_distortion"}

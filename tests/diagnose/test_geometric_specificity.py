@@ -124,9 +124,23 @@ def test_a_candidate_its_probe_does_not_clear_is_not_judged_by_the_probes(motion
     gather_checks(probe, candidates)
     # Where its probe clears, the probes' comparison vetoes it (the blur takes its place) ...
     assert _decided(candidates, SETTINGS)["lens_distortion"].status == "vetoed"
-    # ... under allowances its probe does not clear, the check does not speak to it.
+    # ... under allowances its probe does not clear, the check does not speak to it; but beside
+    # the motion blur its probe makes significant, the absorption measured alone does not count
+    # either (the distortion refit takes back part of the blur the fit bent into the geometry).
     high = DiagnoseConfig(bootstrap_samples=200)
     high.decision.probe_allowance = {**high.decision.probe_allowance, "lens_distortion": 0.95}
+    decided = _decided(candidates, high)
+    assert decided["motion_blur"].significant, decided["motion_blur"].why
+    assert not decided["lens_distortion"].significant
+    assert "void beside motion_blur" in decided["lens_distortion"].evidence_of("absorption").void
+    # Where no confuser is significant (the blurs' and the pose's allowances out of reach too),
+    # the absorption decides, unjudged by the probes.
+    confusers = {name: 0.95 for name in ("motion_blur", "defocus_blur", "pose_error")}
+    high.decision.probe_allowance = {**high.decision.probe_allowance, **confusers}
+    high.decision.beyond_confusers_allowance = {
+        **high.decision.beyond_confusers_allowance,
+        **confusers,
+    }
     decided = _decided(candidates, high)["lens_distortion"]
     assert decided.significant and decided.decided_by == "absorption", decided.why
     check = decided.evidence_of("specificity")
