@@ -90,34 +90,13 @@ def bounce_otherwise_passes(evidence) -> bool:
     return p_value < config.bounce_alpha and 0.0 < strength <= config.bounce_maximum_strength
 
 
-def probe_null_fails(candidate) -> bool:
-    """Whether a null from the run (the decision table's rows of role "null": the placebo
-    null, the blur probes' edge null) fails for the candidate under the default decision
-    config. Such a clean case's probe is kept from clearing at any allowance (the null takes
-    the probe and the beyond-confusers row out), so it shows nothing about how high the
-    allowance must be: like a bounce the strength refuses, it does not raise it. (The clean
-    path-traced teapot's blur probes remove 7-10 % of its held-out error, a silhouette misfit
-    its own edges do not show; counted, they set a blur allowance of 0.19-0.21 that hides the
-    blurs the edges do show on the held-out scene.)"""
-    from recon.config.run_config import DecisionConfig
-    from recon.diagnose.decision import RULES, rethreshold
-
-    config = DecisionConfig()
-    return any(
-        not rethreshold(item, config).passed
-        for item in candidate.evidence
-        if item.counts and item.kind in RULES and RULES[item.kind].role == "null"
-    )
-
-
 def clean_statistics(
     diagnosis: dict, present: tuple[str, ...] = (), statistic: str = "per_rule"
 ) -> dict[str, float]:
     """The statistics of one clean diagnosis (diagnosis.json, either schema) that its thresholds
     are compared with, by threshold name (benchmarks.blind.decide): each probe's, absorption
     refit's and relight probe's reduction, each geometric probe's point reduction on top of its
-    strongest confuser (beyond_statistic; neither where a null from the run fails for that
-    candidate, probe_null_fails), the agreement's shared colour spread, the flat
+    strongest confuser (beyond_statistic), the agreement's shared colour spread, the flat
     field's deviation, the visibility fingerprint's excess over its placebo lights and the
     bounce evidence's excess where it otherwise passes (bounce_otherwise_passes). present: effects the data
     holds although nothing was injected (a
@@ -143,17 +122,13 @@ def clean_statistics(
     for candidate in stored.candidates:
         if candidate.name in present:
             continue
-        silenced = probe_null_fails(candidate)
         for kind, name in (
             ("probe", f"probe.{candidate.name}"),
             ("absorption", f"absorption.{candidate.name}"),
             ("relight", "relight"),
         ):
             evidence = candidate.evidence_of(kind)
-            if evidence is not None and kind == "probe" and silenced:
-                # Measured, and silent at any allowance: the floor, not the code's default.
-                keep(name, float("-inf"))
-            elif evidence is not None:
+            if evidence is not None:
                 keep(name, evidence_statistic(evidence, statistic))
         agreement = candidate.evidence_of("agreement")
         if agreement is not None:
@@ -163,7 +138,7 @@ def clean_statistics(
             keep(f"lobe.{candidate.name}", lobe.statistic)
         beyond = beyond_statistic(candidate)
         if beyond is not None:
-            keep(f"beyond.{candidate.name}", float("-inf") if silenced else beyond)
+            keep(f"beyond.{candidate.name}", beyond)
         flat_field = candidate.evidence_of("flat_field")
         if flat_field is not None:
             keep("flat_field", flat_field.statistic)
@@ -256,13 +231,10 @@ def calibration_record(
 
 def _largest(candidates, kind: str, into: dict) -> None:
     """The largest calibrated statistic (CALIBRATED_STATISTIC) of one evidence kind per
-    candidate, accumulated into `into` (a probe its own null silences counts as 0:
-    probe_null_fails)."""
+    candidate, accumulated into `into`."""
     for candidate in candidates:
         evidence = candidate.evidence_of(kind)
         value = None if evidence is None else evidence_statistic(evidence, "per_rule")
-        if value is not None and kind == "probe" and probe_null_fails(candidate):
-            value = 0.0
         if value is not None:
             into[candidate.name] = max(into.get(candidate.name, 0.0), value)
 

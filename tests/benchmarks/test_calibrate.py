@@ -194,35 +194,3 @@ def test_the_bounce_floor_rises_only_for_clean_cases_the_floor_alone_keeps_silen
     assert calibrate.calibrate_thresholds([passing], present)["bounce"] == floor
     section = calibrate.calibration_record(thresholds, [], {})["diagnose"]["decision"]
     assert section["bounce_minimum"] == pytest.approx(0.09)
-
-
-def _blur(low: float, reduction: float, edges_show: float) -> dict:
-    """A diagnosis whose defocus probe (lower bound, point reduction) has an edge_blur null:
-    edges_show is the share of the probe's widening the data's own edges show."""
-    defocus = Candidate("defocus_blur")
-    defocus.add(_evidence("probe", "defocus_blur", low, reduction))
-    defocus.add(Evidence("edge_blur", "defocus_blur", edges_show, 0.5, edges_show >= 0.5, ""))
-    return Diagnosis(candidates=[defocus]).to_json()
-
-
-def test_a_clean_probe_its_own_null_silences_does_not_raise_the_allowance():
-    # The path-traced teapot's clean fit: its blur probe removes 10 % (a silhouette misfit),
-    # but the data's edges show a quarter of the widening its blur gives the render: the edge
-    # null keeps that probe from clearing at any allowance, so it calibrates nothing.
-    floor = calibrate.threshold_floors()["probe.defocus_blur"]
-    silenced = _blur(0.08, 0.10, edges_show=0.25)
-    assert calibrate.calibrate_thresholds([silenced])["probe.defocus_blur"] == pytest.approx(floor)
-    # A clean fit whose edges do show the probe's blur: twice its point reduction.
-    shown = _blur(0.01, 0.03, edges_show=0.8)
-    thresholds = calibrate.calibrate_thresholds([silenced, shown])
-    assert thresholds["probe.defocus_blur"] == pytest.approx(max(floor, 0.06))
-    # A held-out blur whose edges show it (lower bound 15 %) is named under these thresholds; it
-    # would not be under the 20 % the silenced clean case would have set.
-    blurred = _blur(0.15, 0.25, edges_show=0.75)
-    assert _named(blurred, thresholds) == ["defocus_blur"]
-    assert _named(blurred, {**thresholds, "probe.defocus_blur": 0.2}) == []
-    # The same clean probe with no edge null recorded (a binary mask): it counts.
-    plain = Candidate("defocus_blur")
-    plain.add(_evidence("probe", "defocus_blur", 0.08, 0.10))
-    counted = calibrate.calibrate_thresholds([Diagnosis(candidates=[plain]).to_json()])
-    assert counted["probe.defocus_blur"] == pytest.approx(0.2)
