@@ -13,7 +13,9 @@ kind          role          effect on the decision
 ============  ============  =================================================================
 flat_field    overrule      measures the falloff itself: decides alone, either way
 probe         clear         held-out reduction's lower bound above its allowance: significant
-absorption    clear         the same for the absorption refit (unless voided)
+absorption    clear         the same for the absorption refit (unless voided; a refit that
+                            moves the vertices, measured alone, is voided beside a confuser
+                            its probe made significant: _void_beside_confusers)
 relight       clear         the same for the relight split's probe; for an effect only the
                             relight split identifies (DiagnosisFacts.relight_exponent: under
                             one light the albedo absorbs a curve), an exponent measured there
