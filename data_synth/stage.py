@@ -27,7 +27,7 @@ from recon.config.run_config import EffectConfig, LightingConfig, RunConfig
 from recon.errors import ReconError
 from recon.io.atomic import atomic_write_json
 from recon.io.checkpoints import load_checkpoint, save_checkpoint
-from recon.io.datasets import FLAT_FIELD_SPLIT, write_nerf_synthetic
+from recon.io.datasets import FLAT_FIELD_SPLIT, LINE_TARGET_SPLIT, write_nerf_synthetic
 from recon.io.images import save_contact_sheet, write_exr
 from recon.io.meshes import save_mesh
 from recon.io.run_folder import RunPaths
@@ -389,6 +389,13 @@ def synth_stage(
             paths.dataset, capture_config, effects, config.seed, force=resume
         )
         summary["splits"][FLAT_FIELD_SPLIT] = capture_config.flat_field.views
+    if capture_config.line_target.views > 0:
+        from data_synth.line_target import write_line_target
+
+        realised[LINE_TARGET_SPLIT] = write_line_target(
+            paths.dataset, capture_config, effects, config.seed, force=resume
+        )
+        summary["splits"][LINE_TARGET_SPLIT] = capture_config.line_target.views
     if capture_config.contact_sheet and sheet_images:
         save_contact_sheet(sheet_images, paths.contact_sheet, columns=4)
     # A withheld specular effect stays out of the run folder's truth, its material with it.

@@ -178,6 +178,21 @@ def _diagnose(
     return time.perf_counter() - started
 
 
+def _complete_calibration_splits(folder: Path, config: RunConfig, truth: Path) -> None:
+    """A stored case made before the config asked for calibration frames takes them now: the
+    fit never reads them, so its fit stays the new config's, and the frames are the ones a
+    fresh synth writes (data_synth.calibration_splits)."""
+    from data_synth.calibration_splits import CALIBRATION_SPLITS, add_calibration_split
+
+    paths = open_run_folder(folder)
+    if not paths.resolved_config.exists() or not paths.dataset.is_dir():
+        return
+    for split in CALIBRATION_SPLITS:
+        views = getattr(config.capture, split).views
+        if views and not paths.dataset_layout.split_file(split).is_file():
+            add_calibration_split(folder, split, views, truth)
+
+
 def collect_synthetic(
     case: BlindCase,
     base: dict,
@@ -201,6 +216,7 @@ def collect_synthetic(
     digest = config_hash(config, exclude=("diagnose",))
     record_path = folder / "bench_case.json"
     if record_path.exists():
+        _complete_calibration_splits(folder, config, truth_path(out, case))
         stored = _stored(
             record_path,
             digest,

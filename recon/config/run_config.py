@@ -335,6 +335,42 @@ class FlatFieldConfig:
 
 
 @dataclass
+class LineTargetConfig:
+    """Line-target frames: the capture camera imaging a card of straight black and white stripes
+    that fills the frame, at a small random tilt (the plumb-line calibration of a lens). A
+    pinhole camera images straight lines as straight lines, whatever the card's pose; a lens
+    distortion bends them, most near the corners, which an object in the middle of the frame
+    never reaches. The frames pass through the camera, optics, sensor and response effects like
+    the views (a pose error and light transport do not apply). Written as the dataset's
+    line_target split; the fit never reads them, the diagnosis measures the lines' bend."""
+
+    views: int = setting(
+        0, "Number of line-target frames (0: none); they alternate horizontal and vertical stripes."
+    )
+    period_pixels: float = setting(
+        12.0,
+        "Stripe period (one black and one white stripe) at the image centre, in output pixels: wide enough that a blur of a few pixels leaves each edge's crossing, narrow enough for several lines per frame.",
+    )
+    radiance: float = setting(
+        0.5, "Linear radiance of the white stripes before exposure (the black ones hold a tenth)."
+    )
+    tilt_deg: float = setting(
+        20.0, "Largest tilt of the card away from facing the camera, per axis, in degrees."
+    )
+    supersampling: int = setting(
+        4,
+        "Samples per output pixel side: box-filters the stripes' edges and integrates a lens distortion (as capture.distortion_supersampling does for the views).",
+    )
+
+    def __post_init__(self) -> None:
+        check_range(self.views, "views", low=0, high=1000)
+        check_range(self.period_pixels, "period_pixels", low=4.0)
+        check_range(self.radiance, "radiance", low=1e-3, high=1.0)
+        check_range(self.tilt_deg, "tilt_deg", low=0.0, high=60.0)
+        check_range(self.supersampling, "supersampling", low=1, high=16)
+
+
+@dataclass
 class OwnSpecularConfig:
     """The 'specular' effect rendered by backend 'own': recon's split-sum GGX shading
     (recon.render.pbr) under the world's environment (map and SH, resampled to one lat-long
@@ -373,6 +409,10 @@ class CaptureConfig:
     )
     flat_field: FlatFieldConfig = setting(
         factory=FlatFieldConfig, doc="Optional flat-field frames (vignetting calibration)."
+    )
+    line_target: LineTargetConfig = setting(
+        factory=LineTargetConfig,
+        doc="Optional line-target frames (plumb-line lens-distortion calibration).",
     )
     background: list[float] = setting(
         factory=lambda: [0.0, 0.0, 0.0],
@@ -865,6 +905,14 @@ class DecisionConfig:
         0.02,
         "Deviation from flat (corner or half-way falloff) above which flat-field frames name vignetting.",
     )
+    line_target_allowance: float = setting(
+        0.3,
+        "Displacement at the image corners, in pixels, that the line-target frames' straightened lines must show for them to name a lens distortion (below it no lens is named, whatever its significance).",
+    )
+    line_target_z: float = setting(
+        4.0,
+        "How many standard errors (leave-one-frame-out, or the fit's own where there are fewer than three frames) the line-target frames' corner displacement must clear.",
+    )
     shadow_share: float = setting(
         0.6,
         "Fingerprint share at or above which the missing light transport is shadows, below it interreflection.",
@@ -962,6 +1010,8 @@ class DecisionConfig:
         check_range(self.fingerprint_alpha, "fingerprint_alpha", low=0.0, high=1.0)
         for name in ("relight_allowance", "flat_field_allowance"):
             check_range(getattr(self, name), name, low=0.0, high=1.0)
+        check_range(self.line_target_allowance, "line_target_allowance", low=0.0)
+        check_range(self.line_target_z, "line_target_z", low=0.0)
         check_range(self.shadow_share, "shadow_share", low=0.0, high=1.0)
 
 

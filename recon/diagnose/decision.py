@@ -12,6 +12,9 @@ The rows (``DECISION_TABLE``), in the order they are consulted:
 kind          role          effect on the decision
 ============  ============  =================================================================
 flat_field    overrule      measures the falloff itself: decides alone, either way
+line_target   overrule      measures the lens itself (the plumb-line frames' corner shift,
+                            above its allowance and line_target_z standard errors): decides
+                            alone, either way
 probe         clear         held-out reduction's lower bound above its allowance: significant
 absorption    clear         the same for the absorption refit (unless voided; a refit that
                             moves the vertices, measured alone, is voided beside a confuser
@@ -288,6 +291,19 @@ def _rejudge_expected_share(evidence: Evidence, config: DecisionConfig) -> Evide
     )
 
 
+def _line_target_threshold(evidence: Evidence, config: DecisionConfig) -> float:
+    """What the line-target frames' corner shift must clear: the allowance, and line_target_z of
+    the frames' own standard error (a null from the run: noisy or blurred frames raise it)."""
+    error = float(evidence.details.get("standard_error", float("inf")))
+    return max(config.line_target_allowance, config.line_target_z * error)
+
+
+def _judge_line_target(evidence: Evidence, config: DecisionConfig) -> Evidence:
+    """Row line_target's verdict under the config (Rule.revise)."""
+    threshold = _line_target_threshold(evidence, config)
+    return replace(evidence, threshold=threshold, passed=bool(evidence.statistic > threshold))
+
+
 def _relight_shows_no_curve(evidence: Evidence) -> str | None:
     """Row relight's contradiction: for an effect the relight split identifies
     (DiagnosisFacts.relight_exponent: a response curve, which under one light the albedo
@@ -318,6 +334,16 @@ DECISION_TABLE: tuple[Rule, ...] = (
         parameters_from=("absorption", "probe"),
         independent=True,
         outlives_null=True,
+    ),
+    Rule(
+        "line_target",
+        "overrule",
+        measured=True,
+        threshold=lambda effect, config: config.line_target_allowance,
+        parameters_from=("line_target",),
+        independent=True,
+        outlives_null=True,
+        revise=_judge_line_target,
     ),
     Rule(
         "probe",
@@ -555,6 +581,9 @@ def decide(candidate: Candidate, config: DecisionConfig) -> Candidate:
         vetoes += _contradictions(candidate, deciding)
     if vetoes and status == "significant":
         status, why = "vetoed", vetoes[0].reason
+    # A capture that measures the effect itself (an overruling row the condition names as
+    # settling it) answers the condition either way: found, or measured and not there.
+    measured = {item.kind for item in _role_evidence(candidate, "overrule")}
     unidentifiable = [
         item
         for item in _role_evidence(candidate, "qualify")
@@ -562,6 +591,7 @@ def decide(candidate: Candidate, config: DecisionConfig) -> Candidate:
         and not (
             status == "significant" and _settles(candidate, item.details.get("settled_by", ()))
         )
+        and not measured & set(item.details.get("settled_by", ()))
     ]
     if unidentifiable:
         condition = unidentifiable[0]
@@ -714,6 +744,9 @@ def _why_not(candidate: Candidate) -> str:
     ]
     if not measured:
         return "no evidence measured"
+    overruling = [item for item in measured if item.counts and RULES[item.kind].role == "overrule"]
+    if overruling:
+        return explain(overruling[0])  # it decides alone
     voided = [item for item in measured if not item.counts]
     counted = [item for item in measured if item.counts]
     if not counted:

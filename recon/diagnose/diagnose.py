@@ -29,6 +29,7 @@ from recon.diagnose.fingerprint import visibility_fingerprint
 from recon.diagnose.flat_field import measure_flat_field
 from recon.diagnose.gap import gap_summary, noise_floor, relight_gap
 from recon.diagnose.how_far import RefitBaseline, RefitInputs, how_far, relight_exponent
+from recon.diagnose.line_target import measure_line_target
 from recon.diagnose.producers import PRODUCERS, EvidenceInputs, gather
 from recon.diagnose.records import Candidate, Diagnosis, Evidence
 from recon.diagnose.relight_probe import relight_response_probe
@@ -78,6 +79,8 @@ class DiagnosisInputs:
     relight_skipped: str | None = None
     flat_field: torch.Tensor | None = None
     flat_field_error: str | None = None
+    line_target: tuple[torch.Tensor, torch.Tensor] | None = None
+    line_target_error: str | None = None
     geometry_errors: Callable[[Mesh], dict] | None = None
 
 
@@ -230,6 +233,50 @@ def flat_field_evidence(
     return measurement
 
 
+def line_target_evidence(
+    candidates: list[Candidate],
+    frames: torch.Tensor,
+    intrinsics: torch.Tensor,
+    settings: DiagnoseConfig,
+) -> dict:
+    """The line-target frames' lens distortion (recon.diagnose.line_target), recorded on the
+    candidates its facts apply to; it overrules their residual evidence either way."""
+    measurement = measure_line_target(frames, intrinsics)
+    measurement["allowance"] = settings.decision.line_target_allowance
+    for candidate in candidates:
+        if "line_target" not in diagnosis_facts(candidate.name).evidence:
+            continue
+        candidate.add(
+            Evidence(
+                kind="line_target",
+                candidate=candidate.name,
+                statistic=measurement["corner_shift_pixels"],
+                threshold=float("nan"),
+                passed=False,
+                reason=(
+                    f"line-target frames ({measurement['lines']} straight edges in "
+                    f"{measurement['frames']} frames): the distortion that straightens them "
+                    "moves the image corners by (pixels, against the larger of the allowance "
+                    f"and {settings.decision.line_target_z:g} standard errors of "
+                    f"{measurement['standard_error']:.3f} px)"
+                ),
+                details={
+                    key: measurement[key]
+                    for key in (
+                        "standard_error",
+                        "parameters",
+                        "straightness_before_pixels",
+                        "straightness_after_pixels",
+                        "lines",
+                        "frames",
+                    )
+                },
+            )
+        )
+        decide(candidate, settings.decision)
+    return measurement
+
+
 def mark_radial_coverage(
     candidates: list[Candidate],
     refits: list[dict],
@@ -369,6 +416,14 @@ def which(
     if inputs.flat_field_error:
         gap["flat_field_error"] = inputs.flat_field_error
     lap("flat_field")
+    if inputs.line_target is not None:
+        try:
+            gap["line_target"] = line_target_evidence(ranked, *inputs.line_target, settings)
+        except ReconError as error:
+            gap["line_target_error"] = str(error)
+    if inputs.line_target_error:
+        gap["line_target_error"] = inputs.line_target_error
+    lap("line_target")
     absorption = AbsorptionInputs(
         inputs.training, inputs.model, inputs.config, inputs.device, inputs.scratch
     )

@@ -316,7 +316,7 @@ def lens_distortion_evidence(
         # The probe's own comparison with a pose correction (and the other confusers) measured
         # the answer this condition predicts from a reference distortion: where it decides, the
         # condition does not qualify it.
-        "settled_by": ["beyond_confusers"],
+        "settled_by": ["beyond_confusers", "line_target"],
         # A prediction: the decision judges it by the run's pair records where the probe
         # measured a distortion (recon.diagnose.geometric_judgement.measured_condition).
         "measured_by": "pairs",

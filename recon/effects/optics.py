@@ -294,7 +294,7 @@ class LensDistortion(ModelEffect):
     name = "lens_distortion"
     diagnosis = DiagnosisFacts(
         family="camera",
-        evidence=("absorption",),
+        evidence=("absorption", "line_target"),
         absorption="geometry",
         confusable=("motion_blur", "defocus_blur", "pose_error"),
         identifiable_when="straight edges or texture reaching the outer image",

@@ -17,6 +17,9 @@ RELIGHT_LIGHTING = "lighting_relight.json"
 # A dataset's flat-field frames (a uniformly lit card filling the frame, through the capture's
 # camera chain; see recon.config.run_config.FlatFieldConfig) are this split. No fit reads it.
 FLAT_FIELD_SPLIT = "flat_field"
+# A dataset's line-target frames (a card of straight stripes filling the frame, through the
+# capture's camera chain; see recon.config.run_config.LineTargetConfig). No fit reads it.
+LINE_TARGET_SPLIT = "line_target"
 # The split of views under another, known light (capture.relight).
 RELIGHT_SPLIT = "relight"
 
@@ -80,6 +83,16 @@ class DatasetLayout:
     def flat_field(self) -> Path:
         """The flat-field split's folder (its frames)."""
         return self.folder / FLAT_FIELD_SPLIT
+
+    @property
+    def has_line_target(self) -> bool:
+        """Line-target frames (capture.line_target) beside the views."""
+        return self.split_file(LINE_TARGET_SPLIT).is_file()
+
+    @property
+    def line_target(self) -> Path:
+        """The line-target split's folder (its frames)."""
+        return self.folder / LINE_TARGET_SPLIT
 
     def split_files(self) -> list[Path]:
         """Every NeRF-synthetic transforms file, sorted by name (none for the other layouts)."""

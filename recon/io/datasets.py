@@ -45,7 +45,11 @@ from recon.errors import DatasetError, ReconError, warn_user
 from recon.io.atomic import atomic_write_json
 
 # The names of a dataset's extra captures are the layout's (re-exported for their readers).
-from recon.io.dataset_layout import FLAT_FIELD_SPLIT, RELIGHT_LIGHTING  # noqa: F401
+from recon.io.dataset_layout import (  # noqa: F401
+    FLAT_FIELD_SPLIT,
+    LINE_TARGET_SPLIT,
+    RELIGHT_LIGHTING,
+)
 from recon.io.exif import exposure_value, read_exif
 from recon.io.images import read_exr_channels, read_image, write_png
 from recon.io.images import write_exr as write_exr_file  # the writer has a write_exr flag

@@ -21,7 +21,12 @@ from recon.errors import ReconError
 from recon.io.atomic import atomic_write_json
 from recon.io.checkpoints import load_checkpoint
 from recon.io.dataset_layout import RELIGHT_SPLIT
-from recon.io.datasets import FLAT_FIELD_SPLIT, read_captures, read_nerf_synthetic
+from recon.io.datasets import (
+    FLAT_FIELD_SPLIT,
+    LINE_TARGET_SPLIT,
+    read_captures,
+    read_nerf_synthetic,
+)
 from recon.io.meshes import load_mesh
 from recon.io.run_folder import RunPaths
 from recon.metrics.evaluate import plain_json
@@ -91,6 +96,14 @@ def diagnosis_inputs(paths: RunPaths, config: RunConfig, device: torch.device) -
             inputs.flat_field = frames.images.double()
         except ReconError as error:
             inputs.flat_field_error = f"{layout.flat_field}: {error}"
+    if layout.has_line_target:
+        try:
+            frames = read_nerf_synthetic(
+                paths.dataset, LINE_TARGET_SPLIT, background=None, prefer_exr=True
+            )
+            inputs.line_target = (frames.images.double(), frames.cameras.intrinsics)
+        except ReconError as error:
+            inputs.line_target_error = f"{layout.line_target}: {error}"
     if paths.reference_mesh.exists():
         reference = load_mesh(paths.reference_mesh)
 

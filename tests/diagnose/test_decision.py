@@ -431,8 +431,9 @@ def test_metadata_that_disagrees_vetoes_the_candidate():
 def test_every_row_has_a_known_role():
     roles = {rule.role for rule in DECISION_TABLE}
     assert roles <= {"overrule", "clear", "name", "null", "veto", "qualify", "inform"}
-    assert [rule.kind for rule in DECISION_TABLE][:4] == [
+    assert [rule.kind for rule in DECISION_TABLE][:5] == [
         "flat_field",
+        "line_target",
         "probe",
         "absorption",
         "relight",
