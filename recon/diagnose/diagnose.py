@@ -243,6 +243,7 @@ def line_target_evidence(
     candidates its facts apply to; it overrules their residual evidence either way."""
     measurement = measure_line_target(frames, intrinsics)
     measurement["allowance"] = settings.decision.line_target_allowance
+    measurement["z"] = settings.decision.line_target_z
     for candidate in candidates:
         if "line_target" not in diagnosis_facts(candidate.name).evidence:
             continue

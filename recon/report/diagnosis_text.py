@@ -75,6 +75,19 @@ def diagnosis_lines(diagnosis: Diagnosis) -> list[str]:
             f"half-way {flat['half_radius_falloff']:.3f} ({reading}; allowance "
             f"{flat['allowance']:.2f})"
         )
+    if gap.get("line_target_error"):
+        lines.append(f"line target not used: {gap['line_target_error']}")
+    target = gap.get("line_target")
+    if target:
+        bar = max(target["allowance"], target.get("z", 0.0) * target["standard_error"])
+        reading = "lens distortion" if target["corner_shift_pixels"] > bar else "straight"
+        lines.append(
+            f"line target ({target['frames']} frames, {target['lines']} edges): corners moved "
+            f"{target['corner_shift_pixels']:.2f} px (standard error "
+            f"{target['standard_error']:.2f} px; {reading}; edges off straight "
+            f"{target['straightness_before_pixels']:.3f} -> "
+            f"{target['straightness_after_pixels']:.3f} px RMS)"
+        )
     for refit in diagnosis.refits:
         relight = (
             f" (relight split: {100 * refit['relight_closed_fraction']:.0f} %)"

@@ -90,6 +90,24 @@ def test_blind_vignetting_is_measured_out_to_the_corners(tiny_config, tmp_path):
     assert diagnosis["gap"]["flat_field"]["frames"] == 2
 
 
+def test_blind_lens_is_measured_on_the_line_target(tiny_config, tmp_path):
+    """The bench config's line-target frames: a withheld lens distortion, which a 48 px view of
+    a centred object shows as little more than a zoom, is named from the frames' bent lines, with
+    the coefficients that made them."""
+    torch.set_num_threads(1)
+    record = run_case(
+        BenchCase(("lens_distortion",), seed=0), tiny_config, tmp_path, torch.device("cpu"), "none"
+    )
+    assert record["predicted_top"] == "lens_distortion", record
+    diagnosis = json.loads((Path(record["run_folder"]) / "diagnosis.json").read_text())
+    lens = next(item for item in diagnosis["candidates"] if item["name"] == "lens_distortion")
+    assert lens["decided_by"] == "line_target" and lens["status"] == "significant"
+    truth = json.loads((tmp_path / "truth" / "lens_distortion_seed0.json").read_text())
+    true_k1 = truth["withheld"][0]["parameters"]["k1"]
+    assert lens["parameters"]["k1"] == pytest.approx(true_k1, rel=0.15, abs=0.02)
+    assert diagnosis["gap"]["line_target"]["frames"] == 4
+
+
 # ---------------------------------------------------------------------------------------------
 # The broadened check (issue 20): worlds, scenes, leave-one-scene-out calibration.
 # ---------------------------------------------------------------------------------------------

@@ -67,3 +67,39 @@ def test_added_frames_are_the_frames_a_fresh_synth_writes(tmp_path, monkeypatch,
     assert _run_script(monkeypatch, [str(before), "--force"]) == 0
     assert _run_script(monkeypatch, [str(tmp_path / "nowhere")]) == 2
     assert f"{tmp_path / 'nowhere'}: not a synthetic run folder" in capsys.readouterr().err
+
+
+def test_added_line_target_frames_are_the_frames_a_fresh_synth_writes(tmp_path, monkeypatch):
+    """--split line_target: the stripes go through the withheld lens distortion and vignetting
+    (seed 2) exactly as a fresh synth with the frames in its config renders them."""
+    from recon.config import load_config
+    from recon.config.run_config import RunConfig
+
+    before = synth(
+        tmp_path,
+        "case",
+        {"seed": 2, "capture": {"train_views": 2}},
+        "--withhold",
+        "2",
+        "--truth-out",
+        str(tmp_path / "truth" / "case.json"),
+    )
+    fresh = synth(
+        tmp_path,
+        "fresh",
+        {"seed": 2, "capture": {"train_views": 2, "line_target": {"views": 2}}},
+        "--withhold",
+        "2",
+        "--truth-out",
+        str(tmp_path / "fresh_truth.json"),
+    )
+    assert _run_script(monkeypatch, [str(before), "--split", "line_target"]) == 0
+    added = read_split(before, "line_target").images
+    assert torch.equal(added, read_split(fresh, "line_target").images)
+    truth = json.loads((tmp_path / "truth" / "case.json").read_text())
+    fresh_truth = json.loads((tmp_path / "fresh_truth.json").read_text())
+    names = sorted(item["name"] for item in truth["realised"]["line_target"])
+    assert names == ["lens_distortion", "vignetting"]
+    assert truth["realised"]["line_target"] == fresh_truth["realised"]["line_target"]
+    config = load_config(before / "config.resolved.yaml", RunConfig)
+    assert config.capture.line_target.views == 2 and config.capture.flat_field.views == 0

@@ -168,6 +168,23 @@ def test_diagnose_command_prints_parameters_and_voided_evidence(tiny_run, capsys
     assert "flat field not used: dataset/flat_field: flat_field.frames[0]: no light" in (
         capsys.readouterr().out
     )
+    diagnosis.gap = {
+        "line_target": {
+            "corner_shift_pixels": 2.5,
+            "standard_error": 0.04,
+            "allowance": 0.3,
+            "z": 4.0,
+            "frames": 4,
+            "lines": 31,
+            "straightness_before_pixels": 0.21,
+            "straightness_after_pixels": 0.07,
+        }
+    }
+    assert main(["diagnose", str(tiny_run)]) == 0
+    assert (
+        "line target (4 frames, 31 edges): corners moved 2.50 px (standard error 0.04 px; "
+        "lens distortion; edges off straight 0.210 -> 0.070 px RMS)"
+    ) in capsys.readouterr().out
 
 
 def _fit_with_exposure(folder: Path, fit_effects: list[str]) -> Path:

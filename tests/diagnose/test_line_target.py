@@ -1,0 +1,149 @@
+"""The lens distortion measured on line-target frames (recon.diagnose.line_target) and its row in
+the decision table."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from data_synth.effects.optics import undistort
+from data_synth.line_target import line_target_capture
+from recon.config.run_config import (
+    CameraRigConfig,
+    CaptureConfig,
+    DecisionConfig,
+    EffectConfig,
+    LineTargetConfig,
+)
+from recon.diagnose.decision import decide
+from recon.diagnose.line_target import measure_line_target
+from recon.diagnose.records import Candidate, Evidence
+from recon.errors import ReconError
+
+SIZE = 48
+CAPTURE = CaptureConfig(
+    cameras=CameraRigConfig(rig="fibonacci", distance=3.0, fov_deg=40.0, resolution=[SIZE, SIZE]),
+    line_target=LineTargetConfig(views=4),
+)
+CONFIG = DecisionConfig()
+
+
+def measured(effects: list[EffectConfig], seed: int = 0) -> dict:
+    capture, _, _ = line_target_capture(CAPTURE, effects, seed)
+    return measure_line_target(capture.images.double(), capture.cameras.intrinsics)
+
+
+def true_corner_shift(coefficients: tuple[float, ...]) -> float:
+    """Mean distance (pixels) between each image corner and where the lens maps it from."""
+    capture, _, _ = line_target_capture(CAPTURE, [], 0)
+    fx, fy = (float(capture.cameras.intrinsics[0, i, i]) for i in (0, 1))
+    corner = torch.tensor([0.0, SIZE], dtype=torch.float64) - SIZE / 2
+    x_distorted = (corner[None, :] / fx).expand(2, 2).reshape(-1)
+    y_distorted = (corner[:, None] / fy).expand(2, 2).reshape(-1)
+    x, y, valid = undistort(x_distorted, y_distorted, coefficients)
+    assert bool(valid.all())
+    return float(torch.hypot(fx * (x - x_distorted), fy * (y - y_distorted)).mean())
+
+
+@pytest.mark.parametrize("k1", [0.25, -0.25, 0.6])
+def test_a_lens_is_recovered_from_the_bent_lines(k1):
+    result = measured([EffectConfig("lens_distortion", {"k1": k1})], seed=1)
+    expected = true_corner_shift((k1, 0.0, 0.0, 0.0, 0.0))
+    assert expected > 1.0
+    assert result["corner_shift_pixels"] == pytest.approx(expected, rel=0.1)
+    assert result["parameters"]["k1"] == pytest.approx(k1, rel=0.1)
+    assert result["standard_error"] < 0.1 * result["corner_shift_pixels"]
+    # The undistortion straightens the lines to the edge finder's own precision (a tenth of a
+    # pixel: linear interpolation of box-filtered edges).
+    assert result["straightness_after_pixels"] < 0.1 < result["straightness_before_pixels"]
+    assert result["lines"] >= 20 and result["frames_with_lines"] == 4
+
+
+FOOLS = {
+    "clean": [],
+    "exposure": [EffectConfig("exposure", {"spread_stops": 0.6})],
+    "white_balance": [EffectConfig("white_balance", {})],
+    "vignetting": [EffectConfig("vignetting", {"strength": 0.4, "offset_x_px": 2.0})],
+    "response_curve": [EffectConfig("response_curve", {})],
+    "defocus_blur": [EffectConfig("defocus_blur", {"radius_px": 2.5})],
+    "motion_blur": [EffectConfig("motion_blur", {})],
+    "noise": [EffectConfig("noise", {})],
+}
+
+
+@pytest.mark.parametrize("name", sorted(FOOLS))
+def test_effects_that_do_not_bend_lines_show_no_lens(name):
+    """Levels, falloff, blur and noise change the stripes but not their straightness: the
+    measured shift stays under the allowance or its own standard errors."""
+    for seed in (0, 1):
+        result = measured(FOOLS[name], seed)
+        threshold = max(
+            CONFIG.line_target_allowance, CONFIG.line_target_z * result["standard_error"]
+        )
+        assert result["corner_shift_pixels"] < threshold, (seed, result)
+
+
+def test_unusable_frames_are_refused_by_name():
+    flat = torch.full((2, SIZE, SIZE, 3), 0.4, dtype=torch.float64)
+    intrinsics = torch.eye(3, dtype=torch.float64).expand(2, 3, 3)
+    with pytest.raises(ReconError, match=r"line_target.frames: 0 straight edges found in 2"):
+        measure_line_target(flat, intrinsics)
+    with pytest.raises(ReconError, match=r"expected shape \[N >= 1, H, W, 3\], got \(2, 48, 48\)"):
+        measure_line_target(flat[..., 0], intrinsics)
+    with pytest.raises(ReconError, match=r"line_target.intrinsics: expected shape \[2, 3, 3\]"):
+        measure_line_target(flat, intrinsics[:1])
+
+
+def lens_candidate(probe_low: float, shift: float, error: float) -> Candidate:
+    candidate = Candidate("lens_distortion")
+    candidate.add(
+        Evidence(
+            "probe",
+            "lens_distortion",
+            probe_low,
+            math.nan,
+            False,
+            "probe: held-out reduction's lower bound",
+            {"interval": [probe_low, probe_low + 0.1], "reduction": probe_low + 0.05},
+        )
+    )
+    candidate.add(
+        Evidence(
+            "identifiability",
+            "lens_distortion",
+            0.05,
+            0.2,
+            False,
+            "the object covers the centre only",
+            {"settled_by": ["beyond_confusers", "line_target"], "confused_with": ["pose_error"]},
+        )
+    )
+    candidate.add(
+        Evidence(
+            "line_target",
+            "lens_distortion",
+            shift,
+            math.nan,
+            False,
+            "line-target frames: corner shift",
+            {"standard_error": error, "parameters": {"k1": 0.2}},
+        )
+    )
+    return candidate
+
+
+def test_the_line_target_decides_alone_either_way():
+    # The frames show a lens the object's views cannot: significant, with its parameters.
+    found = decide(lens_candidate(probe_low=-0.01, shift=2.0, error=0.05), CONFIG)
+    assert found.status == "significant" and found.decided_by == "line_target"
+    assert found.parameters == {"k1": 0.2}
+    # The frames show none: a probe that clears on the object is overruled, and the
+    # identifiability condition the frames settle does not turn it into "not identifiable".
+    absent = decide(lens_candidate(probe_low=0.5, shift=0.1, error=0.05), CONFIG)
+    assert absent.status == "not_significant" and "line-target" in absent.why
+    # Noisy frames: a shift above the allowance but within line_target_z standard errors.
+    noisy = decide(lens_candidate(probe_low=-0.01, shift=0.8, error=0.3), CONFIG)
+    assert noisy.status == "not_significant"
+    assert f"{CONFIG.line_target_z * 0.3:.3f}" in noisy.why
