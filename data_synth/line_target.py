@@ -45,8 +45,6 @@ STRIPE_TURN_DEG = 10.0
 # The card's margin beyond the frame, per side, as a share of the larger image side: more than
 # the largest displacement the sampler draws at the corners (a fifth of the corner radius).
 MARGIN_SHARE = 0.25
-# The black stripes' radiance as a share of the white ones'.
-DARK_SHARE = 0.1
 
 
 def _rotation(about_x: float, about_y: float) -> torch.Tensor:
@@ -91,7 +89,7 @@ def stripe_card(
         period = period_pixels / fx
         phase = draws[3]
         white = torch.remainder(along / period + phase, 1.0) < 0.5
-        level = torch.where(white, 1.0, DARK_SHARE) * settings.radiance
+        level = torch.where(white, 1.0, settings.dark_share) * settings.radiance
         images.append(level[..., None].expand(height, width, 3))
         cards.append(
             {

@@ -352,7 +352,12 @@ class LineTargetConfig:
         "Stripe period (one black and one white stripe) at the image centre, in output pixels: wide enough that a blur of a few pixels leaves each edge's crossing, narrow enough for several lines per frame.",
     )
     radiance: float = setting(
-        0.5, "Linear radiance of the white stripes before exposure (the black ones hold a tenth)."
+        0.5,
+        "Linear radiance of the white stripes before exposure (the black ones: dark_share of it).",
+    )
+    dark_share: float = setting(
+        0.1,
+        "Radiance of the black stripes as a share of the white ones (the card's printed contrast, known from its data sheet): the diagnosis reads the camera's response curve off the two levels.",
     )
     tilt_deg: float = setting(
         20.0, "Largest tilt of the card away from facing the camera, per axis, in degrees."
@@ -367,6 +372,7 @@ class LineTargetConfig:
         check_range(self.period_pixels, "period_pixels", low=4.0)
         check_range(self.radiance, "radiance", low=1e-3, high=1.0)
         check_range(self.tilt_deg, "tilt_deg", low=0.0, high=60.0)
+        check_range(self.dark_share, "dark_share", low=1e-3, high=0.5)
         check_range(self.supersampling, "supersampling", low=1, high=16)
 
 
@@ -909,9 +915,13 @@ class DecisionConfig:
         0.3,
         "Displacement at the image corners, in pixels, that the line-target frames' straightened lines must show for them to name a lens distortion (below it no lens is named, whatever its significance).",
     )
+    line_target_levels_allowance: float = setting(
+        0.03,
+        "How far from 1 the response's exponent over the line target's two levels must be for them to name a response curve (a card's printed contrast known to 2 % moves the exponent by 0.009).",
+    )
     line_target_z: float = setting(
         4.0,
-        "How many standard errors (leave-one-frame-out, or the fit's own where there are fewer than three frames) the line-target frames' corner displacement must clear.",
+        "How many standard errors the line-target frames' readings must clear: the corner displacement's (leave-one-frame-out, or the fit's own where there are fewer than three frames) and the levels' exponent's (over the frames).",
     )
     shadow_share: float = setting(
         0.6,
@@ -1011,6 +1021,7 @@ class DecisionConfig:
         for name in ("relight_allowance", "flat_field_allowance"):
             check_range(getattr(self, name), name, low=0.0, high=1.0)
         check_range(self.line_target_allowance, "line_target_allowance", low=0.0)
+        check_range(self.line_target_levels_allowance, "line_target_levels_allowance", low=0.0)
         check_range(self.line_target_z, "line_target_z", low=0.0)
         check_range(self.shadow_share, "shadow_share", low=0.0, high=1.0)
 

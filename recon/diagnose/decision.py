@@ -14,7 +14,7 @@ kind          role          effect on the decision
 flat_field    overrule      measures the falloff itself: decides alone, either way
 line_target   overrule      measures the lens itself (the plumb-line frames' corner shift,
                             above its allowance and line_target_z standard errors): decides
-                            alone, either way
+                            alone, either way (contradicting rows do not veto it)
 probe         clear         held-out reduction's lower bound above its allowance: significant
 absorption    clear         the same for the absorption refit (unless voided; a refit that
                             moves the vertices, measured alone, is voided beside a confuser
@@ -35,6 +35,12 @@ agreement     clear         a per-view colour gain shared by separate halves of 
 lobe          clear         the view-to-view residual (training and held-out views) follows a
                             highlight's lobe under the fitted light beyond placebo lights
                             (recon.diagnose.lobe); ranks after clearing residual evidence
+line_target_  clear         the response's exponent over the line target's two known levels
+levels                      further from 1 than its allowance and line_target_z standard
+                            errors over the frames (measured on other data: independent);
+                            read precisely within the allowance, it vetoes what only the
+                            held-out residual cleared (no curve over the card's levels), unless
+                            a relight split found one
 relight_lobe  clear         the same lobe test on the relight split under its known light
                             (recon.diagnose.lobe); measured on other data (independent)
 cast_shadow   clear         the relight split's residual is darker where the fitted mesh
@@ -304,6 +310,37 @@ def _judge_line_target(evidence: Evidence, config: DecisionConfig) -> Evidence:
     return replace(evidence, threshold=threshold, passed=bool(evidence.statistic > threshold))
 
 
+def _judge_line_target_levels(evidence: Evidence, config: DecisionConfig) -> Evidence:
+    """Row line_target_levels' verdict under the config (Rule.revise): the exponent's distance
+    from 1 clears the allowance and line_target_z of its standard error over the frames."""
+    error = float(evidence.details.get("standard_error", float("inf")))
+    threshold = max(config.line_target_levels_allowance, config.line_target_z * error)
+    # Precise: the frames agree closely enough that an exponent within the allowance is a
+    # reading of no curve, not a reading too noisy to tell.
+    precise = config.line_target_z * error < config.line_target_levels_allowance
+    return replace(
+        evidence,
+        threshold=threshold,
+        passed=bool(evidence.statistic > threshold),
+        details={**evidence.details, "precise": bool(precise)},
+    )
+
+
+def _levels_show_no_curve(evidence: Evidence) -> str | None:
+    """Row line_target_levels' contradiction: the card's two levels, read precisely, keep
+    their printed ratio (the exponent within its allowance of 1): over that range the camera
+    has no curve, and what the held-out residual cleared is the fit's own misfit. (A relight
+    split that found a curve over the object's own intensities outweighs it.)"""
+    if evidence.passed or not evidence.details.get("precise", False):
+        return None
+    gamma = (evidence.details.get("parameters") or {}).get("effective_gamma")
+    measured = f" (exponent {gamma:.3f})" if gamma is not None else ""
+    return (
+        f"the line target's two levels keep their printed ratio{measured}: the camera shows no "
+        "response curve over them; what the held-out residual removed is the fit's own misfit"
+    )
+
+
 def _relight_shows_no_curve(evidence: Evidence) -> str | None:
     """Row relight's contradiction: for an effect the relight split identifies
     (DiagnosisFacts.relight_exponent: a response curve, which under one light the albedo
@@ -375,6 +412,17 @@ DECISION_TABLE: tuple[Rule, ...] = (
         independent=True,
         outlives_null=True,
         contradicts=_relight_shows_no_curve,
+    ),
+    Rule(
+        "line_target_levels",
+        "clear",
+        measured=True,
+        threshold=lambda effect, config: config.line_target_levels_allowance,
+        parameters_from=("line_target_levels", "relight"),
+        independent=True,
+        outlives_null=True,
+        contradicts=_levels_show_no_curve,
+        revise=_judge_line_target_levels,
     ),
     Rule(
         BEYOND,
@@ -578,7 +626,13 @@ def decide(candidate: Candidate, config: DecisionConfig) -> Candidate:
         if settled:
             vetoes = [item for item in vetoes if not _settled(item, tuple(sorted(settled)))]
     if deciding is not None:
-        vetoes += _contradictions(candidate, deciding)
+        # A row that found no signature where it looked (Rule.contradicts) vetoes what the
+        # held-out residual cleared, not a measurement of another kind on other data.
+        vetoes += [
+            item
+            for item in _contradictions(candidate, deciding)
+            if not any(other.kind != item.kind for other in independent)
+        ]
     if vetoes and status == "significant":
         status, why = "vetoed", vetoes[0].reason
     # A capture that measures the effect itself (an overruling row the condition names as

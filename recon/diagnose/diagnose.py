@@ -238,10 +238,13 @@ def line_target_evidence(
     frames: torch.Tensor,
     intrinsics: torch.Tensor,
     settings: DiagnoseConfig,
+    dark_share: float | None = None,
 ) -> dict:
     """The line-target frames' lens distortion (recon.diagnose.line_target), recorded on the
-    candidates its facts apply to; it overrules their residual evidence either way."""
-    measurement = measure_line_target(frames, intrinsics)
+    candidates its facts apply to (it overrules their residual evidence either way), and, with
+    the card's dark_share, the response's exponent over its two levels (evidence
+    line_target_levels: it clears a response curve like a relight split does)."""
+    measurement = measure_line_target(frames, intrinsics, dark_share)
     measurement["allowance"] = settings.decision.line_target_allowance
     measurement["z"] = settings.decision.line_target_z
     for candidate in candidates:
@@ -275,6 +278,33 @@ def line_target_evidence(
             )
         )
         decide(candidate, settings.decision)
+    levels = measurement.get("levels")
+    if levels and levels["exponent"] is not None:
+        for candidate in candidates:
+            if "line_target_levels" not in diagnosis_facts(candidate.name).evidence:
+                continue
+            candidate.add(
+                Evidence(
+                    kind="line_target_levels",
+                    candidate=candidate.name,
+                    statistic=round(abs(1.0 - levels["exponent"]), 5),
+                    threshold=float("nan"),
+                    passed=False,
+                    reason=(
+                        f"line-target frames' two levels (black {dark_share:g} of white): the "
+                        f"response's exponent over them is {levels['exponent']:.3f}; its "
+                        "distance from 1 (against the larger of the allowance and "
+                        f"{settings.decision.line_target_z:g} standard errors of "
+                        f"{levels['standard_error']:.3f})"
+                    ),
+                    details={
+                        "standard_error": levels["standard_error"],
+                        "per_frame": levels["per_frame"],
+                        "parameters": {"effective_gamma": levels["exponent"]},
+                    },
+                )
+            )
+            decide(candidate, settings.decision)
     return measurement
 
 
@@ -419,7 +449,12 @@ def which(
     lap("flat_field")
     if inputs.line_target is not None:
         try:
-            gap["line_target"] = line_target_evidence(ranked, *inputs.line_target, settings)
+            gap["line_target"] = line_target_evidence(
+                ranked,
+                *inputs.line_target,
+                settings,
+                inputs.config.capture.line_target.dark_share,
+            )
         except ReconError as error:
             gap["line_target_error"] = str(error)
     if inputs.line_target_error:

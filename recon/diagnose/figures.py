@@ -9,6 +9,7 @@ wash the map out.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import matplotlib
@@ -388,6 +389,50 @@ def flat_field_figure(measurement: dict, model: dict | None, path: Path) -> Path
         f"half-way {measurement['half_radius_falloff']:.3f}"
     )
     axis.legend(fontsize=8)
+    return _save(figure, path)
+
+
+def line_target_figure(measurement: dict, path: Path) -> Path:
+    """The lens distortion the line-target frames measured (recon.diagnose.line_target): the
+    displacement field over the frame (arrows, scaled to be seen) and its size against the
+    radius, up to the corners."""
+    from recon.diagnose.line_target import undistorted
+
+    height, width = measurement["image_size"]
+    fx, fy, cx, cy = measurement["intrinsics"]
+    q = np.asarray(measurement["undistortion"])
+    rows, columns = np.meshgrid(np.linspace(0, height, 9), np.linspace(0, width, 9), indexing="ij")
+    x, y = (columns - cx) / fx, (rows - cy) / fy
+    new_x, new_y = undistorted(x, y, q)
+    # The lens moves the ideal image point (undistorted) to where it is seen (the grid).
+    du, dv = fx * (x - new_x), fy * (y - new_y)
+    figure, (field, profile) = plt.subplots(1, 2, figsize=(9.0, 3.8))
+    largest = float(np.hypot(du, dv).max()) or 1.0
+    scale = 0.08 * max(height, width) / largest
+    field.quiver(columns, rows, du * scale, dv * scale, angles="xy", scale_units="xy", scale=1)
+    field.set_xlim(0, width)
+    field.set_ylim(height, 0)
+    field.set_aspect("equal")
+    field.set_title(f"lens displacement (arrows x{scale:.1f})", fontsize=9)
+    radius = np.linspace(0.0, 1.0, 50)
+    corner = np.hypot(width - cx, height - cy)
+    angle = math.atan2(height - cy, width - cx)
+    u = cx + radius * corner * math.cos(angle)
+    v = cy + radius * corner * math.sin(angle)
+    x, y = (u - cx) / fx, (v - cy) / fy
+    new_x, new_y = undistorted(x, y, q)
+    profile.plot(radius, np.hypot(fx * (new_x - x), fy * (new_y - y)), color="k")
+    profile.axhline(
+        measurement["allowance"], color="tab:red", linestyle="--", linewidth=0.8, label="allowance"
+    )
+    profile.set_xlabel("radius along the diagonal (half diagonal)")
+    profile.set_ylabel("displacement (px)")
+    profile.set_title(
+        f"corners moved {measurement['corner_shift_pixels']:.2f} px "
+        f"(standard error {measurement['standard_error']:.2f})",
+        fontsize=9,
+    )
+    profile.legend(fontsize=8)
     return _save(figure, path)
 
 

@@ -46,6 +46,11 @@ LINK_PIXELS = 1.0
 # A line must span at least this share of the frame's columns to count (short runs are
 # fragments near the corners, where a turn cannot be told from a bend).
 MINIMUM_LINE_SHARE = 0.3
+# Pixels from the nearest edge crossing beyond which a stripe's level is read (a blur of the
+# blind check's sizes, 1 px defocus and 2 px motion paths at 48 px, leaves them).
+PLATEAU_CLEARANCE = 2.0
+# Fewest black (and white) plateau pixels a frame's level ratio is read from.
+MINIMUM_PLATEAU_PIXELS = 20
 # The undistortion's terms: radial q1, q2 and tangential q3, q4.
 UNDISTORTION_TERMS = 4
 
@@ -131,6 +136,62 @@ def _linked(columns: list[list[tuple[float, int]]]) -> list[tuple[np.ndarray, np
     ]
 
 
+def _stripes_across_columns(image: np.ndarray) -> bool:
+    """Whether the stripes of luminance [H, W] are nearer horizontal (they change down the
+    columns more than along the rows)."""
+    vertical = float(np.abs(np.diff(image, axis=0)).mean())
+    horizontal = float(np.abs(np.diff(image, axis=1)).mean())
+    return vertical >= horizontal
+
+
+def _plateau_ratio(image: np.ndarray) -> float:
+    """The black stripes' luminance over the white ones' in luminance [H, W] (stripes along
+    axis 1), on the pixels at least PLATEAU_CLEARANCE_PIXELS from every edge crossing of their
+    column (a blur of the edges leaves them), the white level a quadratic over the frame (a
+    falloff scales both levels alike, so the ratio is taken against the white level there).
+    NaN where a frame has too few such pixels."""
+    height, width = image.shape
+    centres = np.arange(height) + 0.5
+    dark = np.zeros((height, width), dtype=bool)
+    bright = np.zeros((height, width), dtype=bool)
+    for column, found in enumerate(_column_crossings(image)):
+        if len(found) < 2:
+            continue
+        positions = np.array([position for position, _ in found])
+        clear = np.abs(centres[:, None] - positions[None, :]).min(axis=1) >= PLATEAU_CLEARANCE
+        # Between the first and last crossing: the stripes there are whole.
+        clear &= (centres > positions.min()) & (centres < positions.max())
+        # A pixel is in a black stripe when the next crossing below it rises (dark to bright
+        # going down), in a white one when it falls.
+        below = np.searchsorted(positions, centres)
+        rising = np.array([direction for _, direction in found] + [0])[below]
+        dark[:, column] = clear & (rising > 0)
+        bright[:, column] = clear & (rising < 0)
+    if dark.sum() < MINIMUM_PLATEAU_PIXELS or bright.sum() < MINIMUM_PLATEAU_PIXELS:
+        return float("nan")
+    rows, columns = np.mgrid[0:height, 0:width] + 0.5
+
+    def design(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        u, v = u / width - 0.5, v / height - 0.5
+        return np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], axis=1)
+
+    white = np.linalg.lstsq(design(columns[bright], rows[bright]), image[bright], rcond=None)[0]
+    return float((image[dark] / (design(columns[dark], rows[dark]) @ white)).mean())
+
+
+def level_exponents(frames: torch.Tensor, dark_share: float) -> list[float]:
+    """Per frame of frames [N, H, W, 3] (linear): the exponent k of the camera's response over
+    the card's two levels, observed black / white = dark_share^k (1: linear; a frame whose
+    levels could not be read is left out)."""
+    luminance = luminance_of(frames.double()).cpu().numpy()
+    exponents = []
+    for image in luminance:
+        ratio = _plateau_ratio(image if _stripes_across_columns(image) else image.T)
+        if math.isfinite(ratio) and ratio > 0:
+            exponents.append(math.log(ratio) / math.log(dark_share))
+    return exponents
+
+
 def edge_lines(frames: torch.Tensor) -> list[Line]:
     """The stripes' edge lines in frames [N, H, W, 3] (linear): per frame, scanned along the
     columns where the stripes are nearer horizontal (the vertical gradient is the larger), else
@@ -138,9 +199,7 @@ def edge_lines(frames: torch.Tensor) -> list[Line]:
     luminance = luminance_of(frames.double()).cpu().numpy()
     lines = []
     for index, image in enumerate(luminance):
-        vertical = float(np.abs(np.diff(image, axis=0)).mean())
-        horizontal = float(np.abs(np.diff(image, axis=1)).mean())
-        if vertical >= horizontal:
+        if _stripes_across_columns(image):
             for columns, rows in _linked(_column_crossings(image)):
                 lines.append(Line(index, columns, rows))
         else:
@@ -221,7 +280,9 @@ def forward_coefficients(q: np.ndarray, intrinsics: np.ndarray, image_size) -> d
     }
 
 
-def measure_line_target(frames: torch.Tensor, intrinsics: torch.Tensor) -> dict:
+def measure_line_target(
+    frames: torch.Tensor, intrinsics: torch.Tensor, dark_share: float | None = None
+) -> dict:
     """The lens distortion that the stripes' edges in frames [N, H, W, 3] (linear) show, seen
     through cameras with intrinsics [N, 3, 3].
 
@@ -229,7 +290,10 @@ def measure_line_target(frames: torch.Tensor, intrinsics: torch.Tensor) -> dict:
     standard_error (pixels: leave-one-frame-out with three frames or more, else the fit's own,
     whichever is larger), the fitted forward coefficients (parameters: k1, k2, p1, p2), the
     lines' RMS distance from straight before and after (pixels), and the lines, points and
-    frames it rests on. ReconError where the frames show too few lines to fit."""
+    frames it rests on. With dark_share (the card's black stripes' radiance over its white
+    ones'), also levels: the response's exponent over the card's two levels (level_exponents),
+    their mean, its standard error over the frames (infinite with fewer than two) and the
+    per-frame values. ReconError where the frames show too few lines to fit."""
     if frames.ndim != 4 or frames.shape[-1] != 3 or frames.shape[0] == 0:
         raise ReconError(
             f"line_target.frames: expected shape [N >= 1, H, W, 3], got {tuple(frames.shape)}"
@@ -280,7 +344,22 @@ def measure_line_target(frames: torch.Tensor, intrinsics: torch.Tensor) -> dict:
         )
     error = max(formal, jackknife) if math.isfinite(jackknife) else formal
     before = _straightness(lines, parameters, np.zeros(UNDISTORTION_TERMS))
+    levels = None
+    if dark_share is not None:
+        exponents = np.array(level_exponents(frames, dark_share))
+        spread = (
+            float(exponents.std(ddof=1)) / math.sqrt(exponents.size)
+            if exponents.size >= 2
+            else float("inf")
+        )
+        levels = {
+            "exponent": round(float(exponents.mean()), 5) if exponents.size else None,
+            "standard_error": round(spread, 5),
+            "per_frame": [round(float(value), 5) for value in exponents],
+            "dark_share": dark_share,
+        }
     return {
+        "levels": levels,
         "corner_shift_pixels": round(shift, 4),
         "standard_error": round(error, 4),
         "standard_error_formal": round(formal, 4),
@@ -293,4 +372,7 @@ def measure_line_target(frames: torch.Tensor, intrinsics: torch.Tensor) -> dict:
         "points": int(points),
         "frames": count,
         "frames_with_lines": len(framed),
+        # What the figure needs to draw the field: fx, fy, cx, cy and (H, W).
+        "intrinsics": [round(float(value), 4) for value in parameters[0]],
+        "image_size": [height, width],
     }

@@ -24,7 +24,8 @@ class DiagnosisFacts:
     family: 'camera' (the camera or sensor changes the image) or 'light_transport' (the scene's
         light does something the base model's shading leaves out).
     evidence: the evidence kinds besides the probe that apply (recon.diagnose.decision's rows):
-        'absorption', 'relight', 'flat_field', 'line_target', 'fingerprint'.
+        'absorption', 'relight', 'flat_field', 'line_target', 'line_target_levels',
+        'fingerprint'.
     absorption: how its absorption evidence is measured: 'frozen' (texture, light and the
         effect refitted on the frozen geometry), 'geometry' (a refit that moves the vertices:
         the effect bends the geometry the fit absorbed it into), 'closed_form' (a regression

@@ -225,7 +225,7 @@ class ResponseCurve(ModelEffect):
     name = "response_curve"
     diagnosis = DiagnosisFacts(
         family="camera",
-        evidence=("relight",),
+        evidence=("relight", "line_target_levels"),
         relight_exponent=True,
         confusable=("lens_distortion", "exposure"),
         identifiable_when="views under a second light (a relight split) or with varying exposure",

@@ -122,6 +122,7 @@ def write_figures(diagnosis: Diagnosis, data: DiagnosisData, paths: RunPaths) ->
     from recon.diagnose.figures import (
         backdrop_figure,
         flat_field_figure,
+        line_target_figure,
         waterfall_figure,
         where_figures,
     )
@@ -139,6 +140,9 @@ def write_figures(diagnosis: Diagnosis, data: DiagnosisData, paths: RunPaths) ->
             diagnosis.gap["flat_field"], radial_model(diagnosis), folder / "flat_field.png"
         )
         diagnosis.figures["flat_field"] = str(path.relative_to(paths.root))
+    if "line_target" in diagnosis.gap:
+        path = line_target_figure(diagnosis.gap["line_target"], folder / "line_target.png")
+        diagnosis.figures["line_target"] = str(path.relative_to(paths.root))
     backdrop = [
         item.to_json()
         for candidate in diagnosis.candidates
