@@ -300,7 +300,8 @@ def _rejudge_expected_share(evidence: Evidence, config: DecisionConfig) -> Evide
 def _line_target_threshold(evidence: Evidence, config: DecisionConfig) -> float:
     """What the line-target frames' corner shift must clear: the allowance, and line_target_z of
     the frames' own standard error (a null from the run: noisy or blurred frames raise it)."""
-    error = float(evidence.details.get("standard_error", float("inf")))
+    error = evidence.details.get("standard_error")
+    error = float("inf") if error is None else float(error)
     return max(config.line_target_allowance, config.line_target_z * error)
 
 
@@ -313,7 +314,8 @@ def _judge_line_target(evidence: Evidence, config: DecisionConfig) -> Evidence:
 def _judge_line_target_levels(evidence: Evidence, config: DecisionConfig) -> Evidence:
     """Row line_target_levels' verdict under the config (Rule.revise): the exponent's distance
     from 1 clears the allowance and line_target_z of its standard error over the frames."""
-    error = float(evidence.details.get("standard_error", float("inf")))
+    error = evidence.details.get("standard_error")
+    error = float("inf") if error is None else float(error)
     threshold = max(config.line_target_levels_allowance, config.line_target_z * error)
     # Precise: the frames agree closely enough that an exponent within the allowance is a
     # reading of no curve, not a reading too noisy to tell.

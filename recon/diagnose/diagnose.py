@@ -7,6 +7,7 @@ run config); the stage (recon.stages.diagnose) reads the run folder and writes d
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -295,7 +296,7 @@ def line_target_evidence(
                         f"response's exponent over them is {levels['exponent']:.3f}; its "
                         "distance from 1 (against the larger of the allowance and "
                         f"{settings.decision.line_target_z:g} standard errors of "
-                        f"{levels['standard_error']:.3f})"
+                        f"{levels['standard_error'] or math.inf:.3f})"
                     ),
                     details={
                         "standard_error": levels["standard_error"],

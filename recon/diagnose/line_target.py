@@ -49,6 +49,9 @@ MINIMUM_LINE_SHARE = 0.3
 # Pixels from the nearest edge crossing beyond which a stripe's level is read (a blur of the
 # blind check's sizes, 1 px defocus and 2 px motion paths at 48 px, leaves them).
 PLATEAU_CLEARANCE = 2.0
+# Largest second difference along the scan, as a share of the column's contrast, of a pixel
+# whose level is read (noise of a few per cent of the contrast passes).
+PLATEAU_FLATNESS = 0.05
 # Fewest black (and white) plateau pixels a frame's level ratio is read from.
 MINIMUM_PLATEAU_PIXELS = 20
 # The undistortion's terms: radial q1, q2 and tangential q3, q4.
@@ -152,6 +155,13 @@ def _plateau_ratio(image: np.ndarray) -> float:
     NaN where a frame has too few such pixels."""
     height, width = image.shape
     centres = np.arange(height) + 0.5
+    # A plateau is flat: a blur as wide as the stripes rounds their middles (curvature) even
+    # where the slope is zero, and their levels there are no longer the card's.
+    curvature = np.full_like(image, np.inf)
+    curvature[1:-1] = np.abs(image[:-2] - 2 * image[1:-1] + image[2:])
+    high = maximum_filter1d(image, height, axis=0, mode="nearest")
+    low = minimum_filter1d(image, height, axis=0, mode="nearest")
+    flat = curvature <= PLATEAU_FLATNESS * (high - low)
     dark = np.zeros((height, width), dtype=bool)
     bright = np.zeros((height, width), dtype=bool)
     for column, found in enumerate(_column_crossings(image)):
@@ -160,7 +170,7 @@ def _plateau_ratio(image: np.ndarray) -> float:
         positions = np.array([position for position, _ in found])
         clear = np.abs(centres[:, None] - positions[None, :]).min(axis=1) >= PLATEAU_CLEARANCE
         # Between the first and last crossing: the stripes there are whole.
-        clear &= (centres > positions.min()) & (centres < positions.max())
+        clear &= (centres > positions.min()) & (centres < positions.max()) & flat[:, column]
         # A pixel is in a black stripe when the next crossing below it rises (dark to bright
         # going down), in a white one when it falls.
         below = np.searchsorted(positions, centres)
@@ -292,7 +302,7 @@ def measure_line_target(
     lines' RMS distance from straight before and after (pixels), and the lines, points and
     frames it rests on. With dark_share (the card's black stripes' radiance over its white
     ones'), also levels: the response's exponent over the card's two levels (level_exponents),
-    their mean, its standard error over the frames (infinite with fewer than two) and the
+    their mean, its standard error over the frames (None with fewer than two) and the
     per-frame values. ReconError where the frames show too few lines to fit."""
     if frames.ndim != 4 or frames.shape[-1] != 3 or frames.shape[0] == 0:
         raise ReconError(
@@ -348,13 +358,13 @@ def measure_line_target(
     if dark_share is not None:
         exponents = np.array(level_exponents(frames, dark_share))
         spread = (
-            float(exponents.std(ddof=1)) / math.sqrt(exponents.size)
+            round(float(exponents.std(ddof=1)) / math.sqrt(exponents.size), 5)
             if exponents.size >= 2
-            else float("inf")
+            else None
         )
         levels = {
             "exponent": round(float(exponents.mean()), 5) if exponents.size else None,
-            "standard_error": round(spread, 5),
+            "standard_error": spread,
             "per_frame": [round(float(value), 5) for value in exponents],
             "dark_share": dark_share,
         }

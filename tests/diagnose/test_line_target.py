@@ -147,3 +147,123 @@ def test_the_line_target_decides_alone_either_way():
     noisy = decide(lens_candidate(probe_low=-0.01, shift=0.8, error=0.3), CONFIG)
     assert noisy.status == "not_significant"
     assert f"{CONFIG.line_target_z * 0.3:.3f}" in noisy.why
+
+
+# ---------------------------------------------------------------------------------------------
+# The card's two levels: a response curve.
+# ---------------------------------------------------------------------------------------------
+
+CURVE = {"toe": 0.06, "shoulder": 0.7, "gamma": 2.0}
+
+
+def test_the_two_levels_read_the_response_exponent_over_them():
+    from data_synth.effects.registry import make_world_effect
+
+    capture, _, _ = line_target_capture(CAPTURE, [EffectConfig("response_curve", CURVE)], 0)
+    result = measure_line_target(capture.images.double(), capture.cameras.intrinsics, 0.1)
+    world = make_world_effect("response_curve", CURVE)
+    white = CAPTURE.line_target.radiance
+    observed = world.observed_linear(torch.tensor([0.1 * white, white], dtype=torch.float64))
+    expected = math.log(float(observed[0] / observed[1])) / math.log(0.1)
+    assert abs(expected - 1) > 0.1
+    assert result["levels"]["exponent"] == pytest.approx(expected, abs=0.01)
+    assert result["levels"]["standard_error"] < 0.01
+    assert len(result["levels"]["per_frame"]) == 4
+    # Without the card's contrast, no levels are read.
+    assert (
+        measure_line_target(capture.images.double(), capture.cameras.intrinsics)["levels"] is None
+    )
+
+
+@pytest.mark.parametrize(
+    "name", ["clean", "exposure", "white_balance", "vignetting", "defocus_blur", "noise"]
+)
+def test_levels_and_falloffs_keep_the_cards_ratio(name):
+    effects = (
+        FOOLS[name]
+        if name != "defocus_blur"
+        else [EffectConfig("defocus_blur", {"radius_px": 1.5})]
+    )
+    result = measured_levels(effects)
+    assert abs(1 - result["exponent"]) < CONFIG.line_target_levels_allowance, result
+    assert len(result["per_frame"]) >= 3
+
+
+def test_a_blur_as_wide_as_the_stripes_leaves_no_level_to_read():
+    """A 2.5 px defocus rounds the 6 px stripes' middles: their levels are no longer the card's,
+    and no frame's ratio is read (rather than a wrong curve)."""
+    result = measured_levels(FOOLS["defocus_blur"])
+    assert result["exponent"] is None and result["per_frame"] == []
+    assert result["standard_error"] is None
+
+
+def test_a_motion_blur_that_smears_the_stripes_is_not_read_as_a_curve():
+    """A long path reaches into the stripes' plateaus differently per frame: the frames disagree,
+    and the exponent's distance from 1 stays within its standard errors."""
+    result = measured_levels([EffectConfig("motion_blur", {"length_px": 4.0})])
+    error = result["standard_error"]
+    bar = max(CONFIG.line_target_levels_allowance, CONFIG.line_target_z * (error or math.inf))
+    assert result["exponent"] is None or abs(1 - result["exponent"]) < bar, result
+
+
+def measured_levels(effects: list[EffectConfig], seed: int = 0) -> dict:
+    capture, _, _ = line_target_capture(CAPTURE, effects, seed)
+    return measure_line_target(capture.images.double(), capture.cameras.intrinsics, 0.1)["levels"]
+
+
+def curve_candidate(exponent: float, error: float, probe_low: float, relight=None) -> Candidate:
+    candidate = Candidate("response_curve")
+    candidate.add(
+        Evidence(
+            "probe",
+            "response_curve",
+            probe_low,
+            math.nan,
+            False,
+            "probe",
+            {"interval": [probe_low, probe_low + 0.1], "reduction": probe_low + 0.05},
+        )
+    )
+    if relight is not None:
+        low, specific = relight
+        candidate.add(
+            Evidence(
+                "relight",
+                "response_curve",
+                low,
+                math.nan,
+                False,
+                "relight",
+                {"interval": [low, low + 0.1], "specific": specific, "parameters": {"gamma": 1.3}},
+            )
+        )
+    candidate.add(
+        Evidence(
+            "line_target_levels",
+            "response_curve",
+            abs(1 - exponent),
+            math.nan,
+            False,
+            "levels",
+            {"standard_error": error, "parameters": {"effective_gamma": exponent}},
+        )
+    )
+    return decide(candidate, CONFIG)
+
+
+def test_the_levels_clear_a_curve_even_where_the_relight_split_shows_none():
+    found = curve_candidate(1.2, 0.01, probe_low=-0.01, relight=(0.01, False))
+    assert found.status == "significant" and found.decided_by == "line_target_levels"
+    assert found.parameters == {"effective_gamma": 1.2}
+    noisy = curve_candidate(1.2, 0.06, probe_low=-0.01)
+    assert noisy.status == "not_significant"
+
+
+def test_precise_levels_without_a_curve_veto_what_only_the_residual_cleared():
+    misfit = curve_candidate(1.004, 0.002, probe_low=0.5)
+    assert misfit.status == "vetoed" and "printed ratio" in misfit.why
+    # Imprecise levels say nothing against it.
+    assert curve_candidate(1.004, 0.05, probe_low=0.5).status == "significant"
+    # A relight split that found a curve over the object's own intensities outweighs them.
+    relit = curve_candidate(1.004, 0.002, probe_low=0.5, relight=(0.3, True))
+    assert relit.status == "significant"
