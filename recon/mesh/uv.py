@@ -29,7 +29,9 @@ UV-space rasterizer here is its own small one.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+import os
+import pickle
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
@@ -107,8 +109,13 @@ def unwrap(
     pack_options.padding = int(padding)
     pack_options.resolution = int(resolution)
     pack_options.bruteForce = bool(brute_force)
-    vertex_mapping, uv_faces, uvs = _pack_into_one_atlas(
-        xatlas, positions, indices.astype(np.uint32), chart_options, pack_options
+    vertex_mapping, uv_faces, uvs = run_without_teardown(
+        _pack_into_one_atlas,
+        xatlas,
+        positions,
+        indices.astype(np.uint32),
+        chart_options,
+        pack_options,
     )
     uv_faces = uv_faces.astype(np.int64)
     if uv_faces.shape != indices.shape or not np.array_equal(
@@ -122,6 +129,52 @@ def unwrap(
         )
     uvs = torch.from_numpy(np.ascontiguousarray(uvs, dtype=np.float32))
     return uvs.to(device), torch.from_numpy(uv_faces).to(device)
+
+
+def run_without_teardown(function: Callable[..., Any], *arguments: Any) -> Any:
+    """function(*arguments) in a forked child process that exits without running destructors;
+    its return value (picklable) comes back, and a ReconError it raises is raised here with the
+    same message.
+
+    Why: xatlas (0.0.11) can hang for ever when an Atlas is destroyed. Its task scheduler's
+    destructor sets each worker's wake-up flag and notifies the worker's condition variable
+    without holding the worker's mutex, so a worker that has just found the flag unset and is
+    about to block misses the notification, and the destructor's join never returns (seen under
+    load: every thread asleep, the main one in std::thread::join inside xatlas::Destroy). The
+    child computes the layout and leaves by os._exit, so no Atlas is ever destroyed. Where
+    there is no fork (Windows), it runs in this process.
+    """
+    if not hasattr(os, "fork"):
+        return function(*arguments)
+    read_end, write_end = os.pipe()
+    child = os.fork()
+    if child == 0:  # the child: compute, send, leave without teardown
+        try:
+            os.close(read_end)
+            try:
+                outcome = ("value", function(*arguments))
+            except ReconError as error:
+                outcome = ("recon_error", str(error))
+            except BaseException as error:  # noqa: BLE001 - reported to the parent
+                outcome = ("error", f"{type(error).__name__}: {error}")
+            with os.fdopen(write_end, "wb") as stream:
+                pickle.dump(outcome, stream, protocol=pickle.HIGHEST_PROTOCOL)
+        finally:
+            os._exit(0)
+    os.close(write_end)
+    with os.fdopen(read_end, "rb") as stream:
+        payload = stream.read()
+    _, status = os.waitpid(child, 0)
+    if not payload:
+        raise ReconError(
+            f"unwrap: the xatlas child process ended without a result (wait status {status})"
+        )
+    kind, value = pickle.loads(payload)
+    if kind == "recon_error":
+        raise ReconError(value)
+    if kind == "error":
+        raise RuntimeError(f"unwrap: xatlas failed in its child process: {value}")
+    return value
 
 
 def _pack_into_one_atlas(

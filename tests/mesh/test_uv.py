@@ -6,6 +6,8 @@ recon.mesh itself must not import recon.render.
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 import torch
@@ -171,21 +173,30 @@ def test_unwrap_rejects_bad_input():
         unwrap(verts[:, :2], faces)
 
 
-def test_xatlas_uv_origin_is_top_left_like_ours():
-    """xatlas's own atlas image has row y = v * height from the top, as our textures do."""
-    verts, faces = torus()
+def _atlas_with_image(positions: np.ndarray, indices: np.ndarray):
     atlas = xatlas.Atlas()
-    atlas.add_mesh(verts.numpy(), faces.numpy().astype(np.uint32))
+    atlas.add_mesh(positions, indices)
     options = xatlas.PackOptions()
     options.resolution = 256
     options.padding = 2
     options.create_image = True
     atlas.generate(pack_options=options)
-    vertex_mapping, indices, uvs = atlas[0]
+    vertex_mapping, faces, uvs = atlas[0]
+    return vertex_mapping, faces, uvs, atlas.chart_image, (atlas.height, atlas.width)
+
+
+def test_xatlas_uv_origin_is_top_left_like_ours():
+    """xatlas's own atlas image has row y = v * height from the top, as our textures do."""
+    from recon.mesh.uv import run_without_teardown
+
+    verts, faces = torus()
+    # In a child: an Atlas torn down in this process can hang (see run_without_teardown).
+    vertex_mapping, indices, uvs, image, size = run_without_teardown(
+        _atlas_with_image, verts.numpy(), faces.numpy().astype(np.uint32)
+    )
     assert np.array_equal(vertex_mapping[indices], faces.numpy())  # same triangles, same order
-    image = atlas.chart_image  # [height, width, 3]: chart colours, padding blue, bilinear green
+    # image [height, width, 3]: chart colours, padding blue, bilinear green
     chart = image.any(-1) & ~(image == [0, 0, 255]).all(-1) & ~(image == [0, 255, 0]).all(-1)
-    size = (atlas.height, atlas.width)
     uv_faces = torch.from_numpy(indices.astype(np.int64))
     as_is = rasterize_uv(torch.from_numpy(uvs), uv_faces, size)[0].numpy() >= 0
     flipped_uvs = torch.from_numpy(uvs).clone()
@@ -384,3 +395,26 @@ def test_chart_border_faces_on_simple_layouts():
     # A closed mesh whose uvs share its vertex indexing has no open UV edge.
     _, faces = icosphere()
     assert not bool(chart_border_faces(faces).any())
+
+
+def _raise_recon_error() -> None:
+    raise ReconError("unwrap: a message from the child")
+
+
+def _raise_other_error() -> None:
+    raise ValueError("something else")
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="no fork on this platform")
+def test_xatlas_runs_in_a_child_that_never_tears_an_atlas_down():
+    """xatlas 0.0.11 can hang in an Atlas's destructor (a lost wake-up of its workers): the
+    layout is computed in a forked child that leaves without destructors. The value comes back,
+    and errors come back by message."""
+    from recon.mesh.uv import run_without_teardown
+
+    assert run_without_teardown(os.getpid) != os.getpid()
+    assert run_without_teardown(lambda a, b: {"sum": a + b}, 2, 3) == {"sum": 5}
+    with pytest.raises(ReconError, match="unwrap: a message from the child"):
+        run_without_teardown(_raise_recon_error)
+    with pytest.raises(RuntimeError, match="ValueError: something else"):
+        run_without_teardown(_raise_other_error)
