@@ -23,6 +23,7 @@ RUN_FOLDER_USERS = {
     "recon/preflight.py": "checks a new run's folder before the pipeline creates it",
     "recon/sweep/trial.py": "a trial runs the pipeline, then reads the run's results as a user would",
     "data_synth/stage.py": "the synth stage (data_synth's, found by entry point)",
+    "data_synth/calibration_splits.py": "completes a synthetic run's dataset with calibration frames",
 }
 # Where the rule does not hold yet, and why; each entry names the issue that removes it.
 # (None since the diagnosis redesign, issue 20, moved the diagnose stage to
