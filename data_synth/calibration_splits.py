@@ -13,13 +13,31 @@ import json
 from dataclasses import replace
 from pathlib import Path
 
+from data_synth.effects.base import Capture
 from recon.config import config_hash, dump_resolved, load_config
 from recon.config.run_config import EffectConfig, RunConfig
 from recon.errors import ReconError
 from recon.io.atomic import atomic_write_json
+from recon.io.datasets import write_nerf_synthetic
 from recon.io.run_folder import RunPaths
 
 CALIBRATION_SPLITS = ("flat_field", "line_target")
+
+
+def write_frames(
+    dataset: Path, split: str, capture: Capture, write_exr: bool, force: bool = False
+) -> None:
+    """A calibration capture's frames as the dataset's split (NeRF-synthetic layout, linear EXR
+    beside the 8-bit PNG with write_exr; an existing split only with force)."""
+    write_nerf_synthetic(
+        dataset,
+        split,
+        capture.cameras,
+        capture.images,
+        capture.alpha,
+        write_exr=write_exr,
+        force=force,
+    )
 
 
 def _writer(split: str):

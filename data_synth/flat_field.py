@@ -18,10 +18,11 @@ from pathlib import Path
 
 import torch
 
+from data_synth.calibration_splits import write_frames
 from data_synth.effects.base import LIGHT_TRANSPORT, Capture
 from data_synth.rigs import make_cameras
 from recon.config.run_config import CaptureConfig, EffectConfig
-from recon.io.datasets import FLAT_FIELD_SPLIT, write_nerf_synthetic
+from recon.io.datasets import FLAT_FIELD_SPLIT
 
 # A uniform radiance field is unchanged by these.
 UNIFORM_INVARIANT = ("pose_error", "lens_distortion", "defocus_blur", "motion_blur")
@@ -70,13 +71,5 @@ def write_flat_field(
     8-bit PNG when the capture writes EXR; an existing split only with force); returns the
     realised effect parameters."""
     capture, realised = flat_field_capture(capture_config, effects, seed)
-    write_nerf_synthetic(
-        dataset,
-        FLAT_FIELD_SPLIT,
-        capture.cameras,
-        capture.images,
-        capture.alpha,
-        write_exr=capture_config.write_exr,
-        force=force,
-    )
+    write_frames(dataset, FLAT_FIELD_SPLIT, capture, capture_config.write_exr, force)
     return realised

@@ -27,11 +27,12 @@ from pathlib import Path
 
 import torch
 
+from data_synth.calibration_splits import write_frames
 from data_synth.effects.base import LIGHT_TRANSPORT, Capture
 from data_synth.rigs import make_cameras
 from recon.camera import Cameras
 from recon.config.run_config import CaptureConfig, EffectConfig, LineTargetConfig
-from recon.io.datasets import LINE_TARGET_SPLIT, write_nerf_synthetic
+from recon.io.datasets import LINE_TARGET_SPLIT
 
 # A pose error moves the card; its lines stay straight.
 LINE_INVARIANT = ("pose_error",)
@@ -167,13 +168,5 @@ def write_line_target(
     8-bit PNG when the capture writes EXR; an existing split only with force); returns the
     realised effect parameters."""
     capture, realised, _ = line_target_capture(capture_config, effects, seed)
-    write_nerf_synthetic(
-        dataset,
-        LINE_TARGET_SPLIT,
-        capture.cameras,
-        capture.images,
-        capture.alpha,
-        write_exr=capture_config.write_exr,
-        force=force,
-    )
+    write_frames(dataset, LINE_TARGET_SPLIT, capture, capture_config.write_exr, force)
     return realised

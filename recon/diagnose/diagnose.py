@@ -198,6 +198,33 @@ def relight_evidence(
         decide(candidate, settings.decision)
 
 
+def record_measurement(
+    candidates: list[Candidate],
+    kind: str,
+    statistic: float,
+    reason: str,
+    details: dict,
+    settings: DiagnoseConfig,
+) -> None:
+    """One measurement on calibration frames as evidence of kind on every candidate whose facts
+    list that kind, each decided again (threshold and verdict come from the decision table)."""
+    for candidate in candidates:
+        if kind not in diagnosis_facts(candidate.name).evidence:
+            continue
+        candidate.add(
+            Evidence(
+                kind=kind,
+                candidate=candidate.name,
+                statistic=statistic,
+                threshold=float("nan"),
+                passed=False,
+                reason=reason,
+                details=dict(details),
+            )
+        )
+        decide(candidate, settings.decision)
+
+
 def flat_field_evidence(
     candidates: list[Candidate], frames: torch.Tensor, settings: DiagnoseConfig
 ) -> dict:
@@ -213,24 +240,14 @@ def flat_field_evidence(
     exponent = relight_exponent(found) if found else None
     measurement = measure_flat_field(frames, exponent, settings)
     measurement["allowance"] = settings.decision.flat_field_allowance
-    for candidate in candidates:
-        if "flat_field" not in diagnosis_facts(candidate.name).evidence:
-            continue
-        candidate.add(
-            Evidence(
-                kind="flat_field",
-                candidate=candidate.name,
-                statistic=measurement["deviation"],
-                threshold=float("nan"),
-                passed=False,
-                reason="flat-field frames: deviation of the corner or half-way falloff from 1",
-                details={
-                    key: measurement[key]
-                    for key in ("corner_falloff", "half_radius_falloff", "frames")
-                },
-            )
-        )
-        decide(candidate, settings.decision)
+    record_measurement(
+        candidates,
+        "flat_field",
+        measurement["deviation"],
+        "flat-field frames: deviation of the corner or half-way falloff from 1",
+        {key: measurement[key] for key in ("corner_falloff", "half_radius_falloff", "frames")},
+        settings,
+    )
     return measurement
 
 
@@ -247,65 +264,46 @@ def line_target_evidence(
     line_target_levels: it clears a response curve like a relight split does)."""
     measurement = measure_line_target(frames, intrinsics, dark_share)
     measurement["allowance"] = settings.decision.line_target_allowance
-    measurement["z"] = settings.decision.line_target_z
-    for candidate in candidates:
-        if "line_target" not in diagnosis_facts(candidate.name).evidence:
-            continue
-        candidate.add(
-            Evidence(
-                kind="line_target",
-                candidate=candidate.name,
-                statistic=measurement["corner_shift_pixels"],
-                threshold=float("nan"),
-                passed=False,
-                reason=(
-                    f"line-target frames ({measurement['lines']} straight edges in "
-                    f"{measurement['frames']} frames): the distortion that straightens them "
-                    "moves the image corners by (pixels, against the larger of the allowance "
-                    f"and {settings.decision.line_target_z:g} standard errors of "
-                    f"{measurement['standard_error']:.3f} px)"
-                ),
-                details={
-                    key: measurement[key]
-                    for key in (
-                        "standard_error",
-                        "parameters",
-                        "straightness_before_pixels",
-                        "straightness_after_pixels",
-                        "lines",
-                        "frames",
-                    )
-                },
+    z = settings.decision.line_target_z
+    measurement["z"] = z
+    record_measurement(
+        candidates,
+        "line_target",
+        measurement["corner_shift_pixels"],
+        f"line-target frames ({measurement['lines']} straight edges in "
+        f"{measurement['frames']} frames): the distortion that straightens them moves the "
+        f"image corners by (pixels, against the larger of the allowance and {z:g} standard "
+        f"errors of {measurement['standard_error']:.3f} px)",
+        {
+            key: measurement[key]
+            for key in (
+                "standard_error",
+                "parameters",
+                "straightness_before_pixels",
+                "straightness_after_pixels",
+                "lines",
+                "frames",
             )
-        )
-        decide(candidate, settings.decision)
+        },
+        settings,
+    )
     levels = measurement.get("levels")
     if levels and levels["exponent"] is not None:
-        for candidate in candidates:
-            if "line_target_levels" not in diagnosis_facts(candidate.name).evidence:
-                continue
-            candidate.add(
-                Evidence(
-                    kind="line_target_levels",
-                    candidate=candidate.name,
-                    statistic=round(abs(1.0 - levels["exponent"]), 5),
-                    threshold=float("nan"),
-                    passed=False,
-                    reason=(
-                        f"line-target frames' two levels (black {dark_share:g} of white): the "
-                        f"response's exponent over them is {levels['exponent']:.3f}; its "
-                        "distance from 1 (against the larger of the allowance and "
-                        f"{settings.decision.line_target_z:g} standard errors of "
-                        f"{levels['standard_error'] or math.inf:.3f})"
-                    ),
-                    details={
-                        "standard_error": levels["standard_error"],
-                        "per_frame": levels["per_frame"],
-                        "parameters": {"effective_gamma": levels["exponent"]},
-                    },
-                )
-            )
-            decide(candidate, settings.decision)
+        record_measurement(
+            candidates,
+            "line_target_levels",
+            round(abs(1.0 - levels["exponent"]), 5),
+            f"line-target frames' two levels (black {dark_share:g} of white): the response's "
+            f"exponent over them is {levels['exponent']:.3f}; its distance from 1 (against the "
+            f"larger of the allowance and {z:g} standard errors of "
+            f"{levels['standard_error'] or math.inf:.3f})",
+            {
+                "standard_error": levels["standard_error"],
+                "per_frame": levels["per_frame"],
+                "parameters": {"effective_gamma": levels["exponent"]},
+            },
+            settings,
+        )
     return measurement
 
 

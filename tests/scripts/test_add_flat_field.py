@@ -24,31 +24,37 @@ def _run_script(monkeypatch, arguments: list[str]) -> int:
     return exit_info.value.code
 
 
+def _withheld_runs(tmp_path: Path, split: str) -> tuple[Path, Path]:
+    """Two synth runs of seed 2 with two effects withheld: one without the split (its truth in
+    tmp_path/truth/case.json, where the script looks), one whose config asks for two frames of
+    it (its truth in tmp_path/fresh_truth.json)."""
+    runs = []
+    for name, capture, truth in (
+        ("case", {"train_views": 2}, tmp_path / "truth" / "case.json"),
+        ("fresh", {"train_views": 2, split: {"views": 2}}, tmp_path / "fresh_truth.json"),
+    ):
+        runs.append(
+            synth(
+                tmp_path,
+                name,
+                {"seed": 2, "capture": capture},
+                "--withhold",
+                "2",
+                "--truth-out",
+                str(truth),
+            )
+        )
+    return runs[0], runs[1]
+
+
 def test_added_frames_are_the_frames_a_fresh_synth_writes(tmp_path, monkeypatch, capsys):
     """Withheld effects come from the truth file (seed 2 withholds vignetting, which darkens the
     card, and lens distortion, which does not); the config hash of a bench fit follows."""
     from recon.config import config_hash, load_config
     from recon.config.run_config import RunConfig
 
-    before = synth(
-        tmp_path,
-        "case",
-        {"seed": 2, "capture": {"train_views": 2}},
-        "--withhold",
-        "2",
-        "--truth-out",
-        str(tmp_path / "truth" / "case.json"),
-    )
+    before, fresh = _withheld_runs(tmp_path, "flat_field")
     (before / "bench_fit.json").write_text(json.dumps({"config_hash": "old", "fit_seconds": 1.0}))
-    fresh = synth(
-        tmp_path,
-        "fresh",
-        {"seed": 2, "capture": {"train_views": 2, "flat_field": {"views": 2}}},
-        "--withhold",
-        "2",
-        "--truth-out",
-        str(tmp_path / "fresh_truth.json"),
-    )
     assert _run_script(monkeypatch, [str(before)]) == 0
     added = read_split(before, "flat_field").images
     assert torch.equal(added, read_split(fresh, "flat_field").images)
@@ -75,24 +81,7 @@ def test_added_line_target_frames_are_the_frames_a_fresh_synth_writes(tmp_path, 
     from recon.config import load_config
     from recon.config.run_config import RunConfig
 
-    before = synth(
-        tmp_path,
-        "case",
-        {"seed": 2, "capture": {"train_views": 2}},
-        "--withhold",
-        "2",
-        "--truth-out",
-        str(tmp_path / "truth" / "case.json"),
-    )
-    fresh = synth(
-        tmp_path,
-        "fresh",
-        {"seed": 2, "capture": {"train_views": 2, "line_target": {"views": 2}}},
-        "--withhold",
-        "2",
-        "--truth-out",
-        str(tmp_path / "fresh_truth.json"),
-    )
+    before, fresh = _withheld_runs(tmp_path, "line_target")
     assert _run_script(monkeypatch, [str(before), "--split", "line_target"]) == 0
     added = read_split(before, "line_target").images
     assert torch.equal(added, read_split(fresh, "line_target").images)
