@@ -70,18 +70,22 @@ class RenderedViews:
 
 
 def render_views_own(
-    mesh: Mesh, cameras: Cameras, world: WorldLighting, description: str
+    mesh: Mesh,
+    cameras: Cameras,
+    world: WorldLighting,
+    description: str,
+    views_per_batch: int = VIEWS_PER_BATCH,
 ) -> RenderedViews:
-    """recon's own renderer, in batches, with a progress bar."""
+    """recon's own renderer, in batches of views_per_batch, with a progress bar."""
     renderer = Renderer()
     topology = build_topology(mesh.faces, mesh.verts.shape[0])
     parts: list[RenderedViews] = []
     with torch.no_grad():
         for start in tqdm(
-            range(0, len(cameras), VIEWS_PER_BATCH), desc=description, unit="batch", leave=False
+            range(0, len(cameras), views_per_batch), desc=description, unit="batch", leave=False
         ):
             output = renderer.render(
-                mesh, cameras[start : start + VIEWS_PER_BATCH], world.lighting, topology=topology
+                mesh, cameras[start : start + views_per_batch], world.lighting, topology=topology
             )
             parts.append(
                 RenderedViews(
@@ -142,6 +146,9 @@ def render_split(
     supersampling: cameras are at this many times the output resolution per side (their
     pixels are averaged down later): Mitsuba's samples per pixel are divided by its square."""
     backend = config.capture.backend
+    # The same samples per batch as at the output resolution: a supersampled batch of 8 views
+    # at 512 px held 5.4 GB against 0.85 GB without supersampling.
+    batch = max(1, VIEWS_PER_BATCH // supersampling**2)
     light_transport = _light_transport_names(effects)
     traced = [effect.name for effect in light_transport if effect.name != "specular"]
     if backend == "own" and traced:
@@ -160,7 +167,7 @@ def render_split(
             cameras.to(device),
             world,
             config.capture.own_specular,
-            VIEWS_PER_BATCH,
+            batch,
             description,
         )
         return RenderedViews(
@@ -186,9 +193,9 @@ def render_split(
         if not config.capture.write_depth_normals:
             return RenderedViews(colors, alphas, torch.zeros_like(alphas), torch.zeros_like(colors))
         # The path tracer gives no depth/normal buffers: take them from recon's rasterizer.
-        geometry = render_views_own(mesh, cameras.to(device), world, description)
+        geometry = render_views_own(mesh, cameras.to(device), world, description, batch)
         return RenderedViews(colors, alphas, geometry.depth, geometry.normals)
-    return render_views_own(mesh, cameras.to(device), world, description)
+    return render_views_own(mesh, cameras.to(device), world, description, batch)
 
 
 def synth_stage(
@@ -337,11 +344,12 @@ def synth_stage(
             material,
             supersampling=factor,
         )
-        # Depth and normals stay the ideal camera's buffers: one sample per output pixel.
+        # Depth and normals stay the ideal camera's buffers: one sample per output pixel
+        # (copied, so that the supersampled buffers are freed).
         rendered = replace(
             rendered,
-            depth=rendered.depth[:, factor // 2 :: factor, factor // 2 :: factor],
-            normals=rendered.normals[:, factor // 2 :: factor, factor // 2 :: factor],
+            depth=rendered.depth[:, factor // 2 :: factor, factor // 2 :: factor].clone(),
+            normals=rendered.normals[:, factor // 2 :: factor, factor // 2 :: factor].clone(),
         )
         capture = Capture(rendered.colors, rendered.alphas, render_cameras, pixel_scale=factor)
         applied: list[AppliedEffect] = []

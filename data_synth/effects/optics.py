@@ -400,11 +400,14 @@ class LensDistortion(WorldEffect):
         # grid_sample with align_corners=False: -1 and +1 are the outer pixel edges, so a pixel
         # position u (centres at i + 0.5) is 2 u / W - 1.
         grid = torch.stack([2 * source_u / width - 1, 2 * source_v / height - 1], dim=-1)
-        grid = torch.where(valid[..., None], grid, torch.full_like(grid, -10.0))[view_to_distinct]
+        grid = torch.where(valid[..., None], grid, torch.full_like(grid, -10.0))
+        # In the images' precision before it is repeated per view (a float64 grid per view of a
+        # supersampled split is as large as the images).
+        grid = grid.to(capture.images.dtype)[view_to_distinct]
         stacked = torch.cat([capture.images, capture.alpha], dim=-1).permute(0, 3, 1, 2)
         sampled = torch.nn.functional.grid_sample(
             stacked,
-            grid.to(stacked.dtype),
+            grid,
             mode="bilinear",
             padding_mode="zeros",
             align_corners=False,
