@@ -410,8 +410,10 @@ def line_target_figure(measurement: dict, path: Path) -> Path:
     largest = float(np.hypot(du, dv).max()) or 1.0
     scale = 0.08 * max(height, width) / largest
     field.quiver(columns, rows, du * scale, dv * scale, angles="xy", scale_units="xy", scale=1)
-    field.set_xlim(0, width)
-    field.set_ylim(height, 0)
+    # A margin round the frame (drawn), so that the arrows at its edges and corners show.
+    field.add_patch(plt.Rectangle((0, 0), width, height, fill=False, linewidth=0.8))
+    field.set_xlim(-0.15 * width, 1.15 * width)
+    field.set_ylim(1.15 * height, -0.15 * height)
     field.set_aspect("equal")
     field.set_title(f"lens displacement (arrows x{scale:.1f})", fontsize=9)
     radius = np.linspace(0.0, 1.0, 50)
