@@ -297,35 +297,25 @@ def _rejudge_expected_share(evidence: Evidence, config: DecisionConfig) -> Evide
     )
 
 
-def _line_target_threshold(evidence: Evidence, config: DecisionConfig) -> float:
-    """What the line-target frames' corner shift must clear: the allowance, and line_target_z of
-    the frames' own standard error (a null from the run: noisy or blurred frames raise it)."""
-    error = evidence.details.get("standard_error")
-    error = float("inf") if error is None else float(error)
-    return max(config.line_target_allowance, config.line_target_z * error)
+def _judged_beyond_its_errors(allowance: Callable[[DecisionConfig], float]):
+    """Rule.revise for a measurement on calibration frames that carries its own standard error
+    (details["standard_error"]; None: unknown): the statistic must clear the larger of the
+    allowance and line_target_z standard errors (a null from the run: noisy or blurred frames
+    raise it). details["precise"] records whether the errors alone stay within the allowance,
+    so that a reading within it says "nothing there" rather than "too noisy to tell"."""
 
+    def judge(evidence: Evidence, config: DecisionConfig) -> Evidence:
+        error = evidence.details.get("standard_error")
+        spread = config.line_target_z * (math.inf if error is None else float(error))
+        threshold = max(allowance(config), spread)
+        return replace(
+            evidence,
+            threshold=threshold,
+            passed=bool(evidence.statistic > threshold),
+            details={**evidence.details, "precise": bool(spread < allowance(config))},
+        )
 
-def _judge_line_target(evidence: Evidence, config: DecisionConfig) -> Evidence:
-    """Row line_target's verdict under the config (Rule.revise)."""
-    threshold = _line_target_threshold(evidence, config)
-    return replace(evidence, threshold=threshold, passed=bool(evidence.statistic > threshold))
-
-
-def _judge_line_target_levels(evidence: Evidence, config: DecisionConfig) -> Evidence:
-    """Row line_target_levels' verdict under the config (Rule.revise): the exponent's distance
-    from 1 clears the allowance and line_target_z of its standard error over the frames."""
-    error = evidence.details.get("standard_error")
-    error = float("inf") if error is None else float(error)
-    threshold = max(config.line_target_levels_allowance, config.line_target_z * error)
-    # Precise: the frames agree closely enough that an exponent within the allowance is a
-    # reading of no curve, not a reading too noisy to tell.
-    precise = config.line_target_z * error < config.line_target_levels_allowance
-    return replace(
-        evidence,
-        threshold=threshold,
-        passed=bool(evidence.statistic > threshold),
-        details={**evidence.details, "precise": bool(precise)},
-    )
+    return judge
 
 
 def _levels_show_no_curve(evidence: Evidence) -> str | None:
@@ -382,7 +372,7 @@ DECISION_TABLE: tuple[Rule, ...] = (
         parameters_from=("line_target",),
         independent=True,
         outlives_null=True,
-        revise=_judge_line_target,
+        revise=_judged_beyond_its_errors(lambda config: config.line_target_allowance),
     ),
     Rule(
         "probe",
@@ -424,7 +414,7 @@ DECISION_TABLE: tuple[Rule, ...] = (
         independent=True,
         outlives_null=True,
         contradicts=_levels_show_no_curve,
-        revise=_judge_line_target_levels,
+        revise=_judged_beyond_its_errors(lambda config: config.line_target_levels_allowance),
     ),
     Rule(
         BEYOND,

@@ -90,19 +90,24 @@ def _column_crossings(luminance: np.ndarray) -> list[list[tuple[float, int]]]:
     middle, contrast = 0.5 * (high + low), high - low
     floor = MINIMUM_CONTRAST_SHARE * float(np.median(contrast))
     offset = luminance - middle
-    columns: list[list[tuple[float, int]]] = []
-    for column in range(width):
-        found = []
-        above = offset[:, column]
-        for row in range(BORDER_PIXELS, height - 1 - BORDER_PIXELS):
-            first, second = above[row], above[row + 1]
-            if first == second or (first < 0) == (second < 0):
-                continue
-            if min(contrast[row, column], contrast[row + 1, column]) < floor:
-                continue
-            position = row + 0.5 + first / (first - second)
-            found.append((float(position), 1 if second > first else -1))
-        columns.append(found)
+    first, second = offset[:-1], offset[1:]  # rows r and r + 1, [H - 1, W]
+    rows = np.arange(height - 1)[:, None]
+    crossing = (
+        ((first < 0) != (second < 0))
+        & (first != second)
+        & (np.minimum(contrast[:-1], contrast[1:]) >= floor)
+        & (rows >= BORDER_PIXELS)
+        & (rows < height - 1 - BORDER_PIXELS)
+    )
+    found_rows, found_columns = np.nonzero(crossing)
+    start, end = first[crossing], second[crossing]
+    positions = found_rows + 0.5 + start / (start - end)
+    directions = np.where(end > start, 1, -1)
+    # np.nonzero runs row by row; each column's crossings in row order.
+    order = np.lexsort((found_rows, found_columns))
+    columns: list[list[tuple[float, int]]] = [[] for _ in range(width)]
+    for index in order:
+        columns[found_columns[index]].append((float(positions[index]), int(directions[index])))
     return columns
 
 
