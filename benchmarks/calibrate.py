@@ -4,7 +4,9 @@ Diagnoses run folders fitted on clean data (no effect injected) and prints, per 
 effect, the largest held-out reduction its probe reached and the largest bootstrap lower bound
 of its absorption refit and relight probe (CALIBRATED_STATISTIC), and the allowance the config
 section diagnose.decision takes (twice that, floored at its minimum_share), plus the
-visibility fingerprint's largest share. The runs must not be cases the blind benchmark scores.
+visibility fingerprint's largest share. A probe its own run's null vetoes (a failed "null" or
+"edge_blur" evidence: its reduction is a misfit the null recognised) counts only where every
+clean probe of that effect is vetoed. The runs must not be cases the blind benchmark scores.
 
     recon-bench calibrate RUN [RUN ...]
 
@@ -90,8 +92,27 @@ def bounce_otherwise_passes(evidence) -> bool:
     return p_value < config.bounce_alpha and 0.0 < strength <= config.bounce_maximum_strength
 
 
+# The evidence kinds that keep a probe from clearing when they fail (the decision's "raise bar"
+# rows, recon.diagnose.decision): the run's own null for that probe.
+PROBE_NULL_KINDS = ("null", "edge_blur")
+
+
+def probe_vetoed_by_null(candidate) -> bool:
+    """Whether a failed null of the run itself (PROBE_NULL_KINDS) keeps the candidate's probe
+    from clearing at any allowance: such a clean probe shows nothing about how high the
+    allowance must be (the argument bounce_otherwise_passes makes for the bounce floor), and
+    its reduction is the misfit the null recognised (docs/decisions/0228-blur-nulls.md)."""
+    return any(
+        evidence.kind in PROBE_NULL_KINDS and evidence.passed is False
+        for evidence in candidate.evidence
+    )
+
+
 def clean_statistics(
-    diagnosis: dict, present: tuple[str, ...] = (), statistic: str = "per_rule"
+    diagnosis: dict,
+    present: tuple[str, ...] = (),
+    statistic: str = "per_rule",
+    skip_vetoed_probes: bool = False,
 ) -> dict[str, float]:
     """The statistics of one clean diagnosis (diagnosis.json, either schema) that its thresholds
     are compared with, by threshold name (benchmarks.blind.decide): each probe's, absorption
@@ -109,7 +130,10 @@ def clean_statistics(
     were measured with: a lower bound compared with twice a clean point estimate, doubly
     conservative); 'lower_bound' every kind's lower bound (tried on the blind check: more
     effects found, but spurious pose errors on the path tracer's scenes, see
-    docs/decisions/0191-blind-misses.md)."""
+    docs/decisions/0191-blind-misses.md).
+
+    skip_vetoed_probes: leave out the probes a failed null of the run vetoes
+    (probe_vetoed_by_null)."""
     from recon.diagnose.records import Diagnosis
 
     found: dict[str, float] = {}
@@ -122,13 +146,14 @@ def clean_statistics(
     for candidate in stored.candidates:
         if candidate.name in present:
             continue
+        probe_silenced = skip_vetoed_probes and probe_vetoed_by_null(candidate)
         for kind, name in (
             ("probe", f"probe.{candidate.name}"),
             ("absorption", f"absorption.{candidate.name}"),
             ("relight", "relight"),
         ):
             evidence = candidate.evidence_of(kind)
-            if evidence is not None:
+            if evidence is not None and not (kind == "probe" and probe_silenced):
                 keep(name, evidence_statistic(evidence, statistic))
         agreement = candidate.evidence_of("agreement")
         if agreement is not None:
@@ -183,7 +208,8 @@ def calibrate_thresholds(
     statistic: str = "per_rule",
 ) -> dict[str, float]:
     """Thresholds from clean diagnoses: margin x the largest statistic of each (clean_statistics),
-    floored at threshold_floors(), leaving out each diagnosis' present effects; thresholds no
+    floored at threshold_floors(), leaving out each diagnosis' present effects and the probes
+    their own null vetoes (where any clean probe of that effect passes its null); thresholds no
     clean diagnosis measured keep the default's value (benchmarks.blind.decide.code_thresholds),
     and so does shadow_share (a physical split, not a null)."""
     from benchmarks.blind.decide import code_thresholds
@@ -192,11 +218,22 @@ def calibrate_thresholds(
         from recon.errors import ReconError
 
         raise ReconError("calibrate_thresholds: no clean diagnoses to calibrate on")
-    largest: dict[str, float] = {}
     present = present or [()] * len(diagnoses)
-    for diagnosis, held in zip(diagnoses, present, strict=True):
-        for name, value in clean_statistics(diagnosis, held, statistic).items():
-            largest[name] = max(largest.get(name, float("-inf")), value)
+
+    def largest_over(skip_vetoed_probes: bool) -> dict[str, float]:
+        largest: dict[str, float] = {}
+        for diagnosis, held in zip(diagnoses, present, strict=True):
+            measured = clean_statistics(diagnosis, held, statistic, skip_vetoed_probes)
+            for name, value in measured.items():
+                largest[name] = max(largest.get(name, float("-inf")), value)
+        return largest
+
+    # A probe is calibrated on the clean probes its own null lets clear; where the null vetoes
+    # every clean probe of an effect, on all of them (nothing says how high it must be, so the
+    # old, conservative rule stands).
+    largest = largest_over(skip_vetoed_probes=True)
+    for name, value in largest_over(skip_vetoed_probes=False).items():
+        largest.setdefault(name, value)
     floors = threshold_floors()
     thresholds = code_thresholds()
     for name, value in largest.items():
@@ -221,6 +258,7 @@ def calibration_record(
             "commit": record_commit(),
             "base_config_sha256": hashlib.sha256(canonical.encode()).hexdigest()[:12],
             "rule": f"max(floor, {CALIBRATION_MARGIN:g} x largest clean statistic)",
+            "probes": "those their run's null lets clear, where any does (else all)",
             "statistic": dict(CALIBRATED_STATISTIC),
             "calibrated_on": calibrated_on,
             "scenes": sorted({case["scene"] for case in calibrated_on}),
@@ -263,7 +301,7 @@ def main(argv: list[str] | None = None) -> int:
         "provenance (commit, the runs' config hashes and seeds)",
     )
     arguments = parser.parse_args(argv)
-    probe, absorption, relight, shares, provenance = {}, {}, {}, [], []
+    probe, probe_all, absorption, relight, shares, provenance = {}, {}, {}, {}, [], []
     for run in arguments.runs:
         paths = open_run_folder(Path(run))
         config = load_config(paths.resolved_config, RunConfig)
@@ -271,7 +309,12 @@ def main(argv: list[str] | None = None) -> int:
             diagnosis = Diagnosis.from_json(json.loads(paths.diagnosis.read_text()))
         else:
             diagnosis = run_diagnosis(paths, config, torch.device("cpu"), refit="none")
-        _largest(diagnosis.candidates, "probe", probe)
+        _largest(diagnosis.candidates, "probe", probe_all)
+        _largest(
+            [item for item in diagnosis.candidates if not probe_vetoed_by_null(item)],
+            "probe",
+            probe,
+        )
         _largest(diagnosis.candidates, "absorption", absorption)
         _largest(diagnosis.candidates, "relight", relight)
         shares.append(diagnosis.gap["visibility_fingerprint"]["share"])
@@ -279,6 +322,8 @@ def main(argv: list[str] | None = None) -> int:
             {"run": str(paths.root), "config_hash": config_hash(config), "seed": config.seed}
         )
 
+    for name, value in probe_all.items():  # the null vetoed every clean probe of it
+        probe.setdefault(name, value)
     defaults = DecisionConfig()
 
     def allowance(values: dict, floor) -> dict:

@@ -12,6 +12,7 @@ cases are also scored with the thresholds in the code today, as the baseline.
 from __future__ import annotations
 
 import json
+import math
 import statistics
 from collections import Counter
 from pathlib import Path
@@ -96,7 +97,23 @@ def exposure_reading(diagnosis: dict) -> dict | None:
             return {
                 "source": "refit" if source == "refit" else "heldout",
                 "ratios": parameters["ratios"],
+                "estimator": parameters.get("estimator", ""),
+                "backdrop": backdrop_ratios(diagnosis),
             }
+    return None
+
+
+def backdrop_ratios(diagnosis: dict) -> list[float] | None:
+    """The per-view brightness gains the static backdrop showed for the exposure candidate
+    (recon.diagnose.backdrop: exp of each held-out view's log gain), whether or not it
+    confirmed the exposure; None where the frames had no backdrop reading."""
+    for candidate in diagnosis["candidates"]:
+        if candidate["name"] != "exposure":
+            continue
+        for evidence in candidate.get("evidence", []):
+            components = evidence.get("details", {}).get("backdrop_components")
+            if evidence["kind"] == "backdrop" and components:
+                return [math.exp(view[0]) for view in components]
     return None
 
 
@@ -108,19 +125,26 @@ def exposure_errors_vs_untouched(
     A per-view gain read off a fit is the injected exposure times whatever per-view gain the
     untouched data already shows against the fitted model (the real capture's, with a fixed
     exposure, reads up to 14 % per view: a glossy object's highlights under a diffuse fit).
-    Dividing the case's recovered ratios by the clean case's (same views, same estimator)
+    Dividing the case's recovered ratios by the clean case's (same views, same estimator: where
+    the case's gains were read off the static backdrop, the untouched photos' backdrop reading)
     leaves the injected part: injection-recovery. Both normalised by their geometric mean, as
     the absolute measure is (recon.sweep.scoring.parameter_errors). Empty where either reading
     or the truth is missing, or the readings come from different views."""
     reading = exposure_reading(diagnosis)
     if reading is None or clean is None or reading["source"] != clean["source"]:
         return {}
+    untouched = clean["ratios"]
+    if reading.get("estimator") == "backdrop":
+        # The case's gains were read off the backdrop: so must the untouched photos' be.
+        untouched = clean.get("backdrop")
+        if not untouched:
+            return {}
     split = "train" if reading["source"] == "refit" else "test"
     realised = {
         item["name"]: item["parameters"] for item in truth_record.get("realised", {}).get(split, [])
     }
     true_ratios = realised.get("exposure", {}).get("ratios")
-    model, untouched = reading["ratios"], clean["ratios"]
+    model = reading["ratios"]
     if not true_ratios or not (len(true_ratios) == len(model) == len(untouched)):
         return {}
     model_log = torch.tensor(model, dtype=torch.float64).log()

@@ -194,3 +194,31 @@ def test_the_bounce_floor_rises_only_for_clean_cases_the_floor_alone_keeps_silen
     assert calibrate.calibrate_thresholds([passing], present)["bounce"] == floor
     section = calibrate.calibration_record(thresholds, [], {})["diagnose"]["decision"]
     assert section["bounce_minimum"] == pytest.approx(0.09)
+
+
+def _blur(reduction: float, edge_ratio: float) -> dict:
+    """A clean diagnosis whose defocus probe removes `reduction` (lower bound 0.01 less) and
+    whose edge null (recon.diagnose.edge_width) reads `edge_ratio` of the probe's widening in
+    the data's edges (it passes at 0.5)."""
+    defocus = Candidate("defocus_blur")
+    defocus.add(_evidence("probe", "defocus_blur", reduction - 0.01, reduction))
+    defocus.add(Evidence("edge_blur", "defocus_blur", edge_ratio, 0.5, edge_ratio >= 0.5, "", {}))
+    return Diagnosis(candidates=[defocus]).to_json()
+
+
+def test_a_blur_allowance_rests_on_the_clean_probes_its_null_lets_clear():
+    # The path-traced teapot's clean silhouette misfit: a blur probe removes 10 %, but the
+    # data's edges show only 0.24 of the widening (the null vetoes it at any allowance). The
+    # path-traced bob's clean edges pass the null with a 2 % reduction: that bounds the bar.
+    misfit, sharp_pass = _blur(0.10, 0.24), _blur(0.02, 0.9)
+    thresholds = calibrate.calibrate_thresholds([misfit, sharp_pass])
+    assert thresholds["probe.defocus_blur"] == pytest.approx(0.04)
+    # A defocus of the held-out scene at 18 % (lower bound 17 %), its edges widened: found
+    # under this bar, missed under twice the misfit's.
+    blurred = _blur(0.18, 0.7)
+    assert _named(blurred, thresholds) == ["defocus_blur"]
+    assert _named(blurred, {**thresholds, "probe.defocus_blur": 2 * 0.10}) == []
+    # Where the null vetoes every clean probe, nothing says how high the bar must be: all of
+    # them count, as before.
+    assert calibrate.calibrate_thresholds([misfit])["probe.defocus_blur"] == pytest.approx(0.2)
+    assert calibrate.probe_vetoed_by_null(Diagnosis.from_json(misfit).candidates[0])

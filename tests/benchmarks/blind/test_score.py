@@ -237,7 +237,7 @@ def test_an_injected_exposure_is_measured_against_the_untouched_photos_own_readi
     truth = {"realised": {"test": [{"name": "exposure", "parameters": {"ratios": injected}}]}}
     case = diagnosis([a * b for a, b in zip(own, injected, strict=True)])
     clean = exposure_reading(diagnosis(own))
-    assert clean == {"source": "heldout", "ratios": own}
+    assert clean == {"source": "heldout", "ratios": own, "estimator": "", "backdrop": None}
     errors = exposure_errors_vs_untouched(case, truth, clean)
     assert errors["exposure_ratio_max_vs_untouched"] == pytest.approx(0.0, abs=1e-9)
     assert parameter_errors(case, truth)["exposure_ratio_max"] > 0.09
@@ -246,3 +246,49 @@ def test_an_injected_exposure_is_measured_against_the_untouched_photos_own_readi
     assert exposure_errors_vs_untouched(refitted, truth, clean) == {}
     assert exposure_errors_vs_untouched(case, truth, None) == {}
     assert exposure_reading({"ranking": []}) is None
+
+
+def test_a_gain_read_off_the_backdrop_is_compared_with_the_untouched_backdrop():
+    """Where the case's exposure was read off the static backdrop (estimator "backdrop"), the
+    untouched photos' reading it is divided by is their backdrop's too, not the object's gains
+    (which carry the object's own change from view to view)."""
+    import math
+
+    from benchmarks.blind.score import exposure_errors_vs_untouched, exposure_reading
+
+    def diagnosis(ratios, estimator, backdrop):
+        evidence = {
+            "kind": "backdrop",
+            "details": {"backdrop_components": [[math.log(value)] for value in backdrop]},
+        }
+        return {
+            "candidates": [
+                {
+                    "name": "exposure",
+                    "significant": True,
+                    "decided_by": "probe",
+                    "parameters": {"ratios": ratios, "estimator": estimator},
+                    "evidence": [evidence],
+                }
+            ],
+            "refits": [],
+        }
+
+    frames = [1.04, 0.97, 1.0, 0.99]  # the untouched frames' own change (the backdrop's)
+    object_gains = [1.15, 0.85, 1.05, 0.95]  # the object's, with its reflectance's change
+    injected = [0.5, 1.0, 2.0, 1.0]
+    truth = {"realised": {"test": [{"name": "exposure", "parameters": {"ratios": injected}}]}}
+    seen = [a * b for a, b in zip(frames, injected, strict=True)]
+    case = diagnosis(seen, "backdrop", seen)
+    clean = exposure_reading(diagnosis(object_gains, "highlight_free", frames))
+    assert clean["backdrop"] == pytest.approx(frames)
+    errors = exposure_errors_vs_untouched(case, truth, clean)
+    assert errors["exposure_ratio_max_vs_untouched"] == pytest.approx(0.0, abs=1e-9)
+    # Against the object's gains it would be off by the object's own change.
+    mixed = {**clean, "backdrop": None}
+    assert exposure_errors_vs_untouched(case, truth, mixed) == {}
+    object_case = diagnosis(seen, "highlight_free", seen)
+    assert (
+        exposure_errors_vs_untouched(object_case, truth, clean)["exposure_ratio_max_vs_untouched"]
+        > 0.05
+    )
