@@ -16,6 +16,9 @@ line_target   overrule      measures the lens itself (the plumb-line frames' cor
                             above its allowance and line_target_z standard errors): decides
                             alone, either way (contradicting rows do not veto it)
 probe         clear         held-out reduction's lower bound above its allowance: significant
+                            (a geometric probe is voided beside a confuser an independent row
+                            found, where on top of it it keeps no more than its beyond
+                            allowance: _void_probe_beside_measured)
 absorption    clear         the same for the absorption refit (unless voided; a refit that
                             moves the vertices, measured alone, is voided beside a confuser
                             its probe made significant: _void_beside_confusers)
@@ -944,6 +947,60 @@ def _void_beside_confusers(candidates: list[Candidate], config: DecisionConfig) 
         decide(candidate, config)
 
 
+def _void_probe_beside_measured(candidates: list[Candidate], config: DecisionConfig) -> None:
+    """A probe that alone made a geometric candidate significant does not count where an
+    independent measurement (a row measured on other data, Rule.independent: the line target's
+    lens) made a confuser of it significant and the candidate's probe keeps no more than its
+    beyond-confusers allowance on top of that confuser's probe (its specificity pair record):
+    the confuser is established, and what the probe removes is the misfit the confuser left
+    (a fit bent by an unmodelled lens leaves silhouettes that any blur smooths). A candidate
+    its probe finds on top of the measured confuser as well stays. Derived again at every
+    decision (the marker is undone by _restore_derived_voids)."""
+    for candidate in candidates:
+        facts = diagnosis_facts(candidate.name)
+        probe = candidate.evidence_of("probe")
+        allowance = beyond_threshold(candidate.name, config)
+        check = next((item for item in candidate.evidence if item.kind == "specificity"), None)
+        if (
+            facts is None
+            or allowance is None
+            or probe is None
+            or check is None
+            or not candidate.significant
+            or candidate.decided_by != "probe"
+        ):
+            continue
+        records = {record["confuser"]: record for record in check.details.get("pairs", [])}
+        measured = [
+            other.name
+            for other in candidates
+            if other.name in facts.confusable
+            and other.significant
+            and other.decided_by in RULES
+            and RULES[other.decided_by].independent
+            and other.name in records
+        ]
+        beside = [
+            name
+            for name in measured
+            if records[name]["on_top_of_confuser"]["interval"][0] <= allowance
+        ]
+        if not beside:
+            continue
+        on_top = records[beside[0]]["on_top_of_confuser"]["interval"][0]
+        voided = replace(
+            probe,
+            void=(
+                f"probe void beside {beside[0]}, which a measurement on other data found: on top "
+                f"of its probe this one keeps {100 * on_top:.1f} % (lower bound), not above "
+                f"{100 * allowance:.1f} %"
+            ),
+            details={**probe.details, VOIDED_BESIDE: beside[0]},
+        )
+        candidate.evidence = [voided if item is probe else item for item in candidate.evidence]
+        decide(candidate, config)
+
+
 def decide_all(candidates: list[Candidate], config: DecisionConfig) -> list[Candidate]:
     """Every candidate decided (mismatches named by vetoes and voids beside a confuser
     re-derived) and sorted best first; the list is changed in place and returned."""
@@ -952,6 +1009,7 @@ def decide_all(candidates: list[Candidate], config: DecisionConfig) -> list[Cand
     for candidate in candidates:
         decide(candidate, config)
     _void_beside_confusers(candidates, config)
+    _void_probe_beside_measured(candidates, config)
     _name_mismatches(candidates, config)
     candidates.sort(key=rank_key, reverse=True)
     return candidates
