@@ -274,6 +274,29 @@ def score_one(record: dict, thresholds: dict[str, float], calibrated_on: list[st
     }
 
 
+def _scored_held_out(
+    scored_cases: list[dict], calibration_cases: list[dict], base_config: dict
+) -> tuple[list[dict], dict]:
+    """scored_cases scored with thresholds calibrated on calibration_cases (their clean
+    diagnoses, present effects left out); returns (scores, calibration record)."""
+    calibrated_scenes = sorted({record["case"]["scene"] for record in calibration_cases})
+    thresholds = calibrate_thresholds(
+        [record["diagnosis"] for record in calibration_cases],
+        [case_of(record).present for record in calibration_cases],
+    )
+    calibration = calibration_record(
+        thresholds,
+        [
+            {key: record["case"][key] for key in ("world", "scene", "seed")}
+            for record in calibration_cases
+        ],
+        base_config,
+    )
+    return [
+        score_one(record, thresholds, calibrated_scenes) for record in scored_cases
+    ], calibration
+
+
 def leave_one_scene_out(records: list[dict], base_config: dict) -> tuple[list[dict], dict]:
     """Scores of every case, each with thresholds calibrated only on other scene groups'
     clean synthetic cases; returns (scored cases, calibration record per held-out group)."""
@@ -294,22 +317,51 @@ def leave_one_scene_out(records: list[dict], base_config: dict) -> tuple[list[di
                 f"leave-one-scene-out: no clean synthetic case outside scene group {group!r} "
                 "to calibrate on (add scenes or clean cases)"
             )
-        calibrated_scenes = sorted({record["case"]["scene"] for record in calibration_cases})
-        if group in {scene_group(scene) for scene in calibrated_scenes}:
+        if group in {scene_group(record["case"]["scene"]) for record in calibration_cases}:
             raise ReconError(f"leave-one-scene-out: scene group {group!r} calibrated on itself")
-        thresholds = calibrate_thresholds(
-            [record["diagnosis"] for record in calibration_cases],
-            [case_of(record).present for record in calibration_cases],
+        held, calibrations[group] = _scored_held_out(scored_cases, calibration_cases, base_config)
+        scored += held
+    return scored, calibrations
+
+
+def world_order(world: str) -> int:
+    """Where a world's column goes in the page: the own world, the path tracer, the photos."""
+    order = ("own", "mitsuba", "real")
+    return order.index(world) if world in order else len(order)
+
+
+def leave_one_world_and_scene_out(
+    records: list[dict], base_config: dict
+) -> tuple[list[dict], dict]:
+    """Scores of every case with thresholds calibrated only on clean synthetic cases of other
+    scene groups *and* other worlds (a synthetic world is never calibrated on itself; the real
+    photos, which calibrate nothing, as leave_one_scene_out). Returns (scored cases,
+    calibration record per "world/group"); a world and group with nothing to calibrate on
+    (one synthetic world only) is left out of the scores."""
+    synthetic = [record for record in records if record["case"]["world"] != "real"]
+    clean = [record for record in synthetic if case_of(record).kind == "clean"]
+    keys = sorted(
+        {(record["case"]["world"], scene_group(record["case"]["scene"])) for record in records}
+    )
+    scored: list[dict] = []
+    calibrations: dict[str, dict] = {}
+    for world, group in keys:
+        calibration_cases = [
+            record
+            for record in clean
+            if scene_group(record["case"]["scene"]) != group and record["case"]["world"] != world
+        ]
+        if not calibration_cases:
+            continue
+        scored_cases = [
+            record
+            for record in records
+            if record["case"]["world"] == world and scene_group(record["case"]["scene"]) == group
+        ]
+        held, calibrations[f"{world}/{group}"] = _scored_held_out(
+            scored_cases, calibration_cases, base_config
         )
-        calibrations[group] = calibration_record(
-            thresholds,
-            [
-                {key: record["case"][key] for key in ("world", "scene", "seed")}
-                for record in calibration_cases
-            ],
-            base_config,
-        )
-        scored += [score_one(record, thresholds, calibrated_scenes) for record in scored_cases]
+        scored += held
     return scored, calibrations
 
 
@@ -487,8 +539,10 @@ def markdown(result: dict, provenance: dict) -> str:
         "each scene group are calibrated on the other groups' clean synthetic cases; the real",
         "photos on every synthetic scene): twice the largest clean statistic, a clean probe",
         "counting only where its run's own null would let it clear (benchmarks/calibrate.py).",
-        "The baseline rows use the thresholds in the code today (recon.diagnose.calibration,",
-        "calibrated on the own world's torus and spot at 128 px).",
+        "'Leave one world and scene out' calibrates each synthetic world's scene group on the",
+        "other world's other scenes only (the real photos as above). The baseline rows use the",
+        "thresholds in the code today (recon.diagnose.calibration, calibrated on the own world's",
+        "torus and spot at 128 px).",
         "",
         "Effects a world holds without injecting them are set aside: the path tracer's renders",
         "carry the cast shadows of the scene's sun (`shadows`), real photos the object's light",
@@ -532,7 +586,13 @@ def markdown(result: dict, provenance: dict) -> str:
         "`recon-bench time-diagnosis` (docs/bench/time-diagnosis.json).",
         "",
     ]
-    for label, key in (("leave-one-scene-out", "loso"), ("code thresholds", "code")):
+    for label, key in (
+        ("leave-one-scene-out", "loso"),
+        ("leave one world and scene out", "lowo"),
+        ("code thresholds", "code"),
+    ):
+        if key not in result:
+            continue
         worlds = result[key]["summary"]
         names = list(worlds)
         lines += [f"## {label}", "", "| measure | " + " | ".join(names) + " |"]
@@ -596,6 +656,7 @@ def score_and_write(records: list[dict], base_config: dict, out: Path, provenanc
     thresholds calibrated on every synthetic scene, in the form a diagnose config takes)."""
     loaded = with_clean_references([load_collected(record) for record in records])
     loso, calibrations = leave_one_scene_out(loaded, base_config)
+    lowo, _ = leave_one_world_and_scene_out(loaded, base_config)
     code = with_code_thresholds(loaded)
     result = {
         "provenance": provenance,
@@ -606,6 +667,13 @@ def score_and_write(records: list[dict], base_config: dict, out: Path, provenanc
                 for w, r in by_world(loso).items()
             },
             "cases": loso,
+        },
+        "lowo": {
+            "summary": {
+                w: summarise_world(r)
+                for w, r in sorted(by_world(lowo).items(), key=lambda item: world_order(item[0]))
+            },
+            "cases": lowo,
         },
         "code": {
             "summary": {w: summarise_world(r) for w, r in by_world(code).items()},

@@ -12,6 +12,7 @@ from benchmarks.blind.decide import code_thresholds
 from benchmarks.blind.score import (
     inert_effects,
     leave_one_scene_out,
+    leave_one_world_and_scene_out,
     load_collected,
     score_one,
     summarise_world,
@@ -110,6 +111,39 @@ def test_leave_one_scene_out_never_scores_a_scene_it_calibrated_on(tmp_path):
     provenance = calibrations["blob"]["provenance"]
     assert provenance["scenes"] == ["torus"] and provenance["seeds"] == [0]
     assert provenance["commit"]
+
+
+def test_leaving_a_world_out_never_calibrates_a_world_or_scene_on_itself(tmp_path):
+    # The own torus's clean fit leaves a pose misfit (0.3) that its own world's other scene
+    # does not (0.01); the path tracer's blob leaves 0.2.
+    records = [
+        _fake_record(tmp_path, "own", "torus", (), pose=0.3),
+        _fake_record(tmp_path, "own", "blob", (), pose=0.01),
+        _fake_record(tmp_path, "mitsuba", "torus", (), pose=0.05),
+        _fake_record(tmp_path, "mitsuba", "blob", (), pose=0.2),
+        _fake_record(tmp_path, "real", "ethiopian_head", (), pose=0.01),
+    ]
+    loaded = [load_collected(record) for record in records]
+    scored, calibrations = leave_one_world_and_scene_out(loaded, {"name": "test"})
+    assert len(scored) == len(records)
+    for key, calibration in calibrations.items():
+        world, group = key.split("/")
+        for case in calibration["provenance"]["calibrated_on"]:
+            assert case["scene"] != group
+            assert world == "real" or case["world"] != world
+    # The own torus is calibrated on the path tracer's blob alone (twice 0.2): its 0.3 stays
+    # silent. The path tracer's torus on the own blob alone (twice 0.01; leave-one-scene-out
+    # also counts its own world's blob, 0.4): its 0.05 is named.
+    assert calibrations["own/torus"]["thresholds"]["probe.pose_error"] == pytest.approx(0.4)
+    assert calibrations["mitsuba/torus"]["thresholds"]["probe.pose_error"] == pytest.approx(0.02)
+    by_key = {(record["world"], record["scene"]): record for record in scored}
+    assert by_key[("own", "torus")]["false_positive"] is False
+    assert by_key[("mitsuba", "torus")]["false_positive"] is True
+    # The real photos are calibrated on both synthetic worlds' other scenes.
+    assert by_key[("real", "ethiopian_head")]["calibrated_on"] == ["blob", "torus"]
+    # With one synthetic world there is nothing to calibrate it on: it is left out.
+    alone, _ = leave_one_world_and_scene_out(loaded[:2], {"name": "test"})
+    assert alone == []
 
 
 def test_a_defocus_inside_the_centre_pixel_is_inert():
