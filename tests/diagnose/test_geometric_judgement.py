@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 
 from recon.config.run_config import DecisionConfig
-from recon.diagnose.decision import decide, probe_threshold
+from recon.diagnose.decision import decide, decide_all, probe_threshold
 from recon.diagnose.geometric_judgement import BEYOND, KIND, beyond_confusers, judge, swapped
 from recon.diagnose.records import Candidate, Evidence
 
@@ -168,6 +168,46 @@ def test_a_lens_probe_that_keeps_something_on_top_of_a_blur_is_still_the_blurs()
     check = decided.evidence_of(KIND)
     assert not check.passed and check.details["alternative"] == "defocus_blur"
     assert not decided.significant
+
+
+def lens_on_target(corner_shift: float) -> Candidate:
+    """A lens distortion whose probe clears nothing and whose line-target frames show a corner
+    shift (pixels, standard error 0.05)."""
+    lens = geometric("lens_distortion", (0.02, 0.01), [])
+    details = {"standard_error": 0.05, "parameters": {"k1": 0.2}}
+    lens.add(Evidence("line_target", "lens_distortion", corner_shift, math.nan, False, "", details))
+    return lens
+
+
+def blur_beside_lens(on_top_low: float) -> Candidate:
+    """A defocus blur whose probe clears alone (lower bound 0.3) and keeps on_top_low on top
+    of the lens distortion's probe."""
+    record = pair(
+        "defocus_blur",
+        "lens_distortion",
+        (0.35, 0.3),
+        (0.02, 0.01),
+        (on_top_low + 0.01, on_top_low),
+        (0.01, 0.0),
+    )
+    return geometric("defocus_blur", (0.35, 0.3), [record])
+
+
+def test_a_blur_probe_does_not_count_beside_a_lens_the_frames_measured():
+    # A lensed capture fitted without a lens leaves silhouettes any blur smooths: the blur's
+    # probe clears alone, but on top of the lens probe it keeps no more than its beyond
+    # allowance (0.031). The line target measured the lens: the blur is not named beside it.
+    ranking = decide_all([blur_beside_lens(0.01), lens_on_target(2.0)], CONFIG)
+    assert [item.name for item in ranking if item.significant] == ["lens_distortion"]
+    voided = ranking[1].evidence_of("probe")
+    assert not voided.counts and "void beside lens_distortion" in voided.void
+    # A blur that keeps more than its beyond allowance on top of the lens stays beside it.
+    kept = decide_all([blur_beside_lens(0.08), lens_on_target(2.0)], CONFIG)
+    assert {item.name for item in kept if item.significant} == {"defocus_blur", "lens_distortion"}
+    # Where the frames show no lens, the blur's probe counts.
+    alone = decide_all([blur_beside_lens(0.01), lens_on_target(0.1)], CONFIG)
+    assert [item.name for item in alone if item.significant] == ["defocus_blur"]
+    assert alone[0].evidence_of("probe").counts
 
 
 def test_rederived_at_every_decision_with_the_configs_allowance():

@@ -17,7 +17,7 @@ from recon.config.run_config import (
     EffectConfig,
     LineTargetConfig,
 )
-from recon.diagnose.decision import decide, decide_all
+from recon.diagnose.decision import decide
 from recon.diagnose.line_target import measure_line_target
 from recon.diagnose.records import Candidate, Evidence
 from recon.errors import ReconError
@@ -147,62 +147,6 @@ def test_the_line_target_decides_alone_either_way():
     noisy = decide(lens_candidate(probe_low=-0.01, shift=0.8, error=0.3), CONFIG)
     assert noisy.status == "not_significant"
     assert f"{CONFIG.line_target_z * 0.3:.3f}" in noisy.why
-
-
-def blur_beside_lens(on_top_low: float) -> Candidate:
-    """A defocus blur whose probe clears (lower bound 0.3) and keeps on_top_low (lower bound)
-    on top of the lens distortion's probe (its geometric specificity pair record)."""
-
-    def entry(low):
-        return {"reduction": low + 0.01, "interval": [low, low + 0.02]}
-
-    blur = Candidate("defocus_blur")
-    blur.add(
-        Evidence(
-            "probe",
-            "defocus_blur",
-            0.3,
-            math.nan,
-            False,
-            "probe",
-            {"interval": [0.3, 0.4], "reduction": 0.35},
-        )
-    )
-    record = {
-        "candidate": "defocus_blur",
-        "confuser": "lens_distortion",
-        "alone": entry(0.3),
-        "confuser_alone": entry(0.01),
-        "on_top_of_confuser": entry(on_top_low),
-        "confuser_on_top": entry(0.0),
-        "allowance": 0.1,
-        "confuser_allowance": 0.2,
-    }
-    details = {"pairs": [record], "margin": 0.0, "probe_lower_bound": 0.3}
-    blur.add(Evidence("specificity", "defocus_blur", on_top_low, 0.1, True, "", details))
-    return blur
-
-
-def test_a_blur_probe_does_not_count_beside_a_lens_the_frames_measured():
-    # A lensed capture fitted without a lens leaves silhouettes any blur smooths: the blur's
-    # probe clears alone, but on top of the lens probe it keeps no more than its beyond
-    # allowance. The frames measured the lens: the blur is not named beside it.
-    config = DecisionConfig(
-        probe_allowance={"defocus_blur": 0.1, "lens_distortion": 0.2},
-        beyond_confusers_allowance={**CONFIG.beyond_confusers_allowance, "defocus_blur": 0.03},
-    )
-    lens = lens_candidate(probe_low=-0.01, shift=2.0, error=0.05)
-    ranking = decide_all([blur_beside_lens(0.01), lens], config)
-    assert [item.name for item in ranking if item.significant] == ["lens_distortion"]
-    voided = ranking[1].evidence_of("probe")
-    assert not voided.counts and "void beside lens_distortion" in voided.void
-    # A blur that keeps more than its beyond allowance on top of the lens stays beside it.
-    kept = decide_all([blur_beside_lens(0.08), lens_candidate(-0.01, 2.0, 0.05)], config)
-    assert {item.name for item in kept if item.significant} == {"defocus_blur", "lens_distortion"}
-    # Where the frames show no lens, the blur's probe counts.
-    alone = decide_all([blur_beside_lens(0.01), lens_candidate(-0.01, 0.1, 0.05)], config)
-    assert [item.name for item in alone if item.significant] == ["defocus_blur"]
-    assert alone[0].evidence_of("probe").counts
 
 
 # ---------------------------------------------------------------------------------------------
