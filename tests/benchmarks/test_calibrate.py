@@ -222,3 +222,20 @@ def test_a_blur_allowance_rests_on_the_clean_probes_its_null_lets_clear():
     # them count, as before.
     assert calibrate.calibrate_thresholds([misfit])["probe.defocus_blur"] == pytest.approx(0.2)
     assert calibrate.probe_vetoed_by_null(Diagnosis.from_json(misfit).candidates[0])
+
+
+def test_the_command_follows_the_same_null_rule(tmp_path, capsys):
+    runs = []
+    for name, diagnosis in (("misfit", _blur(0.10, 0.24)), ("sharp", _blur(0.02, 0.9))):
+        folder = tmp_path / name
+        folder.mkdir()
+        (folder / "config.resolved.yaml").write_text("name: clean\n")
+        stored = {**diagnosis, "gap": {"visibility_fingerprint": {"share": 0.0}}}
+        (folder / "diagnosis.json").write_text(json.dumps(stored))
+        runs.append(str(folder))
+    assert calibrate.main(runs + ["--stored"]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert printed["probe_allowance"]["defocus_blur"] == pytest.approx(0.04)
+    assert calibrate.main(runs[:1] + ["--stored"]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert printed["probe_allowance"]["defocus_blur"] == pytest.approx(0.2)
