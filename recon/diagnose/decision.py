@@ -93,7 +93,9 @@ backdrop      veto          the static backdrop in the same frames does not show
                             object (recon.diagnose.backdrop): a camera's gain scales the whole
                             frame, so the gain is the object's own change (its view-dependent
                             reflectance); a backdrop that shows it supplies the parameters
-                            reported (read off the backdrop) and changes nothing else. Where
+                            reported (read off the backdrop) and, measured on other pixels
+                            than the object's residual (independent), keeps a specificity veto
+                            from overturning the candidate its probe cleared. Where
                             the backdrop changes itself, an identifiability condition beside
                             the veto makes it "not identifiable" (as for specificity)
 gain          inform        the exposure's per-view gains read apart from a highlight lobe
@@ -244,8 +246,9 @@ class Rule:
     parameters_from: evidence kinds whose parameters are reported when this row decides, in
         order of preference.
     independent: whether it measures the effect on other data than the held-out residual
-        (flat-field frames, the relight split under its own light): a specificity veto, a
-        pattern of the held-out residual, does not overturn it.
+        (flat-field frames, the relight split under its own light, the static backdrop around
+        the object): a specificity veto, a pattern of the held-out residual, does not overturn
+        a candidate such evidence passed for (a veto row's passing: it showed the effect).
     settles: specificity domains (recon.diagnose.specificity) this evidence can test itself: a
         specificity veto whose failing domains (details["failing_domains"]) all lie among
         those it tested does not overturn a candidate this evidence passed for (whichever row
@@ -499,7 +502,9 @@ DECISION_TABLE: tuple[Rule, ...] = (
     ),
     Rule("identifiability", "qualify", revise=_rejudge_expected_share),
     Rule("metadata", "veto"),
-    Rule("backdrop", "veto"),
+    # A backdrop that shows the object's per-view gain in the static frame around it measured
+    # the camera's gain on other pixels than the object's residual: independent.
+    Rule("backdrop", "veto", independent=True),
     Rule("gain", "inform"),
     Rule("edges", "inform"),
 )
@@ -599,14 +604,15 @@ def decide(candidate: Candidate, config: DecisionConfig) -> Candidate:
     vetoes = [item for item in _role_evidence(candidate, "veto") if not item.passed]
     independent = [
         item
-        for role in ("overrule", "clear")
+        for role in ("overrule", "clear", "veto")
         for item in _role_evidence(candidate, role)
         if item.passed and RULES[item.kind].independent and item.kind not in skipped
     ]
     if deciding is not None and independent:
-        # Measured on other data (flat-field frames, the relight split): the held-out
-        # residual's pattern (specificity) does not overturn it, whichever passing row comes
-        # first in the table; the capture's record does.
+        # Measured on other data (flat-field frames, the relight split, the static backdrop
+        # showing the per-view gain in the whole frame): the held-out residual's pattern
+        # (specificity) does not overturn it, whichever passing row comes first in the table;
+        # the capture's record does.
         vetoes = [item for item in vetoes if item.kind != "specificity"]
     if deciding is not None:
         # Any clearing evidence that passed and tests a domain itself settles a veto in it

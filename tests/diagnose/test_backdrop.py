@@ -151,6 +151,30 @@ def test_a_backdrop_veto_keeps_a_cleared_gain_from_being_named():
     assert decide(agreeing, DecisionConfig()).significant
 
 
+def test_a_backdrop_that_shows_the_gain_keeps_a_residual_pattern_from_vetoing_it():
+    # A real turntable capture with an injected exposure (the blind check's draw 7): the probe
+    # clears, but the gain's own signature removes no held-out error with confidence (interval
+    # from -0.3 %) and the specificity check calls it the diffuse model's mismatch. The backdrop
+    # around the object, other pixels than the residual's, shows 79 % of the object's change:
+    # the camera's gain. It is named.
+    reason = "exposure: its signature's gain removes no held-out error; not specific"
+    details = {"tested": False, "heldout_reduction": 0.2}
+    pattern = Evidence("specificity", "exposure", math.nan, 0.01, False, reason, details)
+    vetoed = cleared_exposure()
+    vetoed.add(pattern)
+    assert decide(vetoed, DecisionConfig()).status == "vetoed"
+    shown = cleared_exposure()
+    shown.add(pattern)
+    shown.add(Evidence("backdrop", "exposure", 0.79, 0.5, True, "the camera's gain"))
+    decided = decide(shown, DecisionConfig())
+    assert decided.significant and decided.decided_by == "probe"
+    # A backdrop that does not show it vetoes as before.
+    hidden = cleared_exposure()
+    hidden.add(pattern)
+    hidden.add(Evidence("backdrop", "exposure", 0.2, 0.5, False, "the object's own change"))
+    assert decide(hidden, DecisionConfig()).status == "vetoed"
+
+
 @pytest.mark.shared
 def test_the_real_captures_backdrop_reads_an_injected_exposure(shared_captures):
     from recon.config.run_config import DatasetConfig
