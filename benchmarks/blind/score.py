@@ -369,7 +369,7 @@ def with_code_thresholds(records: list[dict]) -> list[dict]:
     """Every case scored with the thresholds in the code today (the shipped calibration)."""
     thresholds = code_thresholds()
     return [
-        score_one(record, thresholds, ["code (recon.diagnose.calibration)"]) for record in records
+        score_one(record, thresholds, ["code (diagnose.decision defaults)"]) for record in records
     ]
 
 
@@ -541,8 +541,8 @@ def markdown(result: dict, provenance: dict) -> str:
         "counting only where its run's own null would let it clear (benchmarks/calibrate.py).",
         "'Leave one world and scene out' calibrates each synthetic world's scene group on the",
         "other world's other scenes only (the real photos as above). The baseline rows use the",
-        "thresholds in the code today (recon.diagnose.calibration, calibrated on the own world's",
-        "torus and spot at 128 px).",
+        "thresholds in the code today (the diagnose.decision defaults, DecisionConfig, calibrated on",
+        "the own world's torus and spot at 128 px).",
         "",
         "Effects a world holds without injecting them are set aside: the path tracer's renders",
         "carry the cast shadows of the scene's sun (`shadows`), real photos the object's light",

@@ -12,8 +12,8 @@ For every candidate effect module (recon.effects), starting from the fitted scen
    effects (exposure of a view the fit never saw) get their per-view parameters from the same
    view's first half; pixel noise cannot carry over between halves, structure does.
 3. Bootstrap over views gives an interval for the held-out reduction; an effect is significant
-   when the interval's lower bound clears the probe's null allowance (recon.diagnose.calibration:
-   what the same probe reaches on clean data).
+   when the interval's lower bound clears the probe's null allowance (config diagnose.decision,
+   recon.config.run_config.DecisionConfig: what the same probe reaches on clean data).
 """
 
 from __future__ import annotations
