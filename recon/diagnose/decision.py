@@ -696,8 +696,11 @@ def _probe_reading(candidate: Candidate) -> str:
     fits the held-out views with ..." (its first four scalar parameters and held-out reduction
     with its interval) where the interval's lower bound is above zero (a measurement the data
     supports but cannot attribute), "; its probe removes nothing beyond noise ..." where it is
-    not, or "" without a measured probe."""
+    not, "; its " + the void where the decision voided it beside a confuser (VOIDED_BESIDE),
+    or "" without a measured probe."""
     probe = candidate.evidence_of("probe")
+    if probe is not None and VOIDED_BESIDE in probe.details:
+        return f"; its {probe.void}"
     if probe is None or not probe.counts:
         return ""
     interval = probe.details.get("interval")

@@ -201,6 +201,15 @@ def test_a_blur_probe_does_not_count_beside_a_lens_the_frames_measured():
     assert [item.name for item in ranking if item.significant] == ["lens_distortion"]
     voided = ranking[1].evidence_of("probe")
     assert not voided.counts and "void beside lens_distortion" in voided.void
+    # Where the data cannot identify the blur anyway, the verdict says so and why its probe
+    # was not counted.
+    unclear = blur_beside_lens(0.01)
+    unclear.add(
+        Evidence("identifiability", "defocus_blur", math.nan, math.nan, False, "a pose explains it")
+    )
+    decided = decide_all([unclear, lens_on_target(2.0)], CONFIG)[1]
+    assert decided.status == "not_identifiable"
+    assert "a pose explains it" in decided.why and "void beside lens_distortion" in decided.why
     # A blur that keeps more than its beyond allowance on top of the lens stays beside it.
     kept = decide_all([blur_beside_lens(0.08), lens_on_target(2.0)], CONFIG)
     assert {item.name for item in kept if item.significant} == {"defocus_blur", "lens_distortion"}
