@@ -131,6 +131,19 @@ def unwrap(
     return uvs.to(device), torch.from_numpy(uv_faces).to(device)
 
 
+# Every xatlas Atlas made through new_atlas: referenced here so that none is destroyed while
+# the process lives (run_without_teardown's child leaves by os._exit; see there).
+_NEVER_DESTROYED: list[Any] = []
+
+
+def new_atlas(xatlas_module: Any) -> Any:
+    """An xatlas Atlas kept alive (never destroyed) for as long as the process runs: create
+    Atlases through this inside run_without_teardown."""
+    atlas = xatlas_module.Atlas()
+    _NEVER_DESTROYED.append(atlas)
+    return atlas
+
+
 def run_without_teardown(function: Callable[..., Any], *arguments: Any) -> Any:
     """function(*arguments) in a forked child process that exits without running destructors;
     its return value (picklable) comes back, and a ReconError it raises is raised here with the
@@ -141,11 +154,16 @@ def run_without_teardown(function: Callable[..., Any], *arguments: Any) -> Any:
     without holding the worker's mutex, so a worker that has just found the flag unset and is
     about to block misses the notification, and the destructor's join never returns (seen under
     load: every thread asleep, the main one in std::thread::join inside xatlas::Destroy). The
-    child computes the layout and leaves by os._exit, so no Atlas is ever destroyed. Where
-    there is no fork (Windows), it runs in this process.
+    child computes the layout with Atlases made by new_atlas, which stay referenced until it
+    leaves by os._exit, so none is ever destroyed (an Atlas local to the function would be freed
+    when it returns, in the child too). Where there is no fork (Windows), it runs in this
+    process and the Atlases are released afterwards, as before.
     """
     if not hasattr(os, "fork"):
-        return function(*arguments)
+        try:
+            return function(*arguments)
+        finally:
+            _NEVER_DESTROYED.clear()
     read_end, write_end = os.pipe()
     child = os.fork()
     if child == 0:  # the child: compute, send, leave without teardown
@@ -196,7 +214,7 @@ def _pack_into_one_atlas(
     """
     resolution = pack_options.resolution
     pack_options.texels_per_unit = 0.0
-    atlas = xatlas_module.Atlas()
+    atlas = new_atlas(xatlas_module)
     atlas.add_mesh(positions, indices)
     atlas.generate(chart_options=chart_options, pack_options=pack_options)
     vertex_mapping, chart_faces, uvs = atlas[0]
@@ -206,7 +224,7 @@ def _pack_into_one_atlas(
     texels = np.ascontiguousarray(uvs * np.array([atlas.width, atlas.height]), dtype=np.float32)
     texels_per_texel = math.sqrt(resolution * resolution / (atlas.width * atlas.height))
     for _ in range(_MAX_PACK_ATTEMPTS):
-        repacked = xatlas_module.Atlas()
+        repacked = new_atlas(xatlas_module)
         # Charts are the connected components of the UV mesh: one per chart of the first pass.
         repacked.add_uv_mesh(texels, chart_faces)
         pack_options.texels_per_unit = texels_per_texel

@@ -174,7 +174,9 @@ def test_unwrap_rejects_bad_input():
 
 
 def _atlas_with_image(positions: np.ndarray, indices: np.ndarray):
-    atlas = xatlas.Atlas()
+    from recon.mesh.uv import new_atlas
+
+    atlas = new_atlas(xatlas)
     atlas.add_mesh(positions, indices)
     options = xatlas.PackOptions()
     options.resolution = 256
@@ -418,3 +420,26 @@ def test_xatlas_runs_in_a_child_that_never_tears_an_atlas_down():
         run_without_teardown(_raise_recon_error)
     with pytest.raises(RuntimeError, match="ValueError: something else"):
         run_without_teardown(_raise_other_error)
+    # The Atlases the layout makes outlive the function in the child (freed on return, their
+    # destructor would run there): the child still holds them when it answers.
+    held = run_without_teardown(_atlases_held_after_unwrap)
+    assert held >= 1
+    assert _atlases_held() == 0  # none was made in this process
+
+
+def _atlases_held() -> int:
+    from recon.mesh import uv
+
+    return len(uv._NEVER_DESTROYED)
+
+
+def _atlases_held_after_unwrap() -> int:
+    from recon.mesh import uv
+
+    verts, faces = torus()
+    pack = xatlas.PackOptions()
+    pack.resolution = 64
+    uv._pack_into_one_atlas(
+        xatlas, verts.numpy(), faces.numpy().astype(np.uint32), xatlas.ChartOptions(), pack
+    )
+    return _atlases_held()
