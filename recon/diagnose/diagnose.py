@@ -296,7 +296,7 @@ def line_target_evidence(
             f"line-target frames' two levels (black {dark_share:g} of white): the response's "
             f"exponent over them is {levels['exponent']:.3f}; its distance from 1 (against the "
             f"larger of the allowance and {z:g} standard errors of "
-            f"{levels['standard_error'] or math.inf:.3f})",
+            f"{math.inf if levels['standard_error'] is None else levels['standard_error']:.3f})",
             {
                 "standard_error": levels["standard_error"],
                 "per_frame": levels["per_frame"],

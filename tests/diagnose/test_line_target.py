@@ -267,3 +267,27 @@ def test_precise_levels_without_a_curve_veto_what_only_the_residual_cleared():
     # A relight split that found a curve over the object's own intensities outweighs them.
     relit = curve_candidate(1.004, 0.002, probe_low=0.5, relight=(0.3, True))
     assert relit.status == "significant"
+
+
+def test_levels_read_exactly_say_so_in_their_reason(monkeypatch):
+    # Noise-free frames that agree exactly: a standard error of 0, not an unknown one.
+    from recon.config.run_config import DiagnoseConfig
+    from recon.diagnose import diagnose
+
+    def measured(frames, intrinsics, dark_share):
+        return {
+            "corner_shift_pixels": 0.01,
+            "standard_error": 0.002,
+            "parameters": {},
+            "straightness_before_pixels": 0.1,
+            "straightness_after_pixels": 0.1,
+            "lines": 30,
+            "frames": 4,
+            "levels": {"exponent": 1.0, "standard_error": 0.0, "per_frame": [1.0] * 4},
+        }
+
+    monkeypatch.setattr(diagnose, "measure_line_target", measured)
+    curve = Candidate("response_curve")
+    diagnose.line_target_evidence([curve], torch.zeros(1), torch.zeros(1), DiagnoseConfig(), 0.1)
+    levels = curve.evidence_of("line_target_levels")
+    assert "standard errors of 0.000" in levels.reason and "inf" not in levels.reason
