@@ -359,6 +359,10 @@ class LineTargetConfig:
         0.1,
         "Radiance of the black stripes as a share of the white ones (the card's printed contrast, known from its data sheet): the diagnosis reads the camera's response curve off the two levels.",
     )
+    contrast_tolerance: float = setting(
+        0.02,
+        "How well dark_share is known, as a share of it (the card's data sheet: a printed card's contrast is known to a few per cent; 0 for a card whose contrast is exact, as data_synth renders it). It moves the response's exponent over the two levels by up to contrast_tolerance / ln(1 / dark_share), the least the diagnosis requires before the levels name a response curve.",
+    )
     tilt_deg: float = setting(
         20.0, "Largest tilt of the card away from facing the camera, per axis, in degrees."
     )
@@ -373,6 +377,7 @@ class LineTargetConfig:
         check_range(self.radiance, "radiance", low=1e-3, high=1.0)
         check_range(self.tilt_deg, "tilt_deg", low=0.0, high=60.0)
         check_range(self.dark_share, "dark_share", low=1e-3, high=0.5)
+        check_range(self.contrast_tolerance, "contrast_tolerance", low=0.0, high=0.5)
         check_range(self.supersampling, "supersampling", low=1, high=16)
 
 
@@ -916,8 +921,8 @@ class DecisionConfig:
         "Displacement at the image corners, in pixels, that the line-target frames' straightened lines must show for them to name a lens distortion (below it no lens is named, whatever its significance).",
     )
     line_target_levels_allowance: float = setting(
-        0.03,
-        "How far from 1 the response's exponent over the line target's two levels must be for them to name a response curve (a card's printed contrast known to 2 % moves the exponent by 0.009).",
+        0.001,
+        "The least distance from 1 of the response's exponent over the line target's two levels for them to name a response curve, whatever the card: a guard on reading the levels off the plateaus between the stripes' edges (data_synth's exact card reads within line_target_z standard errors of 1 through every other effect; decision 0229). The card's own contrast tolerance (capture.line_target.contrast_tolerance) and the frames' standard errors raise it.",
     )
     line_target_z: float = setting(
         4.0,

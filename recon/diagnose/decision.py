@@ -39,11 +39,12 @@ lobe          clear         the view-to-view residual (training and held-out vie
                             highlight's lobe under the fitted light beyond placebo lights
                             (recon.diagnose.lobe); ranks after clearing residual evidence
 line_target_  clear         the response's exponent over the line target's two known levels
-levels                      further from 1 than its allowance and line_target_z standard
-                            errors over the frames (measured on other data: independent);
-                            read precisely within the allowance, it vetoes what only the
-                            held-out residual cleared (no curve over the card's levels), unless
-                            a relight split found one
+levels                      further from 1 than its allowance (the larger of the config's and
+                            the card's contrast tolerance's) and line_target_z standard errors
+                            over the frames (measured on other data: independent); read
+                            so precisely that no curve the relight split could name fits it,
+                            it vetoes what the held-out residual or the relight split cleared
+                            (the card measures the camera on known radiances)
 relight_lobe  clear         the same lobe test on the relight split under its known light
                             (recon.diagnose.lobe); measured on other data (independent)
 cast_shadow   clear         the relight split's residual is darker where the fitted mesh
@@ -133,7 +134,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any, Literal
 
-from recon.config.run_config import DecisionConfig, DiagnoseConfig
+from recon.config.run_config import DecisionConfig, DiagnoseConfig, LineTargetConfig
 from recon.diagnose.geometric_judgement import (
     BEYOND,
     beyond_confusers,
@@ -142,6 +143,7 @@ from recon.diagnose.geometric_judgement import (
     with_edges_favour,
 )
 from recon.diagnose.identifiability import judge_expected_share
+from recon.diagnose.line_target import card_exponent_allowance
 from recon.diagnose.records import Candidate, Diagnosis, Evidence
 from recon.effects.registry import diagnosis_facts
 
@@ -267,6 +269,11 @@ class Rule:
         data of its own and found none, the reason it vetoes whatever other row cleared the
         candidate (None: it does not contradict them). Relight: a tone curve shows only under
         a second light, so a relight split without one overrules a held-out probe.
+    outweighs_independent: whether its contradiction also stands against another independent
+        row that cleared the candidate (else such a row, measured on other data, overrules
+        it): for a row that measures the camera itself on known radiances, where the other
+        infers the effect through the fitted model (the card's levels against the relight
+        split).
     """
 
     kind: str
@@ -281,6 +288,7 @@ class Rule:
     revise: Callable[[Evidence, DecisionConfig], Evidence] | None = None
     outlives_null: bool = False
     contradicts: Callable[[Evidence], str | None] | None = None
+    outweighs_independent: bool = False
 
 
 def _rejudge_geometric(evidence: Evidence, config: DecisionConfig) -> Evidence:
@@ -303,7 +311,7 @@ def _rejudge_expected_share(evidence: Evidence, config: DecisionConfig) -> Evide
     )
 
 
-def _judged_beyond_its_errors(allowance: Callable[[DecisionConfig], float]):
+def _judged_beyond_its_errors(allowance: Callable[[Evidence, DecisionConfig], float]):
     """Rule.revise for a measurement on calibration frames that carries its own standard error
     (details["standard_error"]; None: unknown): the statistic must clear the larger of the
     allowance and line_target_z standard errors (a null from the run: noisy or blurred frames
@@ -313,29 +321,70 @@ def _judged_beyond_its_errors(allowance: Callable[[DecisionConfig], float]):
     def judge(evidence: Evidence, config: DecisionConfig) -> Evidence:
         error = evidence.details.get("standard_error")
         spread = config.line_target_z * (math.inf if error is None else float(error))
-        threshold = max(allowance(config), spread)
+        least = allowance(evidence, config)
+        threshold = max(least, spread)
         return replace(
             evidence,
             threshold=threshold,
             passed=bool(evidence.statistic > threshold),
-            details={**evidence.details, "precise": bool(spread < allowance(config))},
+            details={**evidence.details, "precise": bool(spread <= least)},
         )
 
     return judge
 
 
+def _levels_allowance(evidence: Evidence, config: DecisionConfig) -> float:
+    """Row line_target_levels' allowance: the larger of the config's least one and what the
+    card's recorded contrast tolerance lets a linear camera read (evidence from before the card
+    was recorded: the default card's)."""
+    card = LineTargetConfig()
+    dark_share = float(evidence.details.get("dark_share", card.dark_share))
+    tolerance = float(evidence.details.get("contrast_tolerance", card.contrast_tolerance))
+    return max(config.line_target_levels_allowance, card_exponent_allowance(dark_share, tolerance))
+
+
+def _levels_judged(evidence: Evidence, config: DecisionConfig) -> Evidence:
+    """Row line_target_levels judged again: beyond its errors and the card's allowance
+    (_judged_beyond_its_errors), and whether the reading excludes every curve the relight split
+    could name (details["precise"]): its distance from 1 plus line_target_z standard errors plus
+    what the card's contrast leaves unknown (details["upper_bound"]) within the relight split's
+    least compression (relight_allowance, the same exponent's distance from 1 under a power
+    curve). A reading that excludes them says "no curve there", not "too noisy to tell"."""
+    judged = _judged_beyond_its_errors(_levels_allowance)(evidence, config)
+    error = evidence.details.get("standard_error")
+    card = _levels_allowance(evidence, replace(config, line_target_levels_allowance=0.0))
+    bound = (
+        evidence.statistic + config.line_target_z * (math.inf if error is None else error) + card
+    )
+    return replace(
+        judged,
+        details={
+            **judged.details,
+            "upper_bound": round(bound, 5) if math.isfinite(bound) else None,
+            "precise": bool(bound <= config.relight_allowance),
+        },
+    )
+
+
 def _levels_show_no_curve(evidence: Evidence) -> str | None:
     """Row line_target_levels' contradiction: the card's two levels, read precisely, keep
     their printed ratio (the exponent within its allowance of 1): over that range the camera
-    has no curve, and what the held-out residual cleared is the fit's own misfit. (A relight
-    split that found a curve over the object's own intensities outweighs it.)"""
+    has no curve, and what the held-out residual or the relight split cleared is the fit's own
+    misfit (Rule.outweighs_independent: the card measures the camera on two known radiances;
+    the relight split infers a curve through the fitted surface's shading ratio, which
+    unmodelled shadows and a pose error bend too). The card speaks for the range between its
+    levels only: a curve that bends only beyond them is not contradicted by it in fact, which
+    a card spanning the object's intensities avoids."""
     if evidence.passed or not evidence.details.get("precise", False):
         return None
     gamma = (evidence.details.get("parameters") or {}).get("effective_gamma")
+    bound = evidence.details.get("upper_bound")
     measured = f" (exponent {gamma:.3f})" if gamma is not None else ""
+    excluded = f", no curve beyond {bound:.4f} of 1" if bound is not None else ""
     return (
-        f"the line target's two levels keep their printed ratio{measured}: the camera shows no "
-        "response curve over them; what the held-out residual removed is the fit's own misfit"
+        f"the line target's two levels keep their printed ratio{measured}{excluded}: the camera "
+        "shows no response curve over them; what the held-out residual or the relight split "
+        "removed is the fit's own misfit"
     )
 
 
@@ -378,7 +427,7 @@ DECISION_TABLE: tuple[Rule, ...] = (
         parameters_from=("line_target",),
         independent=True,
         outlives_null=True,
-        revise=_judged_beyond_its_errors(lambda config: config.line_target_allowance),
+        revise=_judged_beyond_its_errors(lambda evidence, config: config.line_target_allowance),
     ),
     Rule(
         "probe",
@@ -420,7 +469,8 @@ DECISION_TABLE: tuple[Rule, ...] = (
         independent=True,
         outlives_null=True,
         contradicts=_levels_show_no_curve,
-        revise=_judged_beyond_its_errors(lambda config: config.line_target_levels_allowance),
+        revise=_levels_judged,
+        outweighs_independent=True,
     ),
     Rule(
         BEYOND,
@@ -632,7 +682,8 @@ def decide(candidate: Candidate, config: DecisionConfig) -> Candidate:
         vetoes += [
             item
             for item in _contradictions(candidate, deciding)
-            if not any(other.kind != item.kind for other in independent)
+            if RULES[item.kind].outweighs_independent
+            or not any(other.kind != item.kind for other in independent)
         ]
     if vetoes and status == "significant":
         status, why = "vetoed", vetoes[0].reason

@@ -16,7 +16,7 @@ from pathlib import Path
 import torch
 
 from recon.config import to_dict
-from recon.config.run_config import DiagnoseConfig, RunConfig
+from recon.config.run_config import DiagnoseConfig, LineTargetConfig, RunConfig
 from recon.diagnose.absorption import AbsorptionCache, AbsorptionInputs, absorption_probes
 from recon.diagnose.data import (
     DiagnosisData,
@@ -30,7 +30,7 @@ from recon.diagnose.fingerprint import visibility_fingerprint
 from recon.diagnose.flat_field import measure_flat_field
 from recon.diagnose.gap import gap_summary, noise_floor, relight_gap
 from recon.diagnose.how_far import RefitBaseline, RefitInputs, how_far, relight_exponent
-from recon.diagnose.line_target import measure_line_target
+from recon.diagnose.line_target import card_exponent_allowance, measure_line_target
 from recon.diagnose.producers import PRODUCERS, EvidenceInputs, gather
 from recon.diagnose.records import Candidate, Diagnosis, Evidence
 from recon.diagnose.relight_probe import relight_response_probe
@@ -256,12 +256,14 @@ def line_target_evidence(
     frames: torch.Tensor,
     intrinsics: torch.Tensor,
     settings: DiagnoseConfig,
-    dark_share: float | None = None,
+    card: LineTargetConfig | None = None,
 ) -> dict:
     """The line-target frames' lens distortion (recon.diagnose.line_target), recorded on the
     candidates its facts apply to (it overrules their residual evidence either way), and, with
-    the card's dark_share, the response's exponent over its two levels (evidence
-    line_target_levels: it clears a response curve like a relight split does)."""
+    the card's specification (its dark_share and contrast_tolerance), the response's exponent
+    over its two levels (evidence line_target_levels: it clears a response curve like a relight
+    split does, and its allowance grows with what the card's contrast leaves unknown)."""
+    dark_share = None if card is None else card.dark_share
     measurement = measure_line_target(frames, intrinsics, dark_share)
     measurement["allowance"] = settings.decision.line_target_allowance
     z = settings.decision.line_target_z
@@ -288,18 +290,22 @@ def line_target_evidence(
         settings,
     )
     levels = measurement.get("levels")
-    if levels and levels["exponent"] is not None:
+    if card is not None and levels and levels["exponent"] is not None:
+        card_allowance = card_exponent_allowance(card.dark_share, card.contrast_tolerance)
         record_measurement(
             candidates,
             "line_target_levels",
             round(abs(1.0 - levels["exponent"]), 5),
-            f"line-target frames' two levels (black {dark_share:g} of white): the response's "
-            f"exponent over them is {levels['exponent']:.3f}; its distance from 1 (against the "
-            f"larger of the allowance and {z:g} standard errors of "
-            f"{math.inf if levels['standard_error'] is None else levels['standard_error']:.3f})",
+            f"line-target frames' two levels (black {card.dark_share:g} of white, known to "
+            f"{100 * card.contrast_tolerance:g} %): the response's exponent over them is "
+            f"{levels['exponent']:.3f}; its distance from 1 (against the largest of the "
+            f"allowance, the card's {card_allowance:.4f} and {z:g} standard errors of "
+            f"{math.inf if levels['standard_error'] is None else levels['standard_error']:.4f})",
             {
                 "standard_error": levels["standard_error"],
                 "per_frame": levels["per_frame"],
+                "dark_share": card.dark_share,
+                "contrast_tolerance": card.contrast_tolerance,
                 "parameters": {"effective_gamma": levels["exponent"]},
             },
             settings,
@@ -452,7 +458,7 @@ def which(
                 ranked,
                 *inputs.line_target,
                 settings,
-                inputs.config.capture.line_target.dark_share,
+                inputs.config.capture.line_target,
             )
         except ReconError as error:
             gap["line_target_error"] = str(error)

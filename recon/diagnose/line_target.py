@@ -194,6 +194,15 @@ def _plateau_ratio(image: np.ndarray) -> float:
     return float((image[dark] / (design(columns[dark], rows[dark]) @ white)).mean())
 
 
+def card_exponent_allowance(dark_share: float, contrast_tolerance: float) -> float:
+    """How far from 1 a linear camera's exponent over the card's two levels can read when the
+    card's true contrast is dark_share within a relative contrast_tolerance: a black level of
+    dark_share (1 + e) reads k = 1 + ln(1 + e) / ln(dark_share), largest for e = -tolerance."""
+    if contrast_tolerance <= 0.0:
+        return 0.0
+    return -math.log1p(-contrast_tolerance) / -math.log(dark_share)
+
+
 def level_exponents(frames: torch.Tensor, dark_share: float) -> list[float]:
     """Per frame of frames [N, H, W, 3] (linear): the exponent k of the camera's response over
     the card's two levels, observed black / white = dark_share^k (1: linear; a frame whose

@@ -4,6 +4,7 @@ the decision table."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
@@ -18,7 +19,7 @@ from recon.config.run_config import (
     LineTargetConfig,
 )
 from recon.diagnose.decision import decide
-from recon.diagnose.line_target import measure_line_target
+from recon.diagnose.line_target import card_exponent_allowance, measure_line_target
 from recon.diagnose.records import Candidate, Evidence
 from recon.errors import ReconError
 
@@ -185,8 +186,24 @@ def test_levels_and_falloffs_keep_the_cards_ratio(name):
         else [EffectConfig("defocus_blur", {"radius_px": 1.5})]
     )
     result = measured_levels(effects)
-    assert abs(1 - result["exponent"]) < CONFIG.line_target_levels_allowance, result
+    # data_synth's card is exact: only the reading's guard and its standard errors allow for
+    # a distance from 1.
+    error = result["standard_error"]
+    bar = max(CONFIG.line_target_levels_allowance, CONFIG.line_target_z * (error or math.inf))
+    assert abs(1 - result["exponent"]) <= bar, result
     assert len(result["per_frame"]) >= 3
+
+
+@pytest.mark.parametrize("off_by", [-0.02, 0.02])
+def test_a_card_off_its_data_sheet_reads_within_the_cards_allowance(off_by):
+    """A card printed 2 % off the contrast its data sheet states, read with the stated one,
+    moves the exponent by up to card_exponent_allowance(0.1, 0.02), and not by more."""
+    printed = replace(CAPTURE, line_target=LineTargetConfig(views=4, dark_share=0.1 * (1 + off_by)))
+    capture, _, _ = line_target_capture(printed, [], 0)
+    result = measure_line_target(capture.images.double(), capture.cameras.intrinsics, 0.1)
+    allowance = card_exponent_allowance(0.1, 0.02)
+    assert 0.5 * allowance < abs(1 - result["levels"]["exponent"]) <= allowance + 1e-6, result
+    assert card_exponent_allowance(0.1, 0.0) == 0.0
 
 
 def test_a_blur_as_wide_as_the_stripes_leaves_no_level_to_read():
@@ -211,7 +228,9 @@ def measured_levels(effects: list[EffectConfig], seed: int = 0) -> dict:
     return measure_line_target(capture.images.double(), capture.cameras.intrinsics, 0.1)["levels"]
 
 
-def curve_candidate(exponent: float, error: float, probe_low: float, relight=None) -> Candidate:
+def curve_candidate(
+    exponent: float, error: float, probe_low: float, relight=None, card: dict | None = None
+) -> Candidate:
     candidate = Candidate("response_curve")
     candidate.add(
         Evidence(
@@ -245,7 +264,7 @@ def curve_candidate(exponent: float, error: float, probe_low: float, relight=Non
             math.nan,
             False,
             "levels",
-            {"standard_error": error, "parameters": {"effective_gamma": exponent}},
+            {"standard_error": error, "parameters": {"effective_gamma": exponent}, **(card or {})},
         )
     )
     return decide(candidate, CONFIG)
@@ -264,9 +283,30 @@ def test_precise_levels_without_a_curve_veto_what_only_the_residual_cleared():
     assert misfit.status == "vetoed" and "printed ratio" in misfit.why
     # Imprecise levels say nothing against it.
     assert curve_candidate(1.004, 0.05, probe_low=0.5).status == "significant"
-    # A relight split that found a curve over the object's own intensities outweighs them.
+    # The card measures the camera on two known radiances; a relight split infers a curve
+    # through the fitted surface's shading, which shadows and a pose error bend too: precise
+    # levels outweigh it, imprecise ones leave its verdict standing.
     relit = curve_candidate(1.004, 0.002, probe_low=0.5, relight=(0.3, True))
-    assert relit.status == "significant"
+    assert relit.status == "vetoed" and "printed ratio" in relit.why
+    assert curve_candidate(1.004, 0.05, probe_low=0.5, relight=(0.3, True)).status == "significant"
+
+
+def test_the_cards_contrast_tolerance_sets_the_levels_allowance():
+    """The same reading (exponent 1.004, frames agreeing to 0.0002) is a curve on an exact card
+    and within what a card known to 2 % leaves unknown (allowance 0.0088)."""
+    exact = {"dark_share": 0.1, "contrast_tolerance": 0.0}
+    printed = {"dark_share": 0.1, "contrast_tolerance": 0.02}
+    found = curve_candidate(1.004, 0.0002, probe_low=-0.01, card=exact)
+    assert found.status == "significant" and found.decided_by == "line_target_levels"
+    within = curve_candidate(1.004, 0.0002, probe_low=0.5, card=printed)
+    assert within.status == "vetoed" and "printed ratio" in within.why
+    # 0.004 + 4 standard errors (0.0008) + the card's 0.0088: within the relight split's least.
+    assert "no curve beyond 0.0136 of 1" in within.why
+    assert within.evidence_of("line_target_levels").threshold == pytest.approx(
+        card_exponent_allowance(0.1, 0.02)
+    )
+    # An exactly linear reading on an exact card is precise, and vetoes.
+    assert curve_candidate(1.0, 0.0, probe_low=0.5, card=exact).status == "vetoed"
 
 
 def test_levels_read_exactly_say_so_in_their_reason(monkeypatch):
@@ -288,6 +328,10 @@ def test_levels_read_exactly_say_so_in_their_reason(monkeypatch):
 
     monkeypatch.setattr(diagnose, "measure_line_target", measured)
     curve = Candidate("response_curve")
-    diagnose.line_target_evidence([curve], torch.zeros(1), torch.zeros(1), DiagnoseConfig(), 0.1)
+    card = LineTargetConfig(views=4, contrast_tolerance=0.02)
+    diagnose.line_target_evidence([curve], torch.zeros(1), torch.zeros(1), DiagnoseConfig(), card)
     levels = curve.evidence_of("line_target_levels")
-    assert "standard errors of 0.000" in levels.reason and "inf" not in levels.reason
+    assert "standard errors of 0.0000" in levels.reason and "inf" not in levels.reason
+    # The card's specification travels with the evidence, so a stored diagnosis decides again.
+    assert levels.details["dark_share"] == 0.1 and levels.details["contrast_tolerance"] == 0.02
+    assert "known to 2 %" in levels.reason and "the card's 0.0088" in levels.reason
