@@ -29,7 +29,10 @@ relight       clear         the same for the relight split's probe; for an effec
                             else cleared (the split shows no curve)
 beyond_       clear         a geometric probe's least reduction on top of each confuser's
 confusers                   probe above its allowance (derived again at every decision from
-                            the specificity records; recon.diagnose.geometric_judgement)
+                            the specificity records; recon.diagnose.geometric_judgement); for
+                            an effect no confuser can imitate (DiagnosisFacts.
+                            distinct_from_confusers: a pose error), a least lower bound not
+                            above 0 vetoes what its probe cleared
 agreement     clear         a per-view colour gain shared by separate halves of each view
                             above its allowance, beyond permuted views (recon.diagnose.agreement);
                             its halves split the image position, intensity, n.h and n.v, so a
@@ -408,6 +411,23 @@ def _relight_shows_no_curve(evidence: Evidence) -> str | None:
     )
 
 
+def _nothing_beyond_confusers(evidence: Evidence) -> str | None:
+    """Row beyond_confusers' contradiction, for an effect distinct from its confusers
+    (DiagnosisFacts.distinct_from_confusers: a pose error): what its probe removed, one
+    confuser's probe removes as well (the least lower bound of what it keeps on top of one is
+    not above 0), so its probe fitted the silhouettes' misfit that any warp or blur reduces,
+    not a turn of the camera, which no confuser can imitate."""
+    facts = diagnosis_facts(evidence.candidate)
+    if facts is None or not facts.distinct_from_confusers or evidence.statistic > 0:
+        return None
+    confuser = evidence.details.get("confuser", "a confuser")
+    return (
+        f"on top of {confuser}'s probe it removes nothing with confidence (lower bound "
+        f"{100 * evidence.statistic:.1f} %): its probe removed the fit's own misfit, which "
+        f"{confuser} removes as well and a real {evidence.candidate} would not leave"
+    )
+
+
 DECISION_TABLE: tuple[Rule, ...] = (
     Rule(
         "flat_field",
@@ -480,6 +500,7 @@ DECISION_TABLE: tuple[Rule, ...] = (
         threshold=beyond_threshold,
         passes=_lower_bound_clears,
         parameters_from=("gain", "probe"),
+        contradicts=_nothing_beyond_confusers,
     ),
     Rule(
         "agreement",

@@ -49,6 +49,12 @@ class DiagnosisFacts:
         candidate whose signature removes no held-out error did not remove its error through
         it, whatever the light, and fails specificity. (Light-transport effects carry gain
         signatures too, but their evidence is their fingerprint: False.)
+    distinct_from_confusers: its image change is none of its confusers' in any strength (a
+        per-view rigid turn of the camera is no radial warp and no blur), so a real one removes
+        held-out error on top of each confuser's probe; a probe whose reduction one confuser's
+        probe removes as well (the least lower bound on top of one, row beyond_confusers, not
+        above 0) removed the fit's own misfit that any warp removes, and is vetoed. (The two
+        blurs are not: a short motion blur is nearly a small defocus.)
     """
 
     family: Family
@@ -63,3 +69,4 @@ class DiagnosisFacts:
     identifiable_when: str = ""
     modelled_by: tuple[str, ...] = ()
     gain_signature: bool = False
+    distinct_from_confusers: bool = False

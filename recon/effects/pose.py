@@ -75,6 +75,7 @@ class PoseError(ModelEffect):
         probe_frozen=("translation",),
         confusable=("lens_distortion", "motion_blur"),
         identifiable_when="texture or silhouette edges in every view",
+        distinct_from_confusers=True,
     )
     stage = "camera"
     per_view = True

@@ -156,6 +156,37 @@ def test_a_pose_error_below_the_probe_bar_clears_beyond_its_confusers():
     assert check.passed and not check.details.get("not_judged")
 
 
+# Allowances of a calibration on another world whose clean fits leave little to turn (the own
+# world's clean pose probes set the pose bar at 2 %): the clean teapot's pose probe clears it,
+# its motion blur probe does not clear the blur's bar.
+LOW_BAR = DecisionConfig(
+    probe_allowance={**CONFIG.probe_allowance, "pose_error": 0.02},
+    beyond_confusers_allowance=CONFIG.beyond_confusers_allowance,
+)
+
+
+def test_a_pose_probe_that_keeps_nothing_beyond_a_confuser_is_vetoed():
+    """A turn of the camera is no warp or blur: a real one keeps something on top of each
+    confuser's probe. The clean teapot's keeps a lower bound of -3.1 % on top of the motion
+    blur's, so its probe clearing a low bar is the fit's silhouette misfit."""
+    decided = decide(geometric("pose_error", (0.105, 0.044), CLEAN_TEAPOT_POSE), LOW_BAR)
+    assert decided.evidence_of("probe").passed
+    assert not decided.significant and decided.status == "vetoed"
+    assert "on top of motion_blur's probe it removes nothing" in decided.why
+    # A real pose error keeps 12.5 % on top of the same confuser: significant under either bar.
+    assert decide(geometric("pose_error", (0.263, 0.168), BUNNY_POSE), LOW_BAR).significant
+    # Not for a motion blur, which a defocus can nearly imitate: the same records seen from the
+    # blur's side (it keeps -1.7 % on top of the pose probe) leave its probe's verdict standing.
+    blur_bar = DecisionConfig(
+        probe_allowance={**CONFIG.probe_allowance, "motion_blur": 0.02},
+        beyond_confusers_allowance=CONFIG.beyond_confusers_allowance,
+    )
+    blur = decide(
+        geometric("motion_blur", (0.097, 0.070), [swapped(CLEAN_TEAPOT_POSE[0])]), blur_bar
+    )
+    assert blur.evidence_of(BEYOND).statistic < 0 and blur.significant
+
+
 def test_a_failed_null_blocks_the_beyond_row_too():
     decided = decide(geometric("pose_error", (0.263, 0.168), BUNNY_POSE, null_passed=False), CONFIG)
     assert decided.evidence_of(BEYOND).passed
