@@ -266,6 +266,24 @@ def diagnose_blind(
     return write_outputs(records, out) if records else {"fitted_cases": len(cases)}
 
 
+def stored_cases(cases: list, out: Path) -> tuple[list[dict], list[dict]]:
+    """The stored records of cases (benchmarks.blind.cases.BlindCase) under out, and a note for
+    each case without one. Stored evidence is all a score needs: the scenes' inputs (../shared)
+    may be absent where the cases were collected elsewhere."""
+    from benchmarks.blind.cases import missing_inputs
+    from benchmarks.blind.collect import finished_case
+
+    collected, skipped = [], []
+    for case in cases:
+        stored = finished_case(case, out)
+        if stored is None:
+            reason = missing_inputs(case.scene) or "not collected (--score-only)"
+            skipped.append({"case": case.to_json(), "reason": reason})
+        else:
+            collected.append(stored)
+    return collected, skipped
+
+
 def diagnose_blind_worlds(
     config_path: str | Path,
     out: str | Path,
@@ -304,7 +322,6 @@ def diagnose_blind_worlds(
         RealOptions,
         collect_real,
         collect_synthetic,
-        finished_case,
     )
     from benchmarks.blind.score import score_and_write
     from benchmarks.calibrate import calibration_record
@@ -322,17 +339,13 @@ def diagnose_blind_worlds(
     if count > 1:
         cases, collect_only = cases[index::count], True
     collected, skipped = [], []
+    if score_only:
+        collected, skipped = stored_cases(cases, out)
+        cases = []
     for case in tqdm(cases, desc="diagnose-blind", unit="case"):
         reason = missing_inputs(case.scene)
         if reason:
             skipped.append({"case": case.to_json(), "reason": reason})
-            continue
-        if score_only:
-            stored = finished_case(case, out)
-            if stored is None:
-                skipped.append({"case": case.to_json(), "reason": "not collected (--score-only)"})
-            else:
-                collected.append(stored)
             continue
         try:
             if case.world == "real":

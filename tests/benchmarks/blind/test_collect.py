@@ -92,3 +92,21 @@ def test_a_copied_benchmark_folder_is_scored_from_itself(tmp_path):
     record = finished_case(case, tmp_path / "copy")
     assert record["run_folder"] == str(folder)
     assert record["truth_file"] == str(truth_path(tmp_path / "copy", case))
+
+
+def test_a_score_reads_stored_cases_whose_scene_inputs_are_absent(tmp_path, monkeypatch):
+    """--score-only needs the stored evidence only: cases collected where ../shared was, scored
+    where it is not, are read; a case never collected is noted with why it could not be."""
+    from benchmarks.blind import cases as blind_cases
+    from benchmarks.diagnose_blind import stored_cases
+
+    monkeypatch.setattr(blind_cases, "missing_inputs", lambda scene: "../shared/meshes absent")
+    stored = BlindCase("own", "spot", ("exposure",), 0)
+    folder = tmp_path / "cases" / stored.folder_name
+    folder.mkdir(parents=True)
+    (folder / "diagnosis.json").write_text("{}")
+    (folder / "bench_case.json").write_text("{}")
+    absent = BlindCase("own", "spot", ("exposure",), 1)
+    collected, skipped = stored_cases([stored, absent], tmp_path)
+    assert [record["run_folder"] for record in collected] == [str(folder)]
+    assert skipped == [{"case": absent.to_json(), "reason": "../shared/meshes absent"}]
