@@ -361,7 +361,7 @@ class LineTargetConfig:
     )
     contrast_tolerance: float = setting(
         0.02,
-        "How well dark_share is known, as a share of it (the card's data sheet: a printed card's contrast is known to a few per cent; 0 for a card whose contrast is exact, as data_synth renders it). It moves the response's exponent over the two levels by up to contrast_tolerance / ln(1 / dark_share), the least the diagnosis requires before the levels name a response curve.",
+        "How well dark_share is known, as a share of it (the card's data sheet: a printed card's contrast is known to a few per cent; 0 for a card whose contrast is exact, as data_synth renders it). It moves the response's exponent over the two levels by up to -ln(1 - contrast_tolerance) / ln(1 / dark_share) (0.0088 for 0.02 at 0.1), the least distance from 1 the diagnosis requires before the levels name a response curve.",
     )
     tilt_deg: float = setting(
         20.0, "Largest tilt of the card away from facing the camera, per axis, in degrees."

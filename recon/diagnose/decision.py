@@ -370,14 +370,15 @@ def _levels_judged(evidence: Evidence, config: DecisionConfig) -> Evidence:
 
 
 def _levels_show_no_curve(evidence: Evidence) -> str | None:
-    """Row line_target_levels' contradiction: the card's two levels, read precisely, keep
-    their printed ratio (the exponent within its allowance of 1): over that range the camera
-    has no curve, and what the held-out residual or the relight split cleared is the fit's own
-    misfit (Rule.outweighs_independent: the card measures the camera on two known radiances;
-    the relight split infers a curve through the fitted surface's shading ratio, which
-    unmodelled shadows and a pose error bend too). The card speaks for the range between its
-    levels only: a curve that bends only beyond them is not contradicted by it in fact, which
-    a card spanning the object's intensities avoids."""
+    """Row line_target_levels' contradiction: the card's two levels keep their printed ratio
+    so precisely that no curve the relight split could name fits the reading
+    (details["precise"], _levels_judged): over that range the camera has no curve, and what the
+    held-out residual or the relight split cleared is the fit's own misfit
+    (Rule.outweighs_independent: the card measures the camera on two known radiances; the
+    relight split infers a curve through the fitted surface's shading ratio, which unmodelled
+    shadows and a pose error bend too). The card speaks for the range between its levels only:
+    a curve that bends only beyond them is vetoed wrongly, which a card whose white reaches the
+    object's highlights avoids."""
     if evidence.passed or not evidence.details.get("precise", False):
         return None
     gamma = (evidence.details.get("parameters") or {}).get("effective_gamma")
