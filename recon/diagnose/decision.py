@@ -330,20 +330,24 @@ def _judged_beyond_its_errors(allowance: Callable[[Evidence, DecisionConfig], fl
             evidence,
             threshold=threshold,
             passed=bool(evidence.statistic > threshold),
-            details={**evidence.details, "precise": bool(spread <= least)},
+            details={**evidence.details, "precise": bool(spread < least)},
         )
 
     return judge
 
 
-def _levels_allowance(evidence: Evidence, config: DecisionConfig) -> float:
-    """Row line_target_levels' allowance: the larger of the config's least one and what the
-    card's recorded contrast tolerance lets a linear camera read (evidence from before the card
-    was recorded: the default card's)."""
+def _card_allowance(evidence: Evidence) -> float:
+    """How far from 1 the card's recorded contrast tolerance lets a linear camera read on row
+    line_target_levels (evidence from before the card was recorded: the default card's)."""
     card = LineTargetConfig()
     dark_share = float(evidence.details.get("dark_share", card.dark_share))
     tolerance = float(evidence.details.get("contrast_tolerance", card.contrast_tolerance))
-    return max(config.line_target_levels_allowance, card_exponent_allowance(dark_share, tolerance))
+    return card_exponent_allowance(dark_share, tolerance)
+
+
+def _levels_allowance(evidence: Evidence, config: DecisionConfig) -> float:
+    """Row line_target_levels' allowance: the larger of the config's least one and the card's."""
+    return max(config.line_target_levels_allowance, _card_allowance(evidence))
 
 
 def _levels_judged(evidence: Evidence, config: DecisionConfig) -> Evidence:
@@ -355,10 +359,8 @@ def _levels_judged(evidence: Evidence, config: DecisionConfig) -> Evidence:
     curve). A reading that excludes them says "no curve there", not "too noisy to tell"."""
     judged = _judged_beyond_its_errors(_levels_allowance)(evidence, config)
     error = evidence.details.get("standard_error")
-    card = _levels_allowance(evidence, replace(config, line_target_levels_allowance=0.0))
-    bound = (
-        evidence.statistic + config.line_target_z * (math.inf if error is None else error) + card
-    )
+    spread = config.line_target_z * (math.inf if error is None else float(error))
+    bound = evidence.statistic + spread + _card_allowance(evidence)
     return replace(
         judged,
         details={
